@@ -1,0 +1,468 @@
+"""Volume and projection-stack files: NIfTI (.nii, .nii.gz) and MetaImage (.mha, .mhd).
+
+This module is the file boundary of DESIGN.md. In memory, volumes live in the world frame
+(DICOM/ITK LPS) on axis-aligned grids (:class:`~recon.volume.Volume`). On disk, NIfTI stores
+RAS: SimpleITK's NIfTI writer and reader negate x and y (``x_RAS = -x_LPS``,
+``y_RAS = -y_LPS``) in the sform/qform, so LPS never leaks into RAS or back; the tests check
+the written header bytes. A file whose axes are a signed permutation of the world axes (e.g. a
+NIfTI saved in RAS orientation by another tool) is reoriented on read by flipping/transposing
+the array, so the returned grid has identity direction and every voxel keeps its world
+position. Oblique files are refused.
+
+The volume's unit is stored in ITK's ``ITK_FileNotes`` metadata key: MetaImage writes it as a
+header line ``ITK_FileNotes = dualarm-cbct unit=1/mm``, and ITK's NIfTI writer puts it in the
+80-character ``descrip`` field (ITK ignores ``descrip`` and ``intent_name`` keys on write).
+
+Projection stacks (line integrals, float32, indexed ``(views, rows, cols)``) are written as
+MetaImage 3-D images the way RTK reads them: size (cols, rows, views), spacing
+(pitch_u, pitch_v, 1) and origin (u0, v0, 0), where (u0, v0) mm is the centre of pixel
+(row 0, col 0) in the detector plane. RTK places its detector frame origin on the panel's
+centre for centred panels, hence the default origin ``u0 = -(cols - 1) / 2 * pitch``,
+``v0 = -(rows - 1) / 2 * pitch``. NIfTI is refused for projections: its RAS flip would negate
+the (u, v) origin.
+
+Every failure raises before any long work, with the file path and what is wrong:
+:class:`FileNotFoundError` for a missing file, :class:`ImageFileError` (an :class:`OSError`)
+for a file that cannot be read or is truncated, :class:`ValueError` for valid files with the
+wrong content and for bad arguments.
+"""
+
+from __future__ import annotations
+
+import gzip
+import math
+import re
+import zlib
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import SimpleITK as sitk
+
+from recon.geometry import DetectorSpec
+from recon.rtk_xml import centered_origin_uv_mm
+from recon.volume import Unit, Volume, VolumeGrid
+
+VOLUME_SUFFIXES = (".nii.gz", ".nii", ".mha", ".mhd")
+"""File name endings :func:`write_volume` and :func:`read_volume` accept."""
+
+PROJECTION_SUFFIXES = (".mha", ".mhd")
+"""File name endings :func:`write_projections` and :func:`read_projections` accept."""
+
+NOTES_KEY = "ITK_FileNotes"
+"""ITK metadata key holding the unit; NIfTI's ``descrip`` field, a MetaImage header line."""
+
+_INTEGER_PIXEL_IDS = frozenset(
+    {sitk.sitkUInt8, sitk.sitkInt8, sitk.sitkUInt16, sitk.sitkInt16, sitk.sitkUInt32,
+     sitk.sitkInt32, sitk.sitkUInt64, sitk.sitkInt64}
+)
+_UNIT_RE = re.compile(r"\bunit=(1/mm|HU|label)(?:\s|$)")
+_DIRECTION_ATOL = 1e-4
+_GZIP_CHUNK_BYTES = 1 << 22
+_ITK_CLASS_PREFIX = re.compile(r"^\s*\w+\(0x[0-9a-fA-F]+\):\s*")
+
+
+class ImageFileError(OSError):
+    """A file that exists but cannot be read as an image: garbage, truncated, unreadable."""
+
+
+# -- volumes ----------------------------------------------------------------------------------
+
+
+def write_volume(path: str | Path, volume: Volume) -> Path:
+    """Write a volume to ``.nii``, ``.nii.gz``, ``.mha`` or ``.mhd``.
+
+    Attenuation (1/mm) and HU volumes are stored as float32; label volumes as uint8 when
+    their values fit in 0..255, else int16. The world placement (LPS, identity direction) and
+    the unit are stored with the data.
+
+    Args:
+        path: output file; its ending chooses the format. Overwritten if it exists.
+        volume: values indexed [z, y, x] on an axis-aligned LPS grid.
+
+    Returns:
+        The path written.
+
+    Raises:
+        ValueError: unsupported ending, non-finite values, labels that are not integers in
+            the int16 range, ``x.nii.gz`` asked for beside an existing ``x.nii``.
+        FileNotFoundError: the output folder does not exist.
+        ImageFileError: SimpleITK could not write the file.
+    """
+    path = _check_suffix(Path(path), VOLUME_SUFFIXES, "volume")
+    _check_parent(path)
+    data = _storage_array(volume, path)
+    image = sitk.GetImageFromArray(data)
+    image.SetSpacing(volume.grid.spacing_mm)
+    image.SetOrigin(volume.grid.origin_mm)
+    image.SetMetaData(NOTES_KEY, f"dualarm-cbct unit={volume.unit}")
+    _write_image(image, path)
+    return path
+
+
+def read_volume(path: str | Path, unit: Unit | None = None) -> Volume:
+    """Read a 3-D volume from ``.nii``, ``.nii.gz``, ``.mha`` or ``.mhd``.
+
+    Files whose axes are a signed permutation of the LPS axes are reoriented (array flipped
+    and transposed) so the returned grid has identity direction and the same world position
+    for every voxel.
+
+    Args:
+        path: the file.
+        unit: the unit to assume when the file does not state one (files from other tools).
+            When the file states a unit, ``unit`` must be None or the same.
+
+    Returns:
+        The volume: float32 values for 1/mm and HU, the stored integer type for labels.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        ImageFileError: not an image, truncated, or unreadable.
+        ValueError: not a scalar 3-D image, an oblique direction, a missing or conflicting
+            unit, or a label file with non-integer pixels.
+    """
+    path = _check_suffix(Path(path), VOLUME_SUFFIXES, "volume")
+    reader = _open_image(path)
+    file_unit = _unit_from_notes(reader)
+    resolved = _resolve_unit(path, file_unit, unit)
+    if resolved == "label" and reader.GetPixelID() not in _INTEGER_PIXEL_IDS:
+        raise ValueError(
+            f"{path}: label volume must have integer pixels, "
+            f"got {sitk.GetPixelIDValueAsString(reader.GetPixelID())}"
+        )
+    signed_perm = _signed_permutation(np.reshape(reader.GetDirection(), (3, 3)), path)
+    image = _execute(reader, path)
+    data, spacing, origin = _reorient_to_identity(
+        sitk.GetArrayFromImage(image), image.GetSpacing(), image.GetOrigin(), signed_perm
+    )
+    if resolved != "label":
+        data = data.astype(np.float32, copy=False)
+    return Volume(data=data, grid=VolumeGrid(data.shape, spacing, origin), unit=resolved)
+
+
+def _storage_array(volume: Volume, path: Path) -> np.ndarray:
+    """The array to write: float32 for 1/mm and HU, uint8 or int16 for labels."""
+    data = np.asarray(volume.data)
+    if not np.issubdtype(data.dtype, np.number) and data.dtype != np.bool_:
+        raise ValueError(f"{path}: volume data must be numeric, got dtype {data.dtype}")
+    if volume.unit != "label":
+        _check_finite(data, path, "volume data")
+        return data.astype(np.float32)
+    _check_finite(data, path, "label data")
+    if not np.array_equal(data, np.round(data)):
+        raise ValueError(f"{path}: label data must be whole numbers, got fractional values")
+    low, high = float(data.min()), float(data.max())
+    if low >= 0 and high <= 255:
+        return data.astype(np.uint8)
+    info = np.iinfo(np.int16)
+    if low < info.min or high > info.max:
+        raise ValueError(
+            f"{path}: labels must lie within the int16 range, got {low:g}..{high:g}"
+        )
+    return data.astype(np.int16)
+
+
+def _unit_from_notes(reader: sitk.ImageFileReader) -> Unit | None:
+    if not reader.HasMetaDataKey(NOTES_KEY):
+        return None
+    match = _UNIT_RE.search(reader.GetMetaData(NOTES_KEY))
+    return match.group(1) if match else None
+
+
+def _resolve_unit(path: Path, file_unit: Unit | None, unit: Unit | None) -> Unit:
+    if file_unit is None and unit is None:
+        raise ValueError(
+            f"{path}: the file does not state its unit ({NOTES_KEY} has no 'unit=...'); "
+            "pass unit='1/mm', 'HU' or 'label'"
+        )
+    if file_unit is not None and unit is not None and unit != file_unit:
+        raise ValueError(f"{path}: the file states unit {file_unit!r}, but {unit!r} was asked")
+    return file_unit or unit
+
+
+def _reorient_to_identity(
+    array: np.ndarray,
+    spacing: Sequence[float],
+    origin: Sequence[float],
+    signed_perm: np.ndarray,
+) -> tuple[np.ndarray, tuple[float, ...], tuple[float, ...]]:
+    """Flip and transpose an ITK array [k, j, i] so its direction becomes the identity.
+
+    Args:
+        array: the image as SimpleITK returns it, indexed [k, j, i].
+        spacing, origin: the image's spacing (i, j, k) and origin (LPS) in mm.
+        signed_perm: its direction, a 3x3 signed permutation (columns: axes i, j, k in LPS).
+
+    Returns:
+        The array indexed [z, y, x], spacing (sx, sy, sz) mm and the world position (x, y, z)
+        mm of the new voxel [0, 0, 0].
+    """
+    world_axis = np.argmax(np.abs(signed_perm), axis=0)  # world axis of each file axis
+    sign = signed_perm[world_axis, np.arange(3)]
+    size = np.array(array.shape[::-1])
+    corner = np.where(sign < 0, size - 1, 0)
+    new_origin = np.asarray(origin) + signed_perm @ (np.asarray(spacing) * corner)
+    flipped = np.flip(array, axis=[2 - a for a in range(3) if sign[a] < 0])
+    axes = [0, 0, 0]
+    new_spacing = [0.0, 0.0, 0.0]
+    for a in range(3):
+        axes[2 - world_axis[a]] = 2 - a
+        new_spacing[world_axis[a]] = float(spacing[a])
+    data = np.ascontiguousarray(np.transpose(flipped, axes))
+    return data, tuple(new_spacing), tuple(float(x) for x in new_origin)
+
+
+def _signed_permutation(direction: np.ndarray, path: Path) -> np.ndarray:
+    """The signed permutation matrix ``direction`` is (within tolerance), else ValueError."""
+    rounded = np.round(direction)
+    is_perm = (
+        np.all(np.abs(direction - rounded) <= _DIRECTION_ATOL)
+        and np.all(np.abs(rounded).sum(axis=0) == 1)
+        and np.all(np.abs(rounded).sum(axis=1) == 1)
+    )
+    if not is_perm:
+        raise ValueError(
+            f"{path}: oblique image direction {np.round(direction, 6).tolist()} (columns are "
+            "the file's axes in LPS); only axis-aligned volumes are supported, resample first"
+        )
+    return rounded
+
+
+# -- projection stacks ------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ProjectionStack:
+    """Projections as read from a file.
+
+    Attributes:
+        data: line integrals -ln(I/I0), float32, shape (views, rows, cols), indexed
+            [view, v, u].
+        pixel_pitch_mm: pixel pitch (u, v) = (along columns, along rows), mm.
+        origin_uv_mm: (u, v) mm of the centre of pixel (row 0, col 0) in RTK's detector
+            frame; centred panels have ``-(n - 1) / 2 * pitch`` on each axis.
+    """
+
+    data: np.ndarray
+    pixel_pitch_mm: tuple[float, float]
+    origin_uv_mm: tuple[float, float]
+
+    def __post_init__(self) -> None:
+        if self.data.ndim != 3 or self.data.dtype != np.float32:
+            raise ValueError(
+                f"data must be float32 (views, rows, cols), got {self.data.dtype} "
+                f"of shape {self.data.shape}"
+            )
+
+    @property
+    def detector(self) -> DetectorSpec:
+        """The panel as a :class:`DetectorSpec` (square pixels only)."""
+        pitch_u, pitch_v = self.pixel_pitch_mm
+        if not math.isclose(pitch_u, pitch_v, rel_tol=1e-9):
+            raise ValueError(f"pixels are not square: pitch (u, v) = {self.pixel_pitch_mm} mm")
+        _, rows, cols = self.data.shape
+        return DetectorSpec(rows=rows, cols=cols, pixel_pitch_mm=pitch_u)
+
+
+def write_projections(
+    path: str | Path,
+    projections: np.ndarray,
+    pixel_pitch_mm: float,
+    origin_uv_mm: tuple[float, float] | None = None,
+) -> Path:
+    """Write a projection stack as an RTK-readable MetaImage (``.mha`` or ``.mhd``).
+
+    Args:
+        path: output file. Overwritten if it exists.
+        projections: line integrals, shape (views, rows, cols); stored as float32.
+        pixel_pitch_mm: square pixel pitch, mm, > 0.
+        origin_uv_mm: (u, v) mm of the centre of pixel (row 0, col 0). Default: the panel
+            centred on (0, 0), i.e. ``(-(cols - 1) / 2 * pitch, -(rows - 1) / 2 * pitch)``.
+
+    Returns:
+        The path written.
+
+    Raises:
+        ValueError: bad ending, shape, pitch, origin, or non-finite values.
+        FileNotFoundError: the output folder does not exist.
+        ImageFileError: SimpleITK could not write the file.
+    """
+    path = _check_suffix(Path(path), PROJECTION_SUFFIXES, "projection stack")
+    _check_parent(path)
+    pitch = float(pixel_pitch_mm)
+    if not (math.isfinite(pitch) and pitch > 0):
+        raise ValueError(f"{path}: pixel_pitch_mm must be a finite pitch > 0 mm, got {pitch!r}")
+    data = np.asarray(projections)
+    if data.ndim != 3 or min(data.shape) == 0:
+        raise ValueError(
+            f"{path}: projections must be a non-empty (views, rows, cols) array, "
+            f"got shape {data.shape}"
+        )
+    if not (np.issubdtype(data.dtype, np.integer) or np.issubdtype(data.dtype, np.floating)):
+        raise ValueError(f"{path}: projections must be real numbers, got dtype {data.dtype}")
+    _check_finite(data, path, "projections")
+    _, rows, cols = data.shape
+    if origin_uv_mm is None:
+        origin_uv_mm = centered_origin_uv_mm(rows, cols, pitch, pitch)
+    origin = np.asarray(origin_uv_mm, dtype=np.float64)
+    if origin.shape != (2,) or not np.all(np.isfinite(origin)):
+        raise ValueError(f"{path}: origin_uv_mm must be 2 finite numbers, got {origin_uv_mm!r}")
+    image = sitk.GetImageFromArray(data.astype(np.float32))
+    image.SetSpacing((pitch, pitch, 1.0))
+    image.SetOrigin((float(origin[0]), float(origin[1]), 0.0))
+    _write_image(image, path)
+    return path
+
+
+def read_projections(path: str | Path) -> ProjectionStack:
+    """Read a projection stack written by :func:`write_projections` or by RTK.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        ImageFileError: not an image, truncated, or unreadable.
+        ValueError: not a scalar 3-D image, or a non-identity direction.
+    """
+    path = _check_suffix(Path(path), PROJECTION_SUFFIXES, "projection stack")
+    reader = _open_image(path)
+    if not np.allclose(reader.GetDirection(), np.eye(3).ravel(), atol=_DIRECTION_ATOL):
+        raise ValueError(
+            f"{path}: projection stack must have identity direction, "
+            f"got {np.round(reader.GetDirection(), 6).tolist()}"
+        )
+    image = _execute(reader, path)
+    spacing, origin = image.GetSpacing(), image.GetOrigin()
+    return ProjectionStack(
+        data=sitk.GetArrayFromImage(image).astype(np.float32, copy=False),
+        pixel_pitch_mm=(float(spacing[0]), float(spacing[1])),
+        origin_uv_mm=(float(origin[0]), float(origin[1])),
+    )
+
+
+# -- shared file checks -----------------------------------------------------------------------
+
+
+def _check_suffix(path: Path, allowed: tuple[str, ...], what: str) -> Path:
+    if not path.name.lower().endswith(allowed):
+        raise ValueError(f"{path}: unsupported {what} file type; use one of {', '.join(allowed)}")
+    return path
+
+
+def _check_parent(path: Path) -> None:
+    if not path.parent.is_dir():
+        raise FileNotFoundError(f"{path}: output folder {path.parent} does not exist")
+    _check_no_nifti_twin(path)
+
+
+def _check_no_nifti_twin(path: Path) -> None:
+    """Refuse ``x.nii.gz`` beside ``x.nii``: ITK's NIfTI reader would silently read ``x.nii``."""
+    if path.name.lower().endswith(".nii.gz"):
+        twin = path.with_name(path.name[: -len(".gz")])
+        if twin.exists():
+            raise ValueError(
+                f"{path}: {twin.name} exists beside it and ITK would read that file instead; "
+                "remove or rename one of them"
+            )
+
+
+def _check_finite(data: np.ndarray, path: Path, what: str) -> None:
+    bad = data.size - int(np.count_nonzero(np.isfinite(data)))
+    if bad:
+        raise ValueError(f"{path}: {what} contain {bad} non-finite values (NaN or inf)")
+
+
+def _write_image(image: sitk.Image, path: Path) -> None:
+    try:
+        sitk.WriteImage(image, str(path))
+    except RuntimeError as err:
+        raise ImageFileError(f"{path}: could not write image: {_itk_reason(err)}") from err
+
+
+def _open_image(path: Path) -> sitk.ImageFileReader:
+    """A reader with the header read and checked: one scalar component, three dimensions."""
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file")
+    _check_no_nifti_twin(path)
+    reader = sitk.ImageFileReader()
+    reader.SetFileName(str(path))
+    try:
+        reader.ReadImageInformation()
+    except RuntimeError as err:
+        raise ImageFileError(f"{path}: not a readable image: {_itk_reason(err)}") from err
+    if reader.GetDimension() != 3:
+        raise ValueError(
+            f"{path}: expected a 3-D image, got {reader.GetDimension()}-D of size "
+            f"{reader.GetSize()}"
+        )
+    if reader.GetNumberOfComponents() != 1:
+        raise ValueError(
+            f"{path}: expected one value per voxel, got {reader.GetNumberOfComponents()}"
+        )
+    if path.name.lower().endswith((".nii", ".nii.gz")):
+        _check_nifti_complete(path, reader)
+    return reader
+
+
+def _execute(reader: sitk.ImageFileReader, path: Path) -> sitk.Image:
+    try:
+        return reader.Execute()
+    except RuntimeError as err:
+        raise ImageFileError(
+            f"{path}: could not read image data (truncated or corrupt file?): "
+            f"{_itk_reason(err)}"
+        ) from err
+
+
+def _check_nifti_complete(path: Path, reader: sitk.ImageFileReader) -> None:
+    """Raise if a NIfTI file holds fewer bytes than its header promises.
+
+    ITK's NIfTI reader silently returns partly zero images from truncated files.
+    """
+    needed = int(float(reader.GetMetaData("vox_offset"))) + _nifti_data_bytes(reader)
+    if path.name.lower().endswith(".gz"):
+        complete, holds = _gzip_holds(path, needed), "its gzip stream ends early"
+    else:
+        size = path.stat().st_size
+        complete, holds = size >= needed, f"it holds {size}"
+    if not complete:
+        raise ImageFileError(
+            f"{path}: truncated NIfTI file: the header promises {needed} bytes of header "
+            f"and data, {holds}"
+        )
+
+
+def _nifti_data_bytes(reader: sitk.ImageFileReader) -> int:
+    ndim = int(reader.GetMetaData("dim[0]"))
+    count = math.prod(int(reader.GetMetaData(f"dim[{k}]")) for k in range(1, ndim + 1))
+    return count * int(reader.GetMetaData("bitpix")) // 8
+
+
+def _gzip_holds(path: Path, needed: int) -> bool:
+    """Whether a gzip file decompresses completely to at least ``needed`` bytes.
+
+    Fast path: a complete single-member file ends with its size modulo 2**32 (ISIZE).
+    Otherwise the file is decompressed in chunks, counting bytes.
+    """
+    with path.open("rb") as handle:
+        handle.seek(-4, 2)
+        if int.from_bytes(handle.read(4), "little") == needed % (1 << 32):
+            return True
+    total = 0
+    try:
+        with gzip.open(path, "rb") as stream:
+            while chunk := stream.read(_GZIP_CHUNK_BYTES):
+                total += len(chunk)
+    except (EOFError, OSError, zlib.error):
+        return False
+    return total >= needed
+
+
+def _itk_reason(err: RuntimeError) -> str:
+    """The first error line of a SimpleITK/ITK message, without source locations."""
+    lines = [line.strip() for line in str(err).splitlines() if line.strip()]
+    for line in lines:
+        for marker in ("sitk::ERROR:", "ITK ERROR:"):
+            if marker in line:
+                reason = line.split(marker, 1)[1]
+                return _ITK_CLASS_PREFIX.sub("", reason).strip()
+    return lines[-1] if lines else type(err).__name__
