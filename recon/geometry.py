@@ -27,6 +27,7 @@ from typing import overload
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
+from typing import Literal
 
 ATOL_MM = 1e-6
 """Tolerance for ``==`` on positions (mm) and unit vectors (dimensionless)."""
@@ -505,3 +506,72 @@ def helical_orbit(
             for a, zz in zip(angles_rad, z, strict=True)
         ]
     )
+
+
+class OrbitSpec(BaseModel):
+    """A scan orbit about world z, as written in protocol files (units in the names).
+
+    ``kind``: ``circular`` (``arc_deg`` default 360), ``short_scan`` (``arc_deg`` default 180
+    plus the fan plus ``overscan_deg``), ``helix`` (one pass of ``arc_deg``, which may exceed
+    360) or ``reverse_spiral`` (``passes`` sweeps of ``arc_deg``, alternating direction).
+    Helices and spirals move z through ``z_travel_mm`` in total, or ``z_step_mm`` per view,
+    centred on ``isocenter_mm``'s z.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    kind: Literal["circular", "short_scan", "helix", "reverse_spiral"]
+    views: int = Field(ge=3, le=20000)
+    sid_mm: float = Field(gt=0.0, le=3000.0, description="source to rotation axis, mm")
+    sdd_mm: float = Field(gt=0.0, le=5000.0, description="source to detector, mm")
+    arc_deg: float | None = Field(default=None, gt=0.0, le=3600.0)
+    overscan_deg: float = Field(default=2.0, ge=0.0, le=180.0)
+    passes: int = Field(default=1, ge=1, le=100)
+    z_travel_mm: float | None = Field(default=None, ge=-2000.0, le=2000.0)
+    z_step_mm: float | None = Field(default=None, ge=-50.0, le=50.0)
+    start_deg: float = Field(default=0.0, ge=-360.0, le=360.0)
+    isocenter_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> OrbitSpec:
+        if self.sdd_mm <= self.sid_mm:
+            raise ValueError(
+                f"sdd_mm = {self.sdd_mm} must exceed sid_mm = {self.sid_mm} (detector beyond "
+                "the rotation axis)"
+            )
+        moving = self.kind in ("helix", "reverse_spiral")
+        if moving and (self.z_travel_mm is None) == (self.z_step_mm is None):
+            raise ValueError(f"a {self.kind} needs exactly one of z_travel_mm and z_step_mm")
+        if not moving and (self.z_travel_mm or self.z_step_mm):
+            raise ValueError(f"a {self.kind} orbit does not move in z: drop z_travel_mm/z_step_mm")
+        if self.kind == "reverse_spiral" and self.passes < 2:
+            raise ValueError(f"a reverse_spiral needs passes >= 2, got {self.passes}")
+        if self.kind != "reverse_spiral" and self.passes != 1:
+            raise ValueError(f"passes = {self.passes} needs kind reverse_spiral")
+        if self.views % self.passes:
+            raise ValueError(f"views = {self.views} must divide evenly into passes = {self.passes}")
+        return self
+
+    def geometry(self, detector: DetectorSpec) -> Geometry:
+        """The orbit's views for a panel of ``detector`` pixels."""
+        iso = np.array(self.isocenter_mm, dtype=np.float64)
+        if self.kind in ("circular", "short_scan"):
+            arc = self.arc_deg
+            if arc is None:
+                arc = 360.0 if self.kind == "circular" else (
+                    short_scan_arc_deg(self.sid_mm, self.sdd_mm, detector) + self.overscan_deg
+                )
+            return circular_orbit(
+                self.views, self.sid_mm, self.sdd_mm, detector, arc_deg=arc,
+                start_deg=self.start_deg, isocenter_mm=iso,
+            )
+        travel = (
+            self.z_travel_mm if self.z_travel_mm is not None
+            else self.z_step_mm * (self.views - 1)
+        )
+        return helical_orbit(
+            self.views, self.sid_mm, self.sdd_mm, detector,
+            arc_deg=360.0 if self.arc_deg is None else self.arc_deg,
+            z_start_mm=-0.5 * travel, z_end_mm=0.5 * travel, passes=self.passes,
+            start_deg=self.start_deg, isocenter_mm=iso,
+        )

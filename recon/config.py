@@ -1,0 +1,84 @@
+"""Configuration files: YAML validated by frozen pydantic models, with errors users can act on.
+
+Every package defines its own models (units in the field names); this module loads a file into
+one and turns validation failures into a :class:`ConfigError` that names the file, the field,
+the value and the limit. It also holds the scan protocol shared by planning, simulation,
+scanning and reconstruction.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TypeVar
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from recon.geometry import DetectorSpec, OrbitSpec
+
+Model = TypeVar("Model", bound=BaseModel)
+
+
+class ConfigError(ValueError):
+    """A configuration file that cannot be used; the message says where and why."""
+
+
+def _describe(path: Path, err: ValidationError) -> str:
+    lines = [f"{path}: {err.error_count()} invalid field(s)"]
+    for e in err.errors():
+        field = ".".join(str(p) for p in e["loc"]) or "(top level)"
+        value = e.get("input")
+        shown = "missing" if e["type"] == "missing" else f"value {value!r}"
+        lines.append(f"  {field}: {shown}: {e['msg']}")
+    return "\n".join(lines)
+
+
+def load_config(path: str | Path, model: type[Model]) -> Model:
+    """Read ``path`` (YAML) into ``model``, raising :class:`ConfigError` on any problem."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot read ({err.strerror or err})") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        raise ConfigError(f"{path}: not valid YAML ({err})") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping of fields, got {type(data).__name__}")
+    try:
+        return model.model_validate(data)
+    except ValidationError as err:
+        raise ConfigError(_describe(path, err)) from None
+
+
+class ExposureSpec(BaseModel):
+    """X-ray technique per view."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    tube_kv: float = Field(ge=40.0, le=150.0, description="tube voltage, kVp")
+    tube_ma: float = Field(gt=0.0, le=1000.0, description="tube current, mA")
+    pulse_ms: float = Field(gt=0.0, le=1000.0, description="pulse width per view, ms")
+
+    @property
+    def mas(self) -> float:
+        """Tube current-time product per view, mAs."""
+        return self.tube_ma * self.pulse_ms * 1e-3
+
+
+class ScanProtocol(BaseModel):
+    """A scan protocol: which views, on which panel, with which technique."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    name: str = Field(min_length=1, max_length=80, pattern=r"^[A-Za-z0-9_.-]+$")
+    description: str = ""
+    detector: DetectorSpec
+    orbit: OrbitSpec
+    exposure: ExposureSpec
+
+
+def load_protocol(path: str | Path) -> ScanProtocol:
+    """Load a scan protocol YAML file (see configs/protocols/)."""
+    return load_config(path, ScanProtocol)
