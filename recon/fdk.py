@@ -1,0 +1,417 @@
+"""Weighted FDK for arbitrary cone-beam trajectories (circular, short scan, helix, reverse spiral).
+
+The classic FDK steps on per-view projection matrices:
+
+1. cosine weighting of each pixel (angle between its ray and the detector normal) and, for a
+   short scan, Parker-like smooth redundancy weights along the fan;
+2. ramp filtering along detector rows with zero padding and a window (Ram-Lak, Shepp-Logan,
+   cosine, Hann);
+3. voxel-driven backprojection through P with the distance weight ``1 / w^2``.
+
+Uneven sampling (short scans, helices whose ends see fewer views, reverse-spiral passes) is
+handled by normalising every voxel with the weighted count of the views that saw it
+(SYSTEM.md's "projection-weight normalisation"): each view contributes its angular step
+``dbeta`` times the Jacobian ``SOD * U / L_perp^2`` (``U`` depth, ``L_perp`` the source distance
+across the rotation axis), which integrates to ``2*pi`` for a voxel seen over a full turn and
+``pi`` over a Parker-weighted short scan. The volume is ``pi * sum(views) / count``; where
+all views see a voxel it equals classic FDK. Detector edges fade in over ``edge_taper_px``
+pixels so the count is smooth, and voxels whose count falls below ``min_coverage_deg`` are
+masked (set to 0 and flagged), not invented.
+
+The rotation axis, isocentre, source-to-axis distances and view angles are read off the
+geometry itself: the axis is the direction the detector normals avoid, the isocentre the centre
+of the circle through the sources.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+import scipy.fft
+from scipy.ndimage import map_coordinates
+
+from recon.geometry import Geometry
+from recon.project import COUNT_WEIGHT, FDK_WEIGHT, backproject_weighted, check_in_front
+from recon.volume import Volume, VolumeGrid
+
+Window = Literal["ram-lak", "shepp-logan", "cosine", "hann"]
+Redundancy = Literal["auto", "parker", "none"]
+Progress = Callable[[int, int], None]
+"""Called as ``progress(views_done, views_total)`` after every batch."""
+
+WINDOWS: tuple[str, ...] = ("ram-lak", "shepp-logan", "cosine", "hann")
+
+
+@dataclass(frozen=True)
+class Orbit:
+    """What FDK needs to know about a trajectory, estimated from its views.
+
+    Attributes:
+        axis: unit rotation axis (world), oriented along the mean detector e_v.
+        isocenter_mm: a point on the axis (centre of the circle through the sources).
+        sod_mm: per-view source distance from the axis, (N,).
+        beta_rad: per-view unwrapped angle about the axis, (N,).
+        dbeta_rad: per-view angular weight (trapezoid rule within each pass), (N,).
+        passes: (start, stop) view-index ranges of monotonic sweeps.
+        closed: True when a single pass covers a whole turn.
+    """
+
+    axis: np.ndarray
+    isocenter_mm: np.ndarray
+    sod_mm: np.ndarray
+    beta_rad: np.ndarray
+    dbeta_rad: np.ndarray
+    passes: tuple[tuple[int, int], ...]
+    closed: bool
+
+    @property
+    def span_deg(self) -> float:
+        """Largest angular range swept by one pass, degrees."""
+        return max(
+            math.degrees(abs(self.beta_rad[b - 1] - self.beta_rad[a])) for a, b in self.passes
+        )
+
+
+def _plane_basis(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    helper = np.eye(3)[int(np.argmin(np.abs(axis)))]
+    b1 = np.cross(axis, helper)
+    b1 /= np.linalg.norm(b1)
+    return b1, np.cross(axis, b1)
+
+
+def _passes(beta: np.ndarray) -> list[tuple[int, int]]:
+    """(start, stop) index ranges of maximal monotonic sweeps; a still view starts a new one."""
+    passes, start, direction = [], 0, 0.0
+    for i in range(1, len(beta)):
+        step = np.sign(beta[i] - beta[i - 1])
+        if i - start == 1 and direction == 0.0 and step != 0.0:
+            direction = step
+        elif step != direction:
+            passes.append((start, i))
+            start, direction = i, 0.0
+    passes.append((start, len(beta)))
+    return passes
+
+
+def estimate_orbit(geometry: Geometry) -> Orbit:
+    """Rotation axis, isocentre, per-view SOD, angles and angular weights of a trajectory."""
+    if len(geometry) < 3:
+        raise ValueError(f"FDK needs an orbit of at least 3 views, got {len(geometry)}")
+    normals = np.stack([v.normal for v in geometry])
+    _, vecs = np.linalg.eigh(normals.T @ normals)
+    axis = vecs[:, 0]
+    if np.dot(axis, np.mean([v.e_v for v in geometry], axis=0)) < 0:
+        axis = -axis
+    b1, b2 = _plane_basis(axis)
+    src = np.asarray(geometry.sources_mm)
+    xy = np.column_stack((src @ b1, src @ b2))
+    # algebraic circle fit: x^2 + y^2 = 2 c.x + k
+    A = np.column_stack((2 * xy, np.ones(len(xy))))
+    sol, *_ = np.linalg.lstsq(A, (xy**2).sum(axis=1), rcond=None)
+    center_xy = sol[:2]
+    sod = np.linalg.norm(xy - center_xy, axis=1)
+    if not np.all(np.isfinite(sod)) or sod.min() <= 0 or np.ptp(sod) > 0.5 * sod.mean():
+        raise ValueError(
+            "the sources do not lie on a circle about a common axis: FDK needs an orbit "
+            f"(source-to-axis distances {sod.min():.1f}..{sod.max():.1f} mm)"
+        )
+    along = float(np.mean(src @ axis))
+    isocenter = center_xy[0] * b1 + center_xy[1] * b2 + along * axis
+    beta = np.unwrap(np.arctan2(xy[:, 1] - center_xy[1], xy[:, 0] - center_xy[0]))
+    steps = np.diff(beta)
+    if np.any(np.abs(steps) > math.radians(45)):
+        raise ValueError("consecutive views are more than 45 degrees apart: not an orbit")
+    passes = _passes(beta)
+    dbeta = np.zeros(len(beta))
+    closed = False
+    for a, b in passes:
+        seg = beta[a:b]
+        if len(seg) < 2:
+            continue
+        span = abs(seg[-1] - seg[0])
+        step = span / (len(seg) - 1)
+        d = np.abs(np.gradient(seg))
+        if len(passes) == 1 and abs(span + step - 2 * math.pi) < 0.02 * step:
+            closed = True  # a whole turn without a repeated end view: periodic sampling
+        else:
+            d[0], d[-1] = 0.5 * abs(seg[1] - seg[0]), 0.5 * abs(seg[-1] - seg[-2])
+        dbeta[a:b] = d
+    return Orbit(axis, isocenter, sod, beta, dbeta, tuple(passes), closed)
+
+
+def ramp_filter_response(n_fft: int, pitch_mm: float, window: Window, cutoff: float) -> np.ndarray:
+    """Frequency response (rfft bins) of the band-limited ramp times ``window``.
+
+    Built from the spatial Ram-Lak kernel (Kak & Slaney eq. 61) so that the zero-padded
+    discrete convolution is exact; ``cutoff`` in (0, 1] is the window's edge as a fraction of
+    the Nyquist frequency. Units: the filtered projection is in 1/mm.
+    """
+    if window not in WINDOWS:
+        raise ValueError(f"filter window must be one of {WINDOWS}, got {window!r}")
+    if not 0.0 < cutoff <= 1.0:
+        raise ValueError(f"cutoff must be in (0, 1] of Nyquist, got {cutoff!r}")
+    n = np.arange(n_fft)
+    n = np.minimum(n, n_fft - n)  # symmetric kernel wrapped for circular convolution
+    h = np.zeros(n_fft)
+    h[0] = 1.0 / (4.0 * pitch_mm**2)
+    odd = n % 2 == 1
+    h[odd] = -1.0 / (np.pi * n[odd] * pitch_mm) ** 2
+    response = np.real(np.fft.rfft(h)) * pitch_mm
+    f = np.fft.rfftfreq(n_fft)  # cycles per pixel, 0..0.5
+    x = f / (0.5 * cutoff)
+    if window == "shepp-logan":
+        response *= np.sinc(x / 2.0)
+    elif window == "cosine":
+        response *= np.cos(np.pi * x / 2.0)
+    elif window == "hann":
+        response *= 0.5 * (1.0 + np.cos(np.pi * x))
+    response[x > 1.0] = 0.0
+    return response
+
+
+def _taper(n: int, width: float) -> np.ndarray:
+    """1 in the middle, a raised-cosine fade to 0 over ``width`` pixels at both ends."""
+    idx = np.arange(n, dtype=np.float64)
+    edge = np.minimum(idx, n - 1 - idx) + 0.5
+    if width <= 0:
+        return np.ones(n)
+    t = np.clip(edge / width, 0.0, 1.0)
+    return np.sin(0.5 * np.pi * t) ** 2
+
+
+def parker_weights(geometry: Geometry, orbit: Orbit) -> np.ndarray:
+    """Parker short-scan weights per view and detector column, (N, cols).
+
+    Fan angles are measured at the principal row, about the rotation axis, in the sense of the
+    sweep; the overscan ``delta = (span - 180 deg) / 2`` must cover the fan.
+    """
+    if len(orbit.passes) != 1:
+        raise ValueError(f"Parker weights need a single pass, the orbit has {len(orbit.passes)}")
+    ((a, b),) = orbit.passes
+    sweep = np.sign(orbit.beta_rad[b - 1] - orbit.beta_rad[a])
+    beta = sweep * (orbit.beta_rad - orbit.beta_rad[a])
+    span = beta[b - 1]
+    delta = 0.5 * (span - np.pi)
+    b1, b2 = _plane_basis(orbit.axis)
+    out = np.empty((len(geometry), geometry.cols))
+    cols = np.arange(geometry.cols, dtype=np.float64)
+    gamma_max = 0.0
+    for i, view in enumerate(geometry):
+        _, vp = view.principal_point_px
+        rays = view.pixel_to_world(cols, np.full_like(cols, vp)) - view.source_mm
+        central = orbit.isocenter_mm - view.source_mm
+        ang_rays = np.arctan2(rays @ b2, rays @ b1)
+        ang_c = math.atan2(central @ b2, central @ b1)
+        gamma = sweep * np.angle(np.exp(1j * (ang_rays - ang_c)))
+        gamma_max = max(gamma_max, float(np.abs(gamma).max()))
+        bt = beta[i]
+        w = np.ones_like(gamma)
+        rise = bt < 2 * delta - 2 * gamma
+        fall = bt > np.pi - 2 * gamma
+        with np.errstate(divide="ignore", invalid="ignore"):
+            w[rise] = np.sin(0.25 * np.pi * bt / (delta - gamma[rise])) ** 2
+            w[fall] = np.sin(0.25 * np.pi * (np.pi + 2 * delta - bt) / (delta + gamma[fall])) ** 2
+        out[i] = np.nan_to_num(np.clip(w, 0.0, 1.0))
+    if delta < gamma_max - 1e-3:
+        raise ValueError(
+            f"short scan of {math.degrees(span):.1f} deg is shorter than 180 deg plus the fan "
+            f"({180 + 2 * math.degrees(gamma_max):.1f} deg): data are incomplete"
+        )
+    return out
+
+
+@dataclass(frozen=True)
+class FDKResult:
+    """Reconstruction, the views' weighted count per voxel and the mask of trusted voxels.
+
+    Attributes:
+        volume: linear attenuation (1/mm) on the requested grid; masked voxels are 0.
+        coverage_deg: float32 [z, y, x], redundancy-weighted angular coverage (360 for a voxel
+            seen over a full turn, ~180 for a complete short scan).
+        mask: bool [z, y, x], True where coverage >= the requested minimum.
+        orbit: the trajectory as FDK read it.
+    """
+
+    volume: Volume
+    coverage_deg: np.ndarray
+    mask: np.ndarray
+    orbit: Orbit
+
+
+def _grid_seen(geometry: Geometry, grid: VolumeGrid) -> None:
+    corners = grid.corners_mm()
+    for view in geometry:
+        uv = view.project(corners)
+        if (
+            uv[:, 0].max() >= 0
+            and uv[:, 1].max() >= 0
+            and uv[:, 0].min() <= view.cols - 1
+            and uv[:, 1].min() <= view.rows - 1
+        ):
+            return
+    raise ValueError("no view sees any part of the volume grid: check its origin and size")
+
+
+def fdk_reconstruct(
+    projections: np.ndarray,
+    geometry: Geometry,
+    grid: VolumeGrid,
+    *,
+    window: Window = "hann",
+    cutoff: float = 1.0,
+    redundancy: Redundancy = "auto",
+    min_coverage_deg: float = 150.0,
+    edge_taper_px: float = 8.0,
+    coverage_subsample: int = 4,
+    batch_views: int = 16,
+    progress: Progress | None = None,
+) -> FDKResult:
+    """Reconstruct line-integral projections with weighted FDK.
+
+    Args:
+        projections: float32 (views, rows, cols), line integrals -ln(I/I0).
+        geometry: one view per projection.
+        grid: the output voxel grid (world mm).
+        window: apodisation of the ramp filter.
+        cutoff: window edge as a fraction of the Nyquist frequency, (0, 1].
+        redundancy: "parker" for short scans, "none" for full turns and spirals, "auto"
+            chooses Parker for a single pass shorter than a whole turn.
+        min_coverage_deg: voxels with less weighted coverage are masked (set to 0).
+        edge_taper_px: detector edge fade (pixels) that keeps the coverage smooth.
+        coverage_subsample: the smooth coverage map is computed on a grid this many times
+            coarser per axis and interpolated.
+        batch_views: views filtered and backprojected together (bounds memory).
+        progress: optional callback ``progress(views_done, views_total)``.
+
+    Returns:
+        :class:`FDKResult` with the volume in 1/mm.
+    """
+    proj = np.asarray(projections)
+    n_views = len(geometry)
+    if proj.ndim != 3 or proj.shape != (n_views, geometry.rows, geometry.cols):
+        raise ValueError(
+            f"projections have shape {proj.shape}; the geometry has {n_views} views of "
+            f"{geometry.rows} x {geometry.cols} pixels"
+        )
+    bad = np.flatnonzero(~np.isfinite(proj).all(axis=(1, 2)))
+    if bad.size:
+        raise ValueError(f"projections contain NaN or infinite values in view(s) {bad[:10].tolist()}")
+    if redundancy not in ("auto", "parker", "none"):
+        raise ValueError(f"redundancy must be 'auto', 'parker' or 'none', got {redundancy!r}")
+    check_in_front(geometry, grid)
+    _grid_seen(geometry, grid)
+    orbit = estimate_orbit(geometry)
+    n_fft = scipy.fft.next_fast_len(2 * geometry.cols)
+    ramp = ramp_filter_response(n_fft, 1.0, window, cutoff).astype(np.complex64)  # per pixel
+    use_parker = redundancy == "parker" or (
+        redundancy == "auto" and len(orbit.passes) == 1 and not orbit.closed
+        and orbit.span_deg < 359.0
+    )
+    R = parker_weights(geometry, orbit) if use_parker else np.ones((n_views, geometry.cols))
+    # pre-filter weights: Parker along u and the row taper (filtering along u commutes with
+    # it); the column taper multiplies after filtering, where it is a plain view weight
+    pre = R[:, None, :] * _taper(geometry.rows, edge_taper_px)[None, :, None]
+    taper_u = _taper(geometry.cols, edge_taper_px)
+    coarse = _coarse_grid(grid, coverage_subsample)
+    num = np.zeros(grid.shape, dtype=np.float32)
+    count = np.zeros(coarse.shape, dtype=np.float32)
+    for start in range(0, n_views, batch_views):
+        views = geometry[start : min(start + batch_views, n_views)]
+        index = range(start, start + len(views))
+        weights = (pre[start : start + len(views)] * taper_u).astype(np.float32)
+        batch = np.stack([_cosine_weights(v) for v in views]) * pre[start : start + len(views)]
+        batch *= proj[start : start + len(views)]
+        spec = scipy.fft.rfft(batch.astype(np.float32), n=n_fft, axis=2, workers=-1)
+        spec *= ramp
+        filtered = scipy.fft.irfft(spec, n=n_fft, axis=2, workers=-1)[:, :, : geometry.cols]
+        # FDK weight SOD / (SDD w^2) per view times dbeta; the ramp ran in pixel units,
+        # 1 / pitch turns it into 1/mm
+        scale = np.array(
+            [orbit.dbeta_rad[i] * orbit.sod_mm[i] / (v.sdd_mm * v.pitch_u_mm)
+             for i, v in zip(index, views, strict=True)]
+        )
+        filtered *= (scale[:, None] * taper_u[None, :])[:, None, :].astype(np.float32)
+        backproject_weighted(filtered, views, grid, FDK_WEIGHT, num)
+        # the views' weighted count: dbeta * SOD * SDD * w / L_perp^2, in degrees
+        jac = np.array(
+            [np.degrees(orbit.dbeta_rad[i]) * orbit.sod_mm[i] * v.sdd_mm
+             for i, v in zip(index, views, strict=True)]
+        )
+        weights *= jac[:, None, None].astype(np.float32)
+        backproject_weighted(weights, views, coarse, COUNT_WEIGHT, count, axis=orbit.axis)
+        if progress is not None:
+            progress(start + len(views), n_views)
+
+    coverage = _interpolate(count, coarse, grid)
+    mask = coverage >= min_coverage_deg
+    volume = np.zeros(grid.shape, dtype=np.float32)
+    volume[mask] = 180.0 * num[mask] / coverage[mask]  # pi * num / count, count in degrees
+    return FDKResult(Volume(volume, grid, "1/mm"), coverage, mask, orbit)
+
+
+def _cosine_weights(view) -> np.ndarray:
+    """cos of the angle between each pixel's ray and the detector normal, (rows, cols)."""
+    up, vp = view.principal_point_px
+    d = view.sdd_mm
+    du = (np.arange(view.cols) - up) * view.pitch_u_mm
+    dv = (np.arange(view.rows) - vp) * view.pitch_v_mm
+    return d / np.sqrt(d * d + du[None, :] ** 2 + dv[:, None] ** 2)
+
+
+def _coarse_grid(grid: VolumeGrid, subsample: int) -> VolumeGrid:
+    """A grid ``subsample`` times coarser per axis over the same extent (same origin)."""
+    sub = max(1, int(subsample))
+    return VolumeGrid(
+        shape=tuple(max(2, math.ceil((n - 1) / sub) + 1) for n in grid.shape),
+        spacing_mm=tuple(s * sub for s in grid.spacing_mm),
+        origin_mm=grid.origin_mm,
+    )
+
+
+def _interpolate(coarse_values: np.ndarray, coarse: VolumeGrid, grid: VolumeGrid) -> np.ndarray:
+    """Trilinear interpolation of a coarse-grid map onto ``grid`` (same origin)."""
+    ratio = [f / c for f, c in zip(grid.spacing_mm[::-1], coarse.spacing_mm[::-1], strict=True)]
+    coords = np.meshgrid(
+        *(np.arange(n) * r for n, r in zip(grid.shape, ratio, strict=True)),
+        indexing="ij", sparse=True,
+    )
+    full = np.broadcast_arrays(*coords)
+    return map_coordinates(coarse_values, full, order=1, mode="nearest").astype(np.float32)
+
+
+def default_grid(
+    geometry: Geometry,
+    spacing_mm: float | None = None,
+    size_xyz: tuple[int, int, int] | None = None,
+    max_size: int = 512,
+) -> VolumeGrid:
+    """A grid over the orbit's field of view, centred on it.
+
+    The transaxial field is the cylinder every view's fan covers; its axial extent spans the
+    sources' travel plus the panel height at the isocentre. The default spacing is the pixel
+    pitch at the isocentre (pitch / magnification). Explicit ``size_xyz`` overrides the
+    extent; sizes are capped at ``max_size`` voxels per axis unless given.
+    """
+    orbit = estimate_orbit(geometry)
+    sdd = np.array([v.sdd_mm for v in geometry])
+    magnification = float(np.median(sdd / orbit.sod_mm))
+    view = geometry[0]
+    if spacing_mm is None:
+        spacing_mm = min(view.pitch_u_mm, view.pitch_v_mm) / magnification
+    if not (math.isfinite(spacing_mm) and spacing_mm > 0):
+        raise ValueError(f"spacing_mm must be > 0, got {spacing_mm!r}")
+    along = np.asarray(geometry.sources_mm) @ orbit.axis
+    shift = 0.5 * (along.min() + along.max()) - float(orbit.isocenter_mm @ orbit.axis)
+    center = orbit.isocenter_mm + shift * orbit.axis
+    if size_xyz is None:
+        fan = math.atan(0.5 * view.cols * view.pitch_u_mm / float(np.median(sdd)))
+        radius = float(np.median(orbit.sod_mm)) * math.sin(fan)
+        height = np.ptp(along) + view.rows * view.pitch_v_mm / magnification
+        # bounding box of the field-of-view cylinder along world x, y, z
+        extent = height * np.abs(orbit.axis) + 2 * radius * np.sqrt(np.clip(1 - orbit.axis**2, 0, 1))
+        size_xyz = tuple(min(max_size, max(1, math.ceil(e / spacing_mm))) for e in extent)
+    return VolumeGrid.centered(size_xyz, spacing_mm, center)
