@@ -264,7 +264,7 @@ def fdk_reconstruct(
     window: Window = "hann",
     cutoff: float = 1.0,
     redundancy: Redundancy = "auto",
-    min_coverage_deg: float = 150.0,
+    min_coverage_deg: float = 170.0,
     edge_taper_px: float = 8.0,
     coverage_subsample: int = 4,
     batch_views: int = 16,
