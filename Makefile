@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
-DEMO_OUT ?= demo-output
+DEMO_OUT ?= demo-output/run-$(shell date +%Y%m%d-%H%M%S)
 
 .PHONY: demo test lint bench clean
 

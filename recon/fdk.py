@@ -299,7 +299,9 @@ def fdk_reconstruct(
         )
     bad = np.flatnonzero(~np.isfinite(proj).all(axis=(1, 2)))
     if bad.size:
-        raise ValueError(f"projections contain NaN or infinite values in view(s) {bad[:10].tolist()}")
+        raise ValueError(
+            f"projections contain NaN or infinite values in view(s) {bad[:10].tolist()}"
+        )
     if redundancy not in ("auto", "parker", "none"):
         raise ValueError(f"redundancy must be 'auto', 'parker' or 'none', got {redundancy!r}")
     check_in_front(geometry, grid)
@@ -308,7 +310,9 @@ def fdk_reconstruct(
     n_fft = scipy.fft.next_fast_len(2 * geometry.cols)
     ramp = ramp_filter_response(n_fft, 1.0, window, cutoff).astype(np.complex64)  # per pixel
     use_parker = redundancy == "parker" or (
-        redundancy == "auto" and len(orbit.passes) == 1 and not orbit.closed
+        redundancy == "auto"
+        and len(orbit.passes) == 1
+        and not orbit.closed
         and orbit.span_deg < 359.0
     )
     R = parker_weights(geometry, orbit) if use_parker else np.ones((n_views, geometry.cols))
@@ -331,15 +335,19 @@ def fdk_reconstruct(
         # FDK weight SOD / (SDD w^2) per view times dbeta; the ramp ran in pixel units,
         # 1 / pitch turns it into 1/mm
         scale = np.array(
-            [orbit.dbeta_rad[i] * orbit.sod_mm[i] / (v.sdd_mm * v.pitch_u_mm)
-             for i, v in zip(index, views, strict=True)]
+            [
+                orbit.dbeta_rad[i] * orbit.sod_mm[i] / (v.sdd_mm * v.pitch_u_mm)
+                for i, v in zip(index, views, strict=True)
+            ]
         )
         filtered *= (scale[:, None] * taper_u[None, :])[:, None, :].astype(np.float32)
         backproject_weighted(filtered, views, grid, FDK_WEIGHT, num)
         # the views' weighted count: dbeta * SOD * SDD * w / L_perp^2, in degrees
         jac = np.array(
-            [np.degrees(orbit.dbeta_rad[i]) * orbit.sod_mm[i] * v.sdd_mm
-             for i, v in zip(index, views, strict=True)]
+            [
+                np.degrees(orbit.dbeta_rad[i]) * orbit.sod_mm[i] * v.sdd_mm
+                for i, v in zip(index, views, strict=True)
+            ]
         )
         weights *= jac[:, None, None].astype(np.float32)
         backproject_weighted(weights, views, coarse, COUNT_WEIGHT, count, axis=orbit.axis)
@@ -377,7 +385,8 @@ def _interpolate(coarse_values: np.ndarray, coarse: VolumeGrid, grid: VolumeGrid
     ratio = [f / c for f, c in zip(grid.spacing_mm[::-1], coarse.spacing_mm[::-1], strict=True)]
     coords = np.meshgrid(
         *(np.arange(n) * r for n, r in zip(grid.shape, ratio, strict=True)),
-        indexing="ij", sparse=True,
+        indexing="ij",
+        sparse=True,
     )
     full = np.broadcast_arrays(*coords)
     return map_coordinates(coarse_values, full, order=1, mode="nearest").astype(np.float32)
@@ -412,6 +421,8 @@ def default_grid(
         radius = float(np.median(orbit.sod_mm)) * math.sin(fan)
         height = np.ptp(along) + view.rows * view.pitch_v_mm / magnification
         # bounding box of the field-of-view cylinder along world x, y, z
-        extent = height * np.abs(orbit.axis) + 2 * radius * np.sqrt(np.clip(1 - orbit.axis**2, 0, 1))
+        extent = height * np.abs(orbit.axis) + 2 * radius * np.sqrt(
+            np.clip(1 - orbit.axis**2, 0, 1)
+        )
         size_xyz = tuple(min(max_size, max(1, math.ceil(e / spacing_mm))) for e in extent)
     return VolumeGrid.centered(size_xyz, spacing_mm, center)

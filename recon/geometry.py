@@ -23,11 +23,10 @@ import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from functools import cached_property
-from typing import overload
+from typing import Literal, overload
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
-from typing import Literal
 
 ATOL_MM = 1e-6
 """Tolerance for ``==`` on positions (mm) and unit vectors (dimensionless)."""
@@ -159,9 +158,7 @@ class View:
         return cls(source_mm, origin, eu, ev, p, p, detector.rows, detector.cols)
 
     @classmethod
-    def from_matrix(
-        cls, matrix: np.ndarray, pitch_u_mm: float, rows: int, cols: int
-    ) -> View:
+    def from_matrix(cls, matrix: np.ndarray, pitch_u_mm: float, rows: int, cols: int) -> View:
         """Decompose a 3x4 projection matrix (world mm -> pixel indices).
 
         ``matrix`` may carry any positive scale; it must give ``w > 0`` for points between the
@@ -397,7 +394,11 @@ class Geometry(Sequence[View]):
 
 
 def _orbit_view(
-    angle_rad: float, z_mm: float, sid_mm: float, sdd_mm: float, detector: DetectorSpec,
+    angle_rad: float,
+    z_mm: float,
+    sid_mm: float,
+    sdd_mm: float,
+    detector: DetectorSpec,
     isocenter_mm: np.ndarray,
 ) -> View:
     toward_source = np.array([math.sin(angle_rad), -math.cos(angle_rad), 0.0])
@@ -445,8 +446,15 @@ def circular_orbit(
     see :func:`short_scan_arc_deg`) include both end angles.
     """
     return helical_orbit(
-        n_views, sid_mm, sdd_mm, detector, arc_deg=arc_deg, z_start_mm=0.0, z_end_mm=0.0,
-        start_deg=start_deg, isocenter_mm=isocenter_mm,
+        n_views,
+        sid_mm,
+        sdd_mm,
+        detector,
+        arc_deg=arc_deg,
+        z_start_mm=0.0,
+        z_end_mm=0.0,
+        start_deg=start_deg,
+        isocenter_mm=isocenter_mm,
     )
 
 
@@ -493,7 +501,9 @@ def helical_orbit(
     fractions = (
         np.arange(per_pass) / per_pass
         if whole_turns
-        else np.linspace(0.0, 1.0, per_pass) if per_pass > 1 else np.zeros(1)
+        else np.linspace(0.0, 1.0, per_pass)
+        if per_pass > 1
+        else np.zeros(1)
     )
     angles = []
     for k in range(passes):
@@ -558,20 +568,34 @@ class OrbitSpec(BaseModel):
         if self.kind in ("circular", "short_scan"):
             arc = self.arc_deg
             if arc is None:
-                arc = 360.0 if self.kind == "circular" else (
-                    short_scan_arc_deg(self.sid_mm, self.sdd_mm, detector) + self.overscan_deg
+                arc = (
+                    360.0
+                    if self.kind == "circular"
+                    else (
+                        short_scan_arc_deg(self.sid_mm, self.sdd_mm, detector) + self.overscan_deg
+                    )
                 )
             return circular_orbit(
-                self.views, self.sid_mm, self.sdd_mm, detector, arc_deg=arc,
-                start_deg=self.start_deg, isocenter_mm=iso,
+                self.views,
+                self.sid_mm,
+                self.sdd_mm,
+                detector,
+                arc_deg=arc,
+                start_deg=self.start_deg,
+                isocenter_mm=iso,
             )
         travel = (
-            self.z_travel_mm if self.z_travel_mm is not None
-            else self.z_step_mm * (self.views - 1)
+            self.z_travel_mm if self.z_travel_mm is not None else self.z_step_mm * (self.views - 1)
         )
         return helical_orbit(
-            self.views, self.sid_mm, self.sdd_mm, detector,
+            self.views,
+            self.sid_mm,
+            self.sdd_mm,
+            detector,
             arc_deg=360.0 if self.arc_deg is None else self.arc_deg,
-            z_start_mm=-0.5 * travel, z_end_mm=0.5 * travel, passes=self.passes,
-            start_deg=self.start_deg, isocenter_mm=iso,
+            z_start_mm=-0.5 * travel,
+            z_end_mm=0.5 * travel,
+            passes=self.passes,
+            start_deg=self.start_deg,
+            isocenter_mm=iso,
         )

@@ -54,8 +54,16 @@ NOTES_KEY = "ITK_FileNotes"
 """ITK metadata key holding the unit; NIfTI's ``descrip`` field, a MetaImage header line."""
 
 _INTEGER_PIXEL_IDS = frozenset(
-    {sitk.sitkUInt8, sitk.sitkInt8, sitk.sitkUInt16, sitk.sitkInt16, sitk.sitkUInt32,
-     sitk.sitkInt32, sitk.sitkUInt64, sitk.sitkInt64}
+    {
+        sitk.sitkUInt8,
+        sitk.sitkInt8,
+        sitk.sitkUInt16,
+        sitk.sitkInt16,
+        sitk.sitkUInt32,
+        sitk.sitkInt32,
+        sitk.sitkUInt64,
+        sitk.sitkInt64,
+    }
 )
 _UNIT_RE = re.compile(r"\bunit=(1/mm|HU|label)(?:\s|$)")
 _DIRECTION_ATOL = 1e-4
@@ -157,9 +165,7 @@ def _storage_array(volume: Volume, path: Path) -> np.ndarray:
         return data.astype(np.uint8)
     info = np.iinfo(np.int16)
     if low < info.min or high > info.max:
-        raise ValueError(
-            f"{path}: labels must lie within the int16 range, got {low:g}..{high:g}"
-        )
+        raise ValueError(f"{path}: labels must lie within the int16 range, got {low:g}..{high:g}")
     return data.astype(np.int16)
 
 
@@ -408,8 +414,7 @@ def _execute(reader: sitk.ImageFileReader, path: Path) -> sitk.Image:
         return reader.Execute()
     except RuntimeError as err:
         raise ImageFileError(
-            f"{path}: could not read image data (truncated or corrupt file?): "
-            f"{_itk_reason(err)}"
+            f"{path}: could not read image data (truncated or corrupt file?): {_itk_reason(err)}"
         ) from err
 
 

@@ -47,9 +47,7 @@ class SlicePanel:
     title: str
 
 
-def orthogonal_slices(
-    volume: Volume, point_mm: Sequence[float] | None = None
-) -> list[SlicePanel]:
+def orthogonal_slices(volume: Volume, point_mm: Sequence[float] | None = None) -> list[SlicePanel]:
     """Axial, coronal and sagittal slices through ``point_mm`` (default: the grid centre).
 
     Args:
@@ -68,12 +66,30 @@ def orthogonal_slices(
     x_label = "x (mm), patient left →"
     z_label = "z (mm), superior ↑"
     return [
-        SlicePanel("axial", data[iz], (x_lo, x_hi, y_hi, y_lo), x_label,
-                   "y (mm), anterior ↑", f"axial, z = {z:.1f} mm"),
-        SlicePanel("coronal", data[::-1, iy, :], (x_lo, x_hi, z_lo, z_hi), x_label,
-                   z_label, f"coronal, y = {y:.1f} mm"),
-        SlicePanel("sagittal", data[::-1, :, ix], (y_lo, y_hi, z_lo, z_hi),
-                   "y (mm), ← anterior", z_label, f"sagittal, x = {x:.1f} mm"),
+        SlicePanel(
+            "axial",
+            data[iz],
+            (x_lo, x_hi, y_hi, y_lo),
+            x_label,
+            "y (mm), anterior ↑",
+            f"axial, z = {z:.1f} mm",
+        ),
+        SlicePanel(
+            "coronal",
+            data[::-1, iy, :],
+            (x_lo, x_hi, z_lo, z_hi),
+            x_label,
+            z_label,
+            f"coronal, y = {y:.1f} mm",
+        ),
+        SlicePanel(
+            "sagittal",
+            data[::-1, :, ix],
+            (y_lo, y_hi, z_lo, z_hi),
+            "y (mm), ← anterior",
+            z_label,
+            f"sagittal, x = {x:.1f} mm",
+        ),
     ]
 
 
@@ -100,8 +116,14 @@ def render_orthogonal_slices(
     axes = fig.subplots(1, 3)
     for ax, panel in zip(axes, orthogonal_slices(volume, point_mm), strict=True):
         shown = ax.imshow(
-            panel.image, extent=panel.extent_mm, origin="upper", cmap=cmap, vmin=low,
-            vmax=high, interpolation="nearest", aspect="equal",
+            panel.image,
+            extent=panel.extent_mm,
+            origin="upper",
+            cmap=cmap,
+            vmin=low,
+            vmax=high,
+            interpolation="nearest",
+            aspect="equal",
         )
         ax.set(xlabel=panel.xlabel, ylabel=panel.ylabel, title=panel.title)
     fig.colorbar(shown, ax=list(axes), label=_UNIT_LABELS[volume.unit], shrink=0.8)

@@ -52,7 +52,9 @@ def _view_arrays(geometry: Geometry) -> tuple[np.ndarray, ...]:
 
 
 @numba.njit(parallel=True, fastmath=True, cache=True, error_model="numpy")
-def _joseph_kernel(flat, strides, dims, origin, spacing, sources, det_origins, du, dv, out):  # pragma: no cover
+def _joseph_kernel(
+    flat, strides, dims, origin, spacing, sources, det_origins, du, dv, out
+):  # pragma: no cover
     """Joseph line integrals; ``flat`` is the zero-padded volume raveled, strides per (x, y, z)."""
     n_views, rows, cols = out.shape
     for job in numba.prange(n_views * rows):
@@ -65,7 +67,9 @@ def _joseph_kernel(flat, strides, dims, origin, spacing, sources, det_origins, d
         for c in range(cols):
             length2 = 0.0
             for ax in range(3):
-                d_mm = det_origins[view, ax] + c * du[view, ax] + r * dv[view, ax] - sources[view, ax]
+                d_mm = (
+                    det_origins[view, ax] + c * du[view, ax] + r * dv[view, ax] - sources[view, ax]
+                )
                 length2 += d_mm * d_mm
                 d[ax] = d_mm / spacing[ax]
             k = 0
@@ -90,8 +94,8 @@ def _joseph_kernel(flat, strides, dims, origin, spacing, sources, det_origins, d
             if t_hi > t_lo:
                 k0 = s[k] + t_lo * d[k]
                 k1 = s[k] + t_hi * d[k]
-                i_lo = max(0, int(math.ceil(min(k0, k1))))
-                i_hi = min(dims[k] - 1, int(math.floor(max(k0, k1))))
+                i_lo = max(0, math.ceil(min(k0, k1)))
+                i_hi = min(dims[k] - 1, math.floor(max(k0, k1)))
                 inv_dk = 1.0 / d[k]
                 st_k, st_a, st_b = strides[k], strides[a], strides[b]
                 for i in range(i_lo, i_hi + 1):
@@ -100,8 +104,8 @@ def _joseph_kernel(flat, strides, dims, origin, spacing, sources, det_origins, d
                     fb = s[b] + t * d[b]
                     if fa <= -1.0 or fb <= -1.0 or fa >= dims[a] or fb >= dims[b]:
                         continue
-                    ia = int(math.floor(fa))
-                    ib = int(math.floor(fb))
+                    ia = math.floor(fa)
+                    ib = math.floor(fb)
                     wa = fa - ia
                     wb = fb - ib
                     base = (i + _PAD) * st_k + (ia + _PAD) * st_a + (ib + _PAD) * st_b
@@ -151,7 +155,9 @@ FDK_WEIGHT, ADJOINT_WEIGHT, COUNT_WEIGHT = 0, 1, 2
 
 
 @numba.njit(fastmath=True, error_model="numpy", boundscheck=False, inline="always")
-def _row_samples(n, x0, h, s, umax, vmax, cols, mode, d0, dd, axis, idx, fu, fv, wt):  # pragma: no cover
+def _row_samples(
+    n, x0, h, s, umax, vmax, cols, mode, d0, dd, axis, idx, fu, fv, wt
+):  # pragma: no cover
     """Detector sample positions and weights of ``n`` voxels from ``x0`` along one row.
 
     ``h`` and ``s`` hold (u*w, v*w, w) at voxel x = 0 and its step per voxel; ``d0``, ``dd``
@@ -235,16 +241,20 @@ def _backproject_kernel(q, mats, sources, axis, mode, origin, spacing, out):  # 
             # w > 0 on the grid, so 0 <= u <= umax is linear in x: h0 + x s0 >= 0 and
             # h0 + x s0 <= umax (h2 + x s2); likewise for v. Intersect the four half-lines.
             lo, hi = 0.0, nx - 1.0
-            for a, b in ((s[0], h[0]), (s[1], h[1]), (umax * s[2] - s[0], umax * h[2] - h[0]),
-                         (vmax * s[2] - s[1], vmax * h[2] - h[1])):
+            for a, b in (
+                (s[0], h[0]),
+                (s[1], h[1]),
+                (umax * s[2] - s[0], umax * h[2] - h[0]),
+                (vmax * s[2] - s[1], vmax * h[2] - h[1]),
+            ):
                 if a > 0:
                     lo = max(lo, -b / a)
                 elif a < 0:
                     hi = min(hi, -b / a)
                 elif b < 0:
                     hi = -1.0
-            x0 = max(0, int(math.ceil(lo)))
-            n = min(nx - 1, int(math.floor(hi))) - x0 + 1
+            x0 = max(0, math.ceil(lo))
+            n = min(nx - 1, math.floor(hi)) - x0 + 1
             if n <= 0:
                 continue
             _row_samples(n, x0, h, s, umax, vmax, cols, mode, d0, dd, ax32, idx, fu, fv, wt)

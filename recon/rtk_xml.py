@@ -128,7 +128,9 @@ def write_rtk_geometry(
         mat = rtk_matrix(params)
         ours = -to_index @ mat
         scale = np.linalg.norm(view.matrix) / np.linalg.norm(ours)
-        if not np.allclose(ours * scale, view.matrix, rtol=0, atol=1e-9 * np.abs(view.matrix).max()):
+        if not np.allclose(
+            ours * scale, view.matrix, rtol=0, atol=1e-9 * np.abs(view.matrix).max()
+        ):
             raise AssertionError(f"view {i}: RTK parameters do not reproduce the view")
         proj = ET.SubElement(root, "Projection")
         for name, value in params.items():
@@ -147,7 +149,9 @@ def _float(path: Path, element: ET.Element, where: str) -> float:
     try:
         value = float(element.text)
     except (TypeError, ValueError):
-        raise ValueError(f"{path}: {where}: <{element.tag}> is not a number: {element.text!r}") from None
+        raise ValueError(
+            f"{path}: {where}: <{element.tag}> is not a number: {element.text!r}"
+        ) from None
     if not math.isfinite(value):
         raise ValueError(f"{path}: {where}: <{element.tag}> is not finite: {value!r}")
     return value
@@ -190,7 +194,9 @@ def read_rtk_matrices(path: str | Path) -> tuple[list[dict[str, float]], np.ndar
                 try:
                     stored = np.array(child.text.split(), dtype=np.float64).reshape(3, 4)
                 except (AttributeError, ValueError):
-                    raise ValueError(f"{path}: projection {i}: <Matrix> is not 12 numbers") from None
+                    raise ValueError(
+                        f"{path}: projection {i}: <Matrix> is not 12 numbers"
+                    ) from None
             elif child.tag in _DEFAULTS:
                 params[child.tag] = _float(path, child, f"projection {i}")
             elif child.tag not in _IGNORED:

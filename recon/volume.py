@@ -64,7 +64,9 @@ class VolumeGrid:
             positive=True,
         )
         center = _triple("center_mm", center_mm)
-        origin = tuple(c - 0.5 * (n - 1) * s for c, n, s in zip(center, (nx, ny, nz), spacing))
+        origin = tuple(
+            c - 0.5 * (n - 1) * s for c, n, s in zip(center, (nx, ny, nz), spacing, strict=True)
+        )
         return cls(shape=(nz, ny, nx), spacing_mm=spacing, origin_mm=origin)
 
     @property
@@ -76,7 +78,10 @@ class VolumeGrid:
     def center_mm(self) -> np.ndarray:
         """World position of the grid centre, (x, y, z) mm."""
         return np.array(
-            [o + 0.5 * (n - 1) * s for o, n, s in zip(self.origin_mm, self.size_xyz, self.spacing_mm)]
+            [
+                o + 0.5 * (n - 1) * s
+                for o, n, s in zip(self.origin_mm, self.size_xyz, self.spacing_mm, strict=True)
+            ]
         )
 
     @property
@@ -86,14 +91,17 @@ class VolumeGrid:
     def axes_mm(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """World coordinates of voxel centres along x, y and z (three 1-D arrays)."""
         return tuple(
-            o + s * np.arange(n) for o, s, n in zip(self.origin_mm, self.spacing_mm, self.size_xyz)
+            o + s * np.arange(n)
+            for o, s, n in zip(self.origin_mm, self.spacing_mm, self.size_xyz, strict=True)
         )
 
     def corners_mm(self) -> np.ndarray:
         """The 8 outer corners of the grid (voxel edges, not centres), world mm (8, 3)."""
         lo = np.array(self.origin_mm) - 0.5 * np.array(self.spacing_mm)
         hi = lo + np.array(self.size_xyz) * np.array(self.spacing_mm)
-        return np.array([[x, y, z] for z in (lo[2], hi[2]) for y in (lo[1], hi[1]) for x in (lo[0], hi[0])])
+        return np.array(
+            [[x, y, z] for z in (lo[2], hi[2]) for y in (lo[1], hi[1]) for x in (lo[0], hi[0])]
+        )
 
     def world_to_index(self, points_mm: np.ndarray) -> np.ndarray:
         """Continuous voxel indices (i_x, i_y, i_z) of world points, shape (..., 3)."""

@@ -8,8 +8,9 @@ import pytest
 from recon.volume import VolumeGrid
 
 
-def ball(grid: VolumeGrid, center_mm, radius_mm: float, value: float = 1.0,
-         supersample: int = 3) -> np.ndarray:
+def ball(
+    grid: VolumeGrid, center_mm, radius_mm: float, value: float = 1.0, supersample: int = 3
+) -> np.ndarray:
     """A ball rasterised with partial-volume (supersampled) edges, float32 [z, y, x]."""
     out = np.zeros(grid.shape, dtype=np.float32)
     x, y, z = grid.axes_mm()
@@ -25,8 +26,14 @@ def ball(grid: VolumeGrid, center_mm, radius_mm: float, value: float = 1.0,
     return out * np.float32(value / supersample**3)
 
 
-def cylinder(grid: VolumeGrid, center_mm, radius_mm: float, half_height_mm: float,
-             value: float = 1.0, supersample: int = 3) -> np.ndarray:
+def cylinder(
+    grid: VolumeGrid,
+    center_mm,
+    radius_mm: float,
+    half_height_mm: float,
+    value: float = 1.0,
+    supersample: int = 3,
+) -> np.ndarray:
     """An upright (z) cylinder with partial-volume edges, float32 [z, y, x]."""
     out = np.zeros(grid.shape, dtype=np.float32)
     x, y, z = grid.axes_mm()

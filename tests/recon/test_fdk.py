@@ -70,7 +70,7 @@ def test_full_circle_reconstructs_the_attenuation(cylinder_pair):
 
 
 def test_not_flipped_the_dense_ball_comes_back_where_it_was(cylinder_pair):
-    fine, truth = cylinder_pair
+    fine, _ = cylinder_pair
     geometry = circular_orbit(90, 600, 1000, PANEL, isocenter_mm=ISO)
     volume = fdk_reconstruct(forward_project(fine, FINE, geometry), geometry, GRID).volume.data
     excess = (volume - MU > 0.5 * MU) * region(GRID, 28, 26)
@@ -98,7 +98,7 @@ def test_matches_rtk_fdk_where_the_data_are_complete(cylinder_pair):
     """Same discretisation as RTK (spatial Ram-Lak kernel, bilinear voxel-driven backprojection,
     Parker weights): inside the field both agree to float32 rounding (measured 6e-7 and 2e-5
     relative RMSE); the coverage normalisation is the identity there."""
-    fine, truth = cylinder_pair
+    fine, _ = cylinder_pair
     full = circular_orbit(90, 600, 1000, PANEL, isocenter_mm=ISO)
     arc = short_scan_arc_deg(600, 1000, PANEL) + 4
     short = circular_orbit(90, 600, 1000, PANEL, arc_deg=arc, isocenter_mm=ISO)
@@ -117,8 +117,9 @@ def test_reverse_spiral_is_normalised_along_z(cylinder_pair):
     within 1.5 %); RTK's plain FDK, given the same views, sags to a third at z = 25 mm."""
     fine, truth = cylinder_pair
     panel = DetectorSpec(rows=64, cols=128, pixel_pitch_mm=1.0)  # short panel: partial views
-    geometry = helical_orbit(180, 600, 1000, panel, arc_deg=360, z_start_mm=-20, z_end_mm=20,
-                             passes=2, isocenter_mm=ISO)
+    geometry = helical_orbit(
+        180, 600, 1000, panel, arc_deg=360, z_start_mm=-20, z_end_mm=20, passes=2, isocenter_mm=ISO
+    )
     orbit = estimate_orbit(geometry)
     assert [b - a for a, b in orbit.passes] == [90, 90]
     proj = forward_project(fine, FINE, geometry)
@@ -155,8 +156,13 @@ def test_progress_reports_every_batch(cylinder_pair):
     fine, _ = cylinder_pair
     geometry = circular_orbit(40, 600, 1000, PANEL, isocenter_mm=ISO)
     calls = []
-    fdk_reconstruct(forward_project(fine, FINE, geometry), geometry, GRID, batch_views=16,
-                    progress=lambda done, total: calls.append((done, total)))
+    fdk_reconstruct(
+        forward_project(fine, FINE, geometry),
+        geometry,
+        GRID,
+        batch_views=16,
+        progress=lambda done, total: calls.append((done, total)),
+    )
     assert calls == [(16, 40), (32, 40), (40, 40)]
 
 

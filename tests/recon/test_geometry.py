@@ -36,8 +36,9 @@ def test_matrix_maps_pixels_to_their_indices_and_depth_is_the_fraction_of_the_ra
     view = random_view(1)
     u, v = np.meshgrid(np.arange(0, 64, 7.5), np.arange(0, 48, 5.5))
     on_panel = view.pixel_to_world(u, v).reshape(-1, 3)
-    np.testing.assert_allclose(view.project(on_panel), np.column_stack((u.ravel(), v.ravel())),
-                               atol=1e-9)
+    np.testing.assert_allclose(
+        view.project(on_panel), np.column_stack((u.ravel(), v.ravel())), atol=1e-9
+    )
     np.testing.assert_allclose(view.depth(on_panel), 1.0, atol=1e-12)
     midway = 0.5 * (view.source_mm + on_panel)
     np.testing.assert_allclose(view.depth(midway), 0.5, atol=1e-12)
@@ -57,8 +58,16 @@ def test_from_matrix_recovers_the_view_from_any_positive_multiple(seed, log_scal
 def test_from_matrix_keeps_skewed_detector_axes():
     view = random_view(3)
     e_v = view.e_v + 0.05 * view.e_u
-    skewed = View(view.source_mm, view.detector_origin_mm, view.e_u, e_v / np.linalg.norm(e_v),
-                  0.8, 0.7, 48, 64)
+    skewed = View(
+        view.source_mm,
+        view.detector_origin_mm,
+        view.e_u,
+        e_v / np.linalg.norm(e_v),
+        0.8,
+        0.7,
+        48,
+        64,
+    )
     assert View.from_matrix(skewed.matrix, 0.8, 48, 64) == skewed
     with pytest.raises(ValueError, match="skewed"):
         _ = skewed.T_world_detector
@@ -74,11 +83,13 @@ def test_pose_round_trip_and_center_constructor():
 
 def test_equality_is_within_tolerance_and_repr_rebuilds():
     g = helical_orbit(6, 600, 1000, PANEL, arc_deg=360, z_start_mm=-10, z_end_mm=10, passes=2)
-    assert eval(repr(g)) == g  # noqa: S307 - the repr is meant to be pasted
-    nudged = View(g[2].source_mm + 1e-8, g[2].detector_origin_mm, g[2].e_u, g[2].e_v,
-                  0.8, 0.8, 48, 64)
-    moved = View(g[2].source_mm + 1e-3, g[2].detector_origin_mm, g[2].e_u, g[2].e_v,
-                 0.8, 0.8, 48, 64)
+    assert eval(repr(g)) == g
+    nudged = View(
+        g[2].source_mm + 1e-8, g[2].detector_origin_mm, g[2].e_u, g[2].e_v, 0.8, 0.8, 48, 64
+    )
+    moved = View(
+        g[2].source_mm + 1e-3, g[2].detector_origin_mm, g[2].e_u, g[2].e_v, 0.8, 0.8, 48, 64
+    )
     assert nudged == g[2]
     assert moved != g[2]
     with pytest.raises(TypeError):
@@ -147,9 +158,16 @@ def test_short_scan_arc_is_180_plus_fan():
     ],
 )
 def test_bad_views_name_the_field(kwargs, message):
-    fields = {"source_mm": [0, 0, -600], "detector_origin_mm": [0, 0, 400],
-              "e_u": [1, 0, 0], "e_v": [0, 1, 0], "pitch_u_mm": 1.0, "pitch_v_mm": 1.0,
-              "rows": 4, "cols": 4}
+    fields = {
+        "source_mm": [0, 0, -600],
+        "detector_origin_mm": [0, 0, 400],
+        "e_u": [1, 0, 0],
+        "e_v": [0, 1, 0],
+        "pitch_u_mm": 1.0,
+        "pitch_v_mm": 1.0,
+        "rows": 4,
+        "cols": 4,
+    }
     fields.update(kwargs)
     if "source_mm" in kwargs and kwargs["source_mm"][2] == 0.0:
         fields["detector_origin_mm"] = [0, 0, 0]
@@ -162,8 +180,14 @@ def test_orbit_spec_builds_each_kind():
     circ = OrbitSpec(kind="circular", **base).geometry(PANEL)
     assert circ == circular_orbit(12, 600, 1000, PANEL, isocenter_mm=(0, 0, 480))
     short = OrbitSpec(kind="short_scan", overscan_deg=4, **base).geometry(PANEL)
-    expected = circular_orbit(12, 600, 1000, PANEL, arc_deg=short_scan_arc_deg(600, 1000, PANEL)
-                              + 4, isocenter_mm=(0, 0, 480))
+    expected = circular_orbit(
+        12,
+        600,
+        1000,
+        PANEL,
+        arc_deg=short_scan_arc_deg(600, 1000, PANEL) + 4,
+        isocenter_mm=(0, 0, 480),
+    )
     assert short == expected
     spiral = OrbitSpec(kind="reverse_spiral", passes=2, arc_deg=360, z_step_mm=1.5, **base)
     z = [v.source_mm[2] for v in spiral.geometry(PANEL)]

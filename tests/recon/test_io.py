@@ -34,19 +34,49 @@ ORIGIN = (-10.25, 20.5, 30.75)
 
 NIFTI1_HEADER = np.dtype(
     [
-        ("sizeof_hdr", "<i4"), ("data_type", "S10"), ("db_name", "S18"), ("extents", "<i4"),
-        ("session_error", "<i2"), ("regular", "S1"), ("dim_info", "u1"), ("dim", "<i2", (8,)),
-        ("intent_p1", "<f4"), ("intent_p2", "<f4"), ("intent_p3", "<f4"),
-        ("intent_code", "<i2"), ("datatype", "<i2"), ("bitpix", "<i2"),
-        ("slice_start", "<i2"), ("pixdim", "<f4", (8,)), ("vox_offset", "<f4"),
-        ("scl_slope", "<f4"), ("scl_inter", "<f4"), ("slice_end", "<i2"),
-        ("slice_code", "u1"), ("xyzt_units", "u1"), ("cal_max", "<f4"), ("cal_min", "<f4"),
-        ("slice_duration", "<f4"), ("toffset", "<f4"), ("glmax", "<i4"), ("glmin", "<i4"),
-        ("descrip", "S80"), ("aux_file", "S24"), ("qform_code", "<i2"),
-        ("sform_code", "<i2"), ("quatern_b", "<f4"), ("quatern_c", "<f4"),
-        ("quatern_d", "<f4"), ("qoffset_x", "<f4"), ("qoffset_y", "<f4"),
-        ("qoffset_z", "<f4"), ("srow_x", "<f4", (4,)), ("srow_y", "<f4", (4,)),
-        ("srow_z", "<f4", (4,)), ("intent_name", "S16"), ("magic", "S4"),
+        ("sizeof_hdr", "<i4"),
+        ("data_type", "S10"),
+        ("db_name", "S18"),
+        ("extents", "<i4"),
+        ("session_error", "<i2"),
+        ("regular", "S1"),
+        ("dim_info", "u1"),
+        ("dim", "<i2", (8,)),
+        ("intent_p1", "<f4"),
+        ("intent_p2", "<f4"),
+        ("intent_p3", "<f4"),
+        ("intent_code", "<i2"),
+        ("datatype", "<i2"),
+        ("bitpix", "<i2"),
+        ("slice_start", "<i2"),
+        ("pixdim", "<f4", (8,)),
+        ("vox_offset", "<f4"),
+        ("scl_slope", "<f4"),
+        ("scl_inter", "<f4"),
+        ("slice_end", "<i2"),
+        ("slice_code", "u1"),
+        ("xyzt_units", "u1"),
+        ("cal_max", "<f4"),
+        ("cal_min", "<f4"),
+        ("slice_duration", "<f4"),
+        ("toffset", "<f4"),
+        ("glmax", "<i4"),
+        ("glmin", "<i4"),
+        ("descrip", "S80"),
+        ("aux_file", "S24"),
+        ("qform_code", "<i2"),
+        ("sform_code", "<i2"),
+        ("quatern_b", "<f4"),
+        ("quatern_c", "<f4"),
+        ("quatern_d", "<f4"),
+        ("qoffset_x", "<f4"),
+        ("qoffset_y", "<f4"),
+        ("qoffset_z", "<f4"),
+        ("srow_x", "<f4", (4,)),
+        ("srow_y", "<f4", (4,)),
+        ("srow_z", "<f4", (4,)),
+        ("intent_name", "S16"),
+        ("magic", "S4"),
     ]
 )
 assert NIFTI1_HEADER.itemsize == 348
@@ -81,8 +111,12 @@ def _write_ras_nifti(path: Path, data_kji: np.ndarray, spacing, offset_ras) -> N
     header["descrip"] = b"written by another tool"
     header["sform_code"] = 1
     for row, name in enumerate(("srow_x", "srow_y", "srow_z")):
-        header[name] = [spacing[0] * (row == 0), spacing[1] * (row == 1),
-                        spacing[2] * (row == 2), offset_ras[row]]
+        header[name] = [
+            spacing[0] * (row == 0),
+            spacing[1] * (row == 1),
+            spacing[2] * (row == 2),
+            offset_ras[row],
+        ]
     header["magic"] = b"n+1\x00"
     body = header.tobytes() + bytes(4) + data_kji.astype("<f4").tobytes()
     path.write_bytes(body)
@@ -241,9 +275,7 @@ def test_garbage_bytes_raise_image_file_error(tmp_path, name):
     [("v.mha", "v.mha"), ("v.mhd", "v.raw"), ("v.nii", "v.nii"), ("v.nii.gz", "v.nii.gz")],
 )
 def test_truncated_file_raises_image_file_error(tmp_path, name, data_file):
-    volume = Volume(
-        np.ones((20, 30, 40), np.float32), VolumeGrid((20, 30, 40), SPACING, ORIGIN)
-    )
+    volume = Volume(np.ones((20, 30, 40), np.float32), VolumeGrid((20, 30, 40), SPACING, ORIGIN))
     write_volume(tmp_path / name, volume)
     target = tmp_path / data_file
     target.write_bytes(target.read_bytes()[: target.stat().st_size * 2 // 3])
@@ -485,8 +517,11 @@ def test_rendered_png_shows_blob_left_top_as_expected(tmp_path):
     fig.savefig(buffer, format="png", dpi=DPI)
     pixels = mpimg.imread(std_io.BytesIO(buffer.getvalue()))[..., :3].mean(axis=2)
     height = pixels.shape[0]
-    world = {"axial": (blob[0], blob[1]), "coronal": (blob[0], blob[2]),
-             "sagittal": (blob[1], blob[2])}
+    world = {
+        "axial": (blob[0], blob[1]),
+        "coronal": (blob[0], blob[2]),
+        "sagittal": (blob[1], blob[2]),
+    }
     # (horizontal, vertical) half where the blob must show: +1 right/top, -1 left/bottom
     halves = {"axial": (1, 1), "coronal": (1, 1), "sagittal": (-1, 1)}
     for ax, name in zip(fig.axes[:3], ("axial", "coronal", "sagittal"), strict=True):

@@ -37,8 +37,9 @@ def test_adjoint_identity_holds_to_the_interpolation_error():
     form breaks the identity by more than the tolerance.
     """
     panel = DetectorSpec(rows=64, cols=96, pixel_pitch_mm=1.0)
-    geometry = helical_orbit(24, 80, 130, panel, arc_deg=300, z_start_mm=-6, z_end_mm=6,
-                             isocenter_mm=ISO)
+    geometry = helical_orbit(
+        24, 80, 130, panel, arc_deg=300, z_start_mm=-6, z_end_mm=6, isocenter_mm=ISO
+    )
     x = gaussian_filter(_inside_ball(GRID, 16.0), 2).astype(np.float32)
     y = (1 + smooth_random((24, 64, 96), (0, 3, 3), seed=2)).astype(np.float32)
     lhs = float(np.sum(forward_project(x, GRID, geometry).astype(np.float64) * y))
@@ -69,7 +70,9 @@ def test_points_land_on_the_pixels_p_predicts(make_ball, angle_index):
     geometry = circular_orbit(12, 600, 1000, PANEL, isocenter_mm=ISO)
     view = geometry[angle_index]
     for center in ((12.0, -7.0, 489.0), (-15.0, 10.0, 470.0)):
-        image = forward_project(make_ball(GRID, center, 1.5), GRID, geometry[angle_index:angle_index + 1])[0]
+        image = forward_project(
+            make_ball(GRID, center, 1.5), GRID, geometry[angle_index : angle_index + 1]
+        )[0]
         rows, cols = np.mgrid[: image.shape[0], : image.shape[1]]
         centroid = np.array([(cols * image).sum(), (rows * image).sum()]) / image.sum()
         np.testing.assert_allclose(centroid, view.project(center)[0], atol=0.05)
@@ -113,8 +116,9 @@ def test_ball_projections_match_analytic_chords(make_ball):
 def test_matches_rtk_joseph_projector():
     """Same algorithm (Joseph, bilinear): for an object inside the grid (the toolkits treat the
     grid's outer faces differently) differences are float32 rounding."""
-    geometry = helical_orbit(10, 600, 1000, PANEL, arc_deg=360, z_start_mm=-10, z_end_mm=10,
-                             isocenter_mm=ISO)
+    geometry = helical_orbit(
+        10, 600, 1000, PANEL, arc_deg=360, z_start_mm=-10, z_end_mm=10, isocenter_mm=ISO
+    )
     volume = np.abs(smooth_random(GRID.shape, 2, seed=5)) * _inside_ball(GRID, 18.0)
     ours = forward_project(volume, GRID, geometry)
     theirs = rtk_forward_project(volume, GRID, geometry)

@@ -29,8 +29,9 @@ def read_with_rtk(path):
 
 
 def test_a_geometry_we_write_gives_rtk_the_same_projections(tmp_path):
-    geometry = helical_orbit(12, 600, 1000, PANEL, arc_deg=360, z_start_mm=420, z_end_mm=540,
-                             passes=2, start_deg=17)
+    geometry = helical_orbit(
+        12, 600, 1000, PANEL, arc_deg=360, z_start_mm=420, z_end_mm=540, passes=2, start_deg=17
+    )
     origin = (-20.0, -14.0)
     path = write_rtk_geometry(tmp_path / "g.xml", geometry, origin_uv_mm=origin)
     theirs = read_with_rtk(path)
@@ -45,8 +46,14 @@ def test_a_geometry_rtk_writes_reads_back_as_the_same_projections(tmp_path):
     theirs = rtk.ThreeDCircularProjectionGeometry.New()
     for _ in range(8):
         # sid, sdd, gantry, projection offset x/y, out of plane, in plane, source offset x/y
-        params = [600 + rng.normal() * 5, 1000 + rng.normal() * 5, rng.uniform(0, 360),
-                  *rng.normal(size=2) * 3, *rng.normal(size=2) * 4, *rng.normal(size=2) * 3]
+        params = [
+            600 + rng.normal() * 5,
+            1000 + rng.normal() * 5,
+            rng.uniform(0, 360),
+            *rng.normal(size=2) * 3,
+            *rng.normal(size=2) * 4,
+            *rng.normal(size=2) * 3,
+        ]
         theirs.AddProjection(*[float(p) for p in params])
     writer = rtk.ThreeDCircularProjectionGeometryXMLFileWriter.New()
     writer.SetFilename(str(tmp_path / "rtk.xml"))
@@ -59,20 +66,31 @@ def test_a_geometry_rtk_writes_reads_back_as_the_same_projections(tmp_path):
 
 
 BAD = {
-    "version": ('<RTKThreeDCircularGeometry version="2"><Projection/></RTKThreeDCircularGeometry>',
-                "only 3 is read"),
-    "element": ('<RTKThreeDCircularGeometry version="3"><Projection><Bogus>1</Bogus>'
-                "</Projection></RTKThreeDCircularGeometry>", "unknown element <Bogus>"),
-    "number": ('<RTKThreeDCircularGeometry version="3"><SourceToIsocenterDistance>abc'
-               "</SourceToIsocenterDistance><Projection/></RTKThreeDCircularGeometry>",
-               "not a number"),
-    "cylindrical": ('<RTKThreeDCircularGeometry version="3"><SourceToIsocenterDistance>600'
-                    "</SourceToIsocenterDistance><SourceToDetectorDistance>1000"
-                    "</SourceToDetectorDistance><RadiusCylindricalDetector>1000"
-                    "</RadiusCylindricalDetector><Projection/></RTKThreeDCircularGeometry>",
-                    "cylindrical"),
-    "empty": ('<RTKThreeDCircularGeometry version="3"></RTKThreeDCircularGeometry>',
-              "no <Projection>"),
+    "version": (
+        '<RTKThreeDCircularGeometry version="2"><Projection/></RTKThreeDCircularGeometry>',
+        "only 3 is read",
+    ),
+    "element": (
+        '<RTKThreeDCircularGeometry version="3"><Projection><Bogus>1</Bogus>'
+        "</Projection></RTKThreeDCircularGeometry>",
+        "unknown element <Bogus>",
+    ),
+    "number": (
+        '<RTKThreeDCircularGeometry version="3"><SourceToIsocenterDistance>abc'
+        "</SourceToIsocenterDistance><Projection/></RTKThreeDCircularGeometry>",
+        "not a number",
+    ),
+    "cylindrical": (
+        '<RTKThreeDCircularGeometry version="3"><SourceToIsocenterDistance>600'
+        "</SourceToIsocenterDistance><SourceToDetectorDistance>1000"
+        "</SourceToDetectorDistance><RadiusCylindricalDetector>1000"
+        "</RadiusCylindricalDetector><Projection/></RTKThreeDCircularGeometry>",
+        "cylindrical",
+    ),
+    "empty": (
+        '<RTKThreeDCircularGeometry version="3"></RTKThreeDCircularGeometry>',
+        "no <Projection>",
+    ),
     "truncated": ('<RTKThreeDCircularGeometry version="3"><Projection>', "not valid XML"),
 }
 

@@ -1,0 +1,303 @@
+"""Benchmark: our weighted FDK against RTK's CPU FDK on the same projections and machine.
+
+256^3 volume of 0.5 mm voxels from 360 views of 512 x 512 pixels (0.8 mm), SID 600 mm,
+SDD 1000 mm, for three orbits about world z: ``circular`` (full turn), ``short`` (180 degrees
+plus the fan plus 2 degrees, Parker weights in both toolkits) and ``helix`` (a two-pass
+reverse spiral, 360 degrees per pass, +-100 mm of lift travel; RTK runs its plain FDK there).
+Two inputs per orbit: RTK's analytic ray-ellipsoid Shepp-Logan projector (an independent
+forward model) and our Joseph projector on the knee phantom rasterised at 0.4 mm.
+
+Each reconstruction runs in a fresh process that loads its inputs from disk, warms up (our
+kernels load from numba's cache; RTK has nothing to warm), then times the reconstruction alone;
+the process's peak resident memory is reported as measured (it includes the interpreter and
+the libraries). Both use a plain ramp (Ram-Lak) filter and both threads of this machine.
+
+Prints one JSON object ``{"cases": [...]}``; see ``KEYS`` for each entry.
+
+Usage: ``python bench/recon.py [--small] [--out DIR]`` (``--small`` runs a 64^3 version in
+about a minute to check the harness).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from recon.geometry import (  # noqa: E402
+    DetectorSpec,
+    Geometry,
+    circular_orbit,
+    helical_orbit,
+    short_scan_arc_deg,
+)
+from recon.rtk_xml import read_rtk_geometry, write_rtk_geometry  # noqa: E402
+from recon.volume import VolumeGrid  # noqa: E402
+
+KEYS = (
+    "case",
+    "input",
+    "ours_s",
+    "rtk_s",
+    "speed_ratio",
+    "ours_rmse",
+    "rtk_rmse",
+    "ours_ssim",
+    "rtk_ssim",
+    "ours_peak_mb",
+    "rtk_peak_mb",
+    "max_abs_diff_vs_rtk",
+)
+FULL = {
+    "size": 256,
+    "voxel_mm": 0.5,
+    "views": 360,
+    "panel": 512,
+    "pitch_mm": 0.8,
+    "knee_voxel_mm": 0.4,
+    "travel_mm": 200.0,
+}
+SMALL = {
+    "size": 64,
+    "voxel_mm": 2.0,
+    "views": 90,
+    "panel": 128,
+    "pitch_mm": 3.2,
+    "knee_voxel_mm": 1.0,
+    "travel_mm": 200.0,
+}
+SID_MM, SDD_MM = 600.0, 1000.0
+
+
+def orbits(cfg: dict, isocenter) -> dict[str, Geometry]:
+    panel = DetectorSpec(rows=cfg["panel"], cols=cfg["panel"], pixel_pitch_mm=cfg["pitch_mm"])
+    n = cfg["views"]
+    arc = short_scan_arc_deg(SID_MM, SDD_MM, panel) + 2.0
+    half = cfg["travel_mm"] / 2
+    return {
+        "circular": circular_orbit(n, SID_MM, SDD_MM, panel, isocenter_mm=isocenter),
+        "short": circular_orbit(n, SID_MM, SDD_MM, panel, arc_deg=arc, isocenter_mm=isocenter),
+        "helix": helical_orbit(
+            n,
+            SID_MM,
+            SDD_MM,
+            panel,
+            arc_deg=360.0,
+            z_start_mm=-half,
+            z_end_mm=half,
+            passes=2,
+            isocenter_mm=isocenter,
+        ),
+    }
+
+
+# -- worker: one reconstruction in its own process ---------------------------------------------
+
+
+def worker(toolkit: str, folder: Path, case: str) -> None:
+    """Reconstruct ``folder``'s projections with one toolkit; print timing and peak memory."""
+    from recon.fdk import fdk_reconstruct
+    from recon.io import read_projections
+    from recon.rtk_peer import rtk_fdk
+
+    stack = read_projections(folder / "projections.mha")
+    geometry = read_rtk_geometry(folder / "geometry.xml", stack.detector, stack.origin_uv_mm)
+    grid_spec = json.loads((folder / "grid.json").read_text())
+    grid = VolumeGrid(
+        tuple(grid_spec["shape"]), tuple(grid_spec["spacing_mm"]), tuple(grid_spec["origin_mm"])
+    )
+    if toolkit == "ours":
+        tiny = VolumeGrid.centered((8, 8, 8), 4.0, grid.center_mm)
+        fdk_reconstruct(
+            stack.data[:8], geometry[:8], tiny, redundancy="none", min_coverage_deg=0
+        )  # loads the compiled kernels from numba's cache
+        start = time.perf_counter()
+        volume = fdk_reconstruct(stack.data, geometry, grid, window="ram-lak").volume.data
+    else:
+        tiny = VolumeGrid.centered((8, 8, 8), 4.0, grid.center_mm)
+        rtk_fdk(stack.data[:8], geometry[:8], tiny)  # loads RTK's wrapped modules
+        start = time.perf_counter()
+        volume = rtk_fdk(stack.data, geometry, grid, parker=case == "short")
+    seconds = time.perf_counter() - start
+    np.save(folder / f"{toolkit}.npy", volume)
+    print(json.dumps({"seconds": seconds, "peak_mb": peak_resident_mb()}))
+
+
+def peak_resident_mb() -> float:
+    """This process's peak resident set (VmHWM; ru_maxrss would carry the parent's over exec)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024.0
+    raise RuntimeError("no VmHWM in /proc/self/status")
+
+
+def run_worker(toolkit: str, folder: Path, case: str) -> dict:
+    done = subprocess.run(
+        [sys.executable, __file__, "--worker", toolkit, str(folder), case],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    if done.returncode:
+        raise RuntimeError(f"{toolkit} on {folder} failed:\n{done.stderr[-3000:]}")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+# -- inputs -------------------------------------------------------------------------------------
+
+
+def write_inputs(
+    folder: Path, projections: np.ndarray, geometry: Geometry, grid: VolumeGrid, truth: np.ndarray
+) -> None:
+    from recon.io import write_projections
+
+    folder.mkdir(parents=True)
+    write_projections(folder / "projections.mha", projections, geometry[0].pitch_u_mm)
+    write_rtk_geometry(folder / "geometry.xml", geometry)
+    (folder / "grid.json").write_text(
+        json.dumps(
+            {"shape": grid.shape, "spacing_mm": grid.spacing_mm, "origin_mm": grid.origin_mm}
+        )
+    )
+    np.save(folder / "truth.npy", truth)
+
+
+def shepp_logan_inputs(cfg: dict, root: Path, log) -> list[tuple[str, str, Path]]:
+    from recon.rtk_peer import rtk_shepp_logan
+
+    grid = VolumeGrid.centered((cfg["size"],) * 3, cfg["voxel_mm"], (0.0, 0.0, 0.0))
+    scale = 0.45 * cfg["size"] * cfg["voxel_mm"]  # outer ellipsoid fills ~90 % of the cube
+    out = []
+    for case, geometry in orbits(cfg, (0.0, 0.0, 0.0)).items():
+        log(f"RTK analytic Shepp-Logan projections, {case}")
+        projections, truth = rtk_shepp_logan(geometry, grid, scale)
+        folder = root / f"shepp_logan-{case}"
+        write_inputs(folder, projections, geometry, grid, truth)
+        out.append((case, "shepp_logan", folder))
+    return out
+
+
+def knee_inputs(cfg: dict, root: Path, log) -> list[tuple[str, str, Path]]:
+    from recon.project import forward_project
+    from sim.phantoms.knee import KneePhantomSpec, knee_grid, rasterize_knee
+
+    spec = KneePhantomSpec()
+    fine = knee_grid(spec, spacing_mm=cfg["knee_voxel_mm"])
+    log(f"rasterising the knee phantom on {fine.size_xyz} voxels")
+    _, mu = rasterize_knee(spec, fine, supersample=2)
+    grid = VolumeGrid.centered((cfg["size"],) * 3, cfg["voxel_mm"], fine.center_mm)
+    _, truth = rasterize_knee(spec, grid, supersample=3)
+    out = []
+    for case, geometry in orbits(cfg, tuple(fine.center_mm)).items():
+        log(f"our Joseph projections of the knee, {case}")
+        folder = root / f"knee-{case}"
+        write_inputs(folder, forward_project(mu, fine, geometry), geometry, grid, truth)
+        out.append((case, "knee", folder))
+    return out
+
+
+# -- metrics ------------------------------------------------------------------------------------
+
+
+def central_region(shape: tuple[int, int, int], fraction: float = 0.75) -> np.ndarray:
+    """Cylinder of ``fraction`` of the half-width, over ``fraction`` of the height."""
+    nz, ny, nx = shape
+    z, y, x = np.ogrid[:nz, :ny, :nx]
+    r2 = ((x - (nx - 1) / 2) / (nx / 2)) ** 2 + ((y - (ny - 1) / 2) / (ny / 2)) ** 2
+    return (r2 <= fraction**2) & (np.abs(z - (nz - 1) / 2) <= fraction * nz / 2)
+
+
+def ssim(volume: np.ndarray, truth: np.ndarray, region: np.ndarray) -> float:
+    from skimage.metrics import structural_similarity
+
+    zs, ys, xs = (np.flatnonzero(region.any(axis=axes)) for axes in ((1, 2), (0, 2), (0, 1)))
+    box = np.s_[zs[0] : zs[-1] + 1, ys[0] : ys[-1] + 1, xs[0] : xs[-1] + 1]
+    span = float(truth[box].max() - truth[box].min())
+    return float(structural_similarity(volume[box], truth[box], data_range=span))
+
+
+def axial_drop(volume: np.ndarray, truth: np.ndarray, slab: int) -> float:
+    """Relative loss of the mean value near the object's ends in z against its middle, inside
+    the central cylinder: 1 - (recon/truth in the end slabs) / (recon/truth mid-object).
+
+    The object spans the slices whose core mean exceeds a quarter of the largest; the end
+    slabs are its first and last ``slab`` slices, two slices in from its ends.
+    """
+    nz = volume.shape[0]
+    core = central_region(volume.shape, 0.6)[nz // 2]
+    profile = truth[:, core].mean(axis=1)
+    inside = np.flatnonzero(profile > 0.25 * profile.max())
+    first, last = int(inside[0]) + 2, int(inside[-1]) - 2
+
+    def ratio(zs) -> float:
+        return float(volume[zs][:, core].mean() / truth[zs][:, core].mean())
+
+    mid = (first + last) // 2
+    middle = ratio(slice(mid - slab // 2, mid + slab // 2 + 1))
+    ends = 0.5 * (ratio(slice(first, first + slab)) + ratio(slice(last + 1 - slab, last + 1)))
+    return 1.0 - ends / middle
+
+
+def measure(case: str, kind: str, folder: Path, log) -> dict:
+    log(f"reconstructing {kind} / {case}: ours")
+    ours_run = run_worker("ours", folder, case)
+    log(f"reconstructing {kind} / {case}: RTK")
+    rtk_run = run_worker("rtk", folder, case)
+    truth = np.load(folder / "truth.npy")
+    ours, theirs = np.load(folder / "ours.npy"), np.load(folder / "rtk.npy")
+    region = central_region(truth.shape)
+    entry = {
+        "case": case,
+        "input": kind,
+        "ours_s": round(ours_run["seconds"], 2),
+        "rtk_s": round(rtk_run["seconds"], 2),
+        "speed_ratio": round(rtk_run["seconds"] / ours_run["seconds"], 3),
+        "ours_rmse": float(np.sqrt(np.mean((ours - truth)[region] ** 2))),
+        "rtk_rmse": float(np.sqrt(np.mean((theirs - truth)[region] ** 2))),
+        "ours_ssim": round(ssim(ours, truth, region), 4),
+        "rtk_ssim": round(ssim(theirs, truth, region), 4),
+        "ours_peak_mb": round(ours_run["peak_mb"], 1),
+        "rtk_peak_mb": round(rtk_run["peak_mb"], 1),
+        "max_abs_diff_vs_rtk": float(np.abs(ours - theirs)[region].max()),
+    }
+    if case == "helix":
+        slab = max(2, truth.shape[0] // 32)
+        entry["ours_axial_drop"] = round(axial_drop(ours, truth, slab), 4)
+        entry["rtk_axial_drop"] = round(axial_drop(theirs, truth, slab), 4)
+    return entry
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--small", action="store_true", help="64^3 harness check")
+    parser.add_argument("--out", type=Path, help="keep inputs and outputs here")
+    parser.add_argument(
+        "--worker", nargs=3, metavar=("TOOLKIT", "FOLDER", "CASE"), help=argparse.SUPPRESS
+    )
+    args = parser.parse_args()
+    if args.worker:
+        worker(args.worker[0], Path(args.worker[1]), args.worker[2])
+        return
+    cfg = SMALL if args.small else FULL
+
+    def log(msg: str) -> None:
+        print(f"[bench/recon] {msg}", file=sys.stderr, flush=True)
+
+    with tempfile.TemporaryDirectory(prefix="bench-recon-") as tmp:
+        root = args.out or Path(tmp)
+        jobs = shepp_logan_inputs(cfg, root, log) + knee_inputs(cfg, root, log)
+        cases = [measure(case, kind, folder, log) for case, kind, folder in jobs]
+    print(json.dumps({"benchmark": "recon", "config": cfg, "cases": cases}, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,143 @@
+"""File-level jobs of the console: simulate a scan into a folder, reconstruct files.
+
+Each job validates everything it reads before the long work starts and refuses to overwrite:
+outputs go to new files or to a folder that does not exist yet (or is empty).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Callable
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+
+from recon.config import load_config, load_protocol
+from recon.fdk import FDKResult, Progress, default_grid, fdk_reconstruct
+from recon.io import read_projections, write_projections, write_volume
+from recon.preview import save_orthogonal_slices
+from recon.rtk_xml import read_rtk_geometry, write_rtk_geometry
+from recon.volume import VolumeGrid
+from sim.phantoms.knee import KneePhantomSpec
+from sim.scan import SimulatedScan, simulate_knee_scan
+
+Status = Callable[[str], None]
+
+
+def software_version() -> str:
+    try:
+        return version("dualarm-cbct")
+    except PackageNotFoundError:  # pragma: no cover - running from a bare checkout
+        return "unknown"
+
+
+def sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def new_folder(path: Path) -> Path:
+    """Create ``path`` for output; refuse one that exists with anything in it."""
+    if path.exists() and (not path.is_dir() or any(path.iterdir())):
+        raise FileExistsError(f"{path} exists and is not empty: nothing is overwritten")
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def write_scan(folder: Path, scan: SimulatedScan, manifest: dict) -> list[Path]:
+    """Write a simulated scan: projections/counts (.mha), geometry (.xml), phantom, manifest."""
+    pitch = scan.geometry[0].pitch_u_mm
+    written = [
+        write_projections(folder / "projections.mha", scan.projections, pitch),
+        write_rtk_geometry(folder / "geometry.xml", scan.geometry),
+        write_volume(folder / "phantom.nii.gz", scan.attenuation),
+        write_volume(folder / "labels.nii.gz", scan.labels),
+    ]
+    if scan.counts is not None:
+        written.append(write_projections(folder / "counts.mha", scan.counts, pitch))
+    manifest = dict(manifest, files={p.name: sha256(p) for p in written})
+    (folder / "scan.json").write_text(json.dumps(manifest, indent=2))
+    return [*written, folder / "scan.json"]
+
+
+def simulate_to_folder(
+    protocol_path: Path,
+    out: Path,
+    phantom_path: Path,
+    *,
+    voxel_mm: float = 0.5,
+    seed: int = 0,
+    noise: bool = True,
+    status: Status | None = None,
+) -> list[Path]:
+    """Load the protocol and phantom, simulate the knee scan, write it to a new folder."""
+    protocol = load_protocol(protocol_path)
+    phantom = load_config(phantom_path, KneePhantomSpec)
+    if not voxel_mm > 0:
+        raise ValueError(f"voxel_mm must be > 0, got {voxel_mm!r}")
+    new_folder(out)
+    scan = simulate_knee_scan(
+        protocol, phantom, voxel_mm=voxel_mm, noise=noise, seed=seed, status=status
+    )
+    manifest = {
+        "software_version": software_version(),
+        "protocol": protocol.model_dump(mode="json"),
+        "phantom": phantom.model_dump(mode="json"),
+        "voxel_mm": voxel_mm,
+        "seed": seed,
+        "noise": noise,
+        "photons_per_pixel": scan.photons_per_pixel,
+    }
+    return write_scan(out, scan, manifest)
+
+
+def reconstruct_files(
+    projections_path: Path,
+    geometry_path: Path,
+    out: Path,
+    *,
+    size_xyz: tuple[int, int, int] | None = None,
+    spacing_mm: float | None = None,
+    origin_mm: tuple[float, float, float] | None = None,
+    window: str = "hann",
+    min_coverage_deg: float = 170.0,
+    progress: Progress | None = None,
+    preview: Path | None = None,
+) -> FDKResult:
+    """Reconstruct an RTK projection stack + geometry XML into a volume file (and a PNG).
+
+    The grid defaults to the orbit's field of view (recon.fdk.default_grid); ``origin_mm``
+    needs ``size_xyz``. Nothing is written if any input is wrong.
+    """
+    for path in (out, preview):
+        if path is not None and path.exists():
+            raise FileExistsError(f"{path} exists: nothing is overwritten")
+    stack = read_projections(projections_path)
+    geometry = read_rtk_geometry(geometry_path, stack.detector, stack.origin_uv_mm)
+    if len(geometry) != stack.data.shape[0]:
+        raise ValueError(
+            f"{projections_path} holds {stack.data.shape[0]} projections but {geometry_path} "
+            f"describes {len(geometry)} views"
+        )
+    if origin_mm is not None and size_xyz is None:
+        raise ValueError("--origin-mm needs --size (the grid's voxel counts)")
+    grid = default_grid(geometry, spacing_mm, size_xyz)
+    if origin_mm is not None:
+        grid = VolumeGrid(grid.shape, grid.spacing_mm, origin_mm)
+    result = fdk_reconstruct(
+        stack.data,
+        geometry,
+        grid,
+        window=window,
+        min_coverage_deg=min_coverage_deg,
+        progress=progress,
+    )
+    write_volume(out, result.volume)
+    if preview is not None:
+        save_orthogonal_slices(
+            result.volume, preview, title=f"weighted FDK of {projections_path.name}"
+        )
+    return result
