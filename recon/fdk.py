@@ -32,7 +32,6 @@ from typing import Literal
 
 import numpy as np
 import scipy.fft
-from scipy.ndimage import map_coordinates
 
 from recon.geometry import Geometry
 from recon.project import COUNT_WEIGHT, FDK_WEIGHT, backproject_weighted, check_in_front
@@ -297,7 +296,7 @@ def fdk_reconstruct(
             f"projections have shape {proj.shape}; the geometry has {n_views} views of "
             f"{geometry.rows} x {geometry.cols} pixels"
         )
-    bad = np.flatnonzero(~np.isfinite(proj).all(axis=(1, 2)))
+    bad = np.flatnonzero([not np.isfinite(p).all() for p in proj])
     if bad.size:
         raise ValueError(
             f"projections contain NaN or infinite values in view(s) {bad[:10].tolist()}"
@@ -318,7 +317,7 @@ def fdk_reconstruct(
     R = parker_weights(geometry, orbit) if use_parker else np.ones((n_views, geometry.cols))
     # pre-filter weights: Parker along u and the row taper (filtering along u commutes with
     # it); the column taper multiplies after filtering, where it is a plain view weight
-    pre = R[:, None, :] * _taper(geometry.rows, edge_taper_px)[None, :, None]
+    taper_v = _taper(geometry.rows, edge_taper_px).astype(np.float32)[:, None]
     taper_u = _taper(geometry.cols, edge_taper_px)
     coarse = _coarse_grid(grid, coverage_subsample)
     num = np.zeros(grid.shape, dtype=np.float32)
@@ -326,10 +325,11 @@ def fdk_reconstruct(
     for start in range(0, n_views, batch_views):
         views = geometry[start : min(start + batch_views, n_views)]
         index = range(start, start + len(views))
-        weights = (pre[start : start + len(views)] * taper_u).astype(np.float32)
-        batch = np.stack([_cosine_weights(v) for v in views]) * pre[start : start + len(views)]
+        pre = R[start : start + len(views), None, :].astype(np.float32) * taper_v
+        weights = pre * taper_u.astype(np.float32)
+        batch = np.stack([_cosine_weights(v) for v in views]).astype(np.float32) * pre
         batch *= proj[start : start + len(views)]
-        spec = scipy.fft.rfft(batch.astype(np.float32), n=n_fft, axis=2, workers=-1)
+        spec = scipy.fft.rfft(batch, n=n_fft, axis=2, workers=-1)
         spec *= ramp
         filtered = scipy.fft.irfft(spec, n=n_fft, axis=2, workers=-1)[:, :, : geometry.cols]
         # FDK weight SOD / (SDD w^2) per view times dbeta; the ramp ran in pixel units,
@@ -357,7 +357,8 @@ def fdk_reconstruct(
     coverage = _interpolate(count, coarse, grid)
     mask = coverage >= min_coverage_deg
     volume = np.zeros(grid.shape, dtype=np.float32)
-    volume[mask] = 180.0 * num[mask] / coverage[mask]  # pi * num / count, count in degrees
+    np.divide(num, coverage, out=volume, where=mask)
+    volume *= 180.0  # pi * num / count, with the count in degrees
     return FDKResult(Volume(volume, grid, "1/mm"), coverage, mask, orbit)
 
 
@@ -381,15 +382,20 @@ def _coarse_grid(grid: VolumeGrid, subsample: int) -> VolumeGrid:
 
 
 def _interpolate(coarse_values: np.ndarray, coarse: VolumeGrid, grid: VolumeGrid) -> np.ndarray:
-    """Trilinear interpolation of a coarse-grid map onto ``grid`` (same origin)."""
-    ratio = [f / c for f, c in zip(grid.spacing_mm[::-1], coarse.spacing_mm[::-1], strict=True)]
-    coords = np.meshgrid(
-        *(np.arange(n) * r for n, r in zip(grid.shape, ratio, strict=True)),
-        indexing="ij",
-        sparse=True,
-    )
-    full = np.broadcast_arrays(*coords)
-    return map_coordinates(coarse_values, full, order=1, mode="nearest").astype(np.float32)
+    """Trilinear interpolation of a coarse-grid map onto ``grid`` (same origin), applied one
+    axis at a time with small interpolation matrices so memory stays at one float32 volume."""
+    out = coarse_values.astype(np.float32)
+    for axis in range(3):
+        ratio = grid.spacing_mm[2 - axis] / coarse.spacing_mm[2 - axis]
+        position = np.arange(grid.shape[axis]) * ratio
+        lower = np.minimum(np.floor(position).astype(int), coarse.shape[axis] - 2)
+        frac = np.clip(position - lower, 0.0, 1.0)
+        weights = np.zeros((grid.shape[axis], coarse.shape[axis]), dtype=np.float32)
+        rows = np.arange(grid.shape[axis])
+        weights[rows, lower] = 1.0 - frac
+        weights[rows, lower + 1] = frac
+        out = np.moveaxis(np.tensordot(weights, out, axes=([1], [axis])), 0, axis)
+    return np.ascontiguousarray(out)
 
 
 def default_grid(

@@ -67,6 +67,7 @@ _INTEGER_PIXEL_IDS = frozenset(
 )
 _UNIT_RE = re.compile(r"\bunit=(1/mm|HU|label)(?:\s|$)")
 _DIRECTION_ATOL = 1e-4
+_VIEWS_PER_READ = 32
 _GZIP_CHUNK_BYTES = 1 << 22
 _ITK_CLASS_PREFIX = re.compile(r"^\s*\w+\(0x[0-9a-fA-F]+\):\s*")
 
@@ -336,10 +337,23 @@ def read_projections(path: str | Path) -> ProjectionStack:
             f"{path}: projection stack must have identity direction, "
             f"got {np.round(reader.GetDirection(), 6).tolist()}"
         )
-    image = _execute(reader, path)
-    spacing, origin = image.GetSpacing(), image.GetOrigin()
+    cols, rows, views = reader.GetSize()
+    data = np.empty((views, rows, cols), dtype=np.float32)
+    reader.SetOutputPixelType(sitk.sitkFloat32)
+    # uncompressed stacks stream in slabs of views, so memory stays at one copy of the data;
+    # compressed ones (smaller than their pixels) are read whole
+    itemsize = sitk.GetArrayViewFromImage(sitk.Image([1, 1, 1], reader.GetPixelID())).itemsize
+    uncompressed = path.stat().st_size >= cols * rows * views * itemsize
+    chunk = _VIEWS_PER_READ if uncompressed else views
+    for start in range(0, views, chunk):
+        n = min(chunk, views - start)
+        reader.SetExtractIndex((0, 0, start))
+        reader.SetExtractSize((cols, rows, n))
+        slab = _execute(reader, path)  # the view below borrows its buffer: keep it alive
+        data[start : start + n] = sitk.GetArrayViewFromImage(slab)
+    spacing, origin = reader.GetSpacing(), reader.GetOrigin()
     return ProjectionStack(
-        data=sitk.GetArrayFromImage(image).astype(np.float32, copy=False),
+        data=data,
         pixel_pitch_mm=(float(spacing[0]), float(spacing[1])),
         origin_uv_mm=(float(origin[0]), float(origin[1])),
     )

@@ -9,6 +9,7 @@ shows progress on long work.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated
 
@@ -42,9 +43,22 @@ def _progress() -> Progress:
     )
 
 
+def _views_done(bar: Progress, description: str) -> Callable[[int, int], None]:
+    """A progress callback that shows its bar from the first report on."""
+    task = None
+
+    def update(done: int, total: int) -> None:
+        nonlocal task
+        if task is None:
+            task = bar.add_task(description, total=total)
+        bar.update(task, completed=done, total=total)
+
+    return update
+
+
 def fail(message: str) -> None:
     """Print an error in words and exit with status 2 (nothing written beyond what is said)."""
-    console.print(f"[bold red]error:[/] {message}")
+    console.print(f"[bold red]error:[/] {message}", soft_wrap=True, highlight=False)
     raise typer.Exit(2)
 
 
@@ -100,7 +114,6 @@ def recon(
         fail(f"{out} exists: choose a new output name (nothing is overwritten)")
     try:
         with _progress() as bar:
-            task = bar.add_task("weighted FDK", total=None)
             start = time.perf_counter()
             result = jobs.reconstruct_files(
                 projections,
@@ -111,7 +124,7 @@ def recon(
                 origin_mm=origin_mm,
                 window=filter,
                 min_coverage_deg=min_coverage_deg,
-                progress=lambda done, total: bar.update(task, completed=done, total=total),
+                progress=_views_done(bar, "weighted FDK"),
                 preview=preview,
             )
     except (ValueError, OSError) as err:
@@ -120,7 +133,9 @@ def recon(
     console.print(
         f"[green]wrote[/] {out}: {grid.size_xyz} voxels of {grid.spacing_mm[0]:.3g} mm in "
         f"{time.perf_counter() - start:.1f} s; {100 * (1 - result.mask.mean()):.1f} % of voxels "
-        f"masked (seen over < {min_coverage_deg:g} deg)"
+        f"masked (seen over < {min_coverage_deg:g} deg)",
+        soft_wrap=True,
+        highlight=False,
     )
 
 
@@ -138,17 +153,16 @@ def demo(
     """
     try:
         with _progress() as bar:
-            task = bar.add_task("weighted FDK", total=None)
             summary = demo_job.run(
                 out,
                 CONFIGS,
                 quick=quick,
                 status=lambda msg: console.print(f"  {msg}"),
-                progress=lambda done, total: bar.update(task, completed=done, total=total),
+                progress=_views_done(bar, "weighted FDK"),
             )
     except (ValueError, OSError) as err:
         fail(str(err))
-    console.print(summary)
+    console.print(summary, soft_wrap=True, highlight=False)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -139,3 +139,30 @@ def test_bad_input_is_refused_before_projecting():
         forward_project(np.zeros(far.shape), far, geometry)
     with pytest.raises(ValueError, match="the geometry needs"):
         backproject(np.zeros((3, 64, 80)), geometry, GRID)
+
+
+def test_rotated_ellipsoid_projections_match_its_analytic_line_integrals():
+    """A tilted ellipsoid (semi-axes 18, 11, 7 mm) rasterised with partial volume projects to
+    its exact chord lengths: away from the rim (chord > 60 % of the longest) within the
+    interpolation blur of a 1 mm grid, ~0.1 mm RMS."""
+    from scipy.spatial.transform import Rotation
+
+    from sim.phantoms.ellipsoids import Ellipsoid, project_ellipsoids, rasterize_ellipsoids
+
+    shape = Ellipsoid(
+        center_mm=(4.0, -3.0, 483.0),
+        semi_axes_mm=(18.0, 11.0, 7.0),
+        rotation=Rotation.from_euler("xyz", [25, -40, 70], degrees=True),
+        value=1.0,
+    )
+    geometry = helical_orbit(
+        5, 600, 1000, PANEL, arc_deg=300, z_start_mm=-4, z_end_mm=4, isocenter_mm=ISO
+    )
+    ours = forward_project(rasterize_ellipsoids([shape], GRID, supersample=4), GRID, geometry)
+    exact = project_ellipsoids([shape], geometry)
+    inner = exact > 0.6 * exact.max()
+    assert np.sqrt(np.mean((ours - exact)[inner] ** 2)) < 0.15
+    # the footprint is where P puts it: the projected centre lies inside the shadow's core
+    for i, view in enumerate(geometry):
+        u, v = view.project(shape.center_mm)[0]
+        assert exact[i, round(v), round(u)] > 0.6 * exact[i].max()
