@@ -81,7 +81,7 @@ SID_MM, SDD_MM = 600.0, 1000.0
 def orbits(cfg: dict, isocenter) -> dict[str, Geometry]:
     panel = DetectorSpec(rows=cfg["panel"], cols=cfg["panel"], pixel_pitch_mm=cfg["pitch_mm"])
     n = cfg["views"]
-    arc = short_scan_arc_deg(SID_MM, SDD_MM, panel) + 2.0
+    arc = short_scan_arc_deg(SDD_MM, panel) + 2.0
     half = cfg["travel_mm"] / 2
     return {
         "circular": circular_orbit(n, SID_MM, SDD_MM, panel, isocenter_mm=isocenter),
@@ -226,20 +226,23 @@ def ssim(volume: np.ndarray, truth: np.ndarray, region: np.ndarray) -> float:
 
 
 def axial_drop(volume: np.ndarray, truth: np.ndarray, slab: int) -> float:
-    """Relative loss of the mean value near the object's ends in z against its middle, inside
-    the central cylinder: 1 - (recon/truth in the end slabs) / (recon/truth mid-object).
+    """Relative loss of the mean value near the object's ends in z against its middle:
+    1 - (recon/truth in the end slabs) / (recon/truth mid-object).
 
-    The object spans the slices whose core mean exceeds a quarter of the largest; the end
-    slabs are its first and last ``slab`` slices, two slices in from its ends.
+    Means run over the object's interior (non-zero truth eroded by 3 voxels, so partial volume
+    at its surface stays out) within the central cylinder; the object's z extent is where that
+    interior holds at least a quarter of its largest slice, and the end slabs are its first
+    and last ``slab`` slices.
     """
-    nz = volume.shape[0]
-    core = central_region(volume.shape, 0.6)[nz // 2]
-    profile = truth[:, core].mean(axis=1)
-    inside = np.flatnonzero(profile > 0.25 * profile.max())
-    first, last = int(inside[0]) + 2, int(inside[-1]) - 2
+    from scipy.ndimage import binary_erosion
 
-    def ratio(zs) -> float:
-        return float(volume[zs][:, core].mean() / truth[zs][:, core].mean())
+    interior = binary_erosion(truth > 0, iterations=3) & central_region(truth.shape)
+    counts = interior.sum(axis=(1, 2))
+    body = np.flatnonzero(counts >= 0.25 * counts.max())
+    first, last = int(body[0]), int(body[-1])
+
+    def ratio(zs: slice) -> float:
+        return float(volume[zs][interior[zs]].mean() / truth[zs][interior[zs]].mean())
 
     mid = (first + last) // 2
     middle = ratio(slice(mid - slab // 2, mid + slab // 2 + 1))

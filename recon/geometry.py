@@ -420,15 +420,9 @@ def _check_distances(sid_mm: float, sdd_mm: float) -> None:
         raise ValueError(f"sdd_mm must exceed sid_mm = {sid_mm!r}, got {sdd_mm!r}")
 
 
-def fan_half_angle_deg(sid_mm: float, sdd_mm: float, detector: DetectorSpec) -> float:
-    """Half fan angle of a centred panel, degrees."""
-    del sid_mm
-    return math.degrees(math.atan(0.5 * detector.width_mm / sdd_mm))
-
-
-def short_scan_arc_deg(sid_mm: float, sdd_mm: float, detector: DetectorSpec) -> float:
-    """Minimal short-scan arc: 180 degrees plus the full fan angle."""
-    return 180.0 + 2.0 * fan_half_angle_deg(sid_mm, sdd_mm, detector)
+def short_scan_arc_deg(sdd_mm: float, detector: DetectorSpec) -> float:
+    """Minimal short-scan arc of a centred panel: 180 degrees plus the full fan angle."""
+    return 180.0 + 2.0 * math.degrees(math.atan(0.5 * detector.width_mm / sdd_mm))
 
 
 def circular_orbit(
@@ -571,9 +565,7 @@ class OrbitSpec(BaseModel):
                 arc = (
                     360.0
                     if self.kind == "circular"
-                    else (
-                        short_scan_arc_deg(self.sid_mm, self.sdd_mm, detector) + self.overscan_deg
-                    )
+                    else (short_scan_arc_deg(self.sdd_mm, detector) + self.overscan_deg)
                 )
             return circular_orbit(
                 self.views,

@@ -81,7 +81,7 @@ def test_not_flipped_the_dense_ball_comes_back_where_it_was(cylinder_pair):
 
 def test_short_scan_with_parker_weights_is_flat_without_them_it_is_shaded(cylinder_pair):
     fine, truth = cylinder_pair
-    arc = short_scan_arc_deg(600, 1000, PANEL) + 4
+    arc = short_scan_arc_deg(1000, PANEL) + 4
     geometry = circular_orbit(110, 600, 1000, PANEL, arc_deg=arc, isocenter_mm=ISO)
     proj = forward_project(fine, FINE, geometry)
     inner = region(GRID, 25.0, 10.0) & (truth == MU)
@@ -100,7 +100,7 @@ def test_matches_rtk_fdk_where_the_data_are_complete(cylinder_pair):
     relative RMSE); the coverage normalisation is the identity there."""
     fine, _ = cylinder_pair
     full = circular_orbit(90, 600, 1000, PANEL, isocenter_mm=ISO)
-    arc = short_scan_arc_deg(600, 1000, PANEL) + 4
+    arc = short_scan_arc_deg(1000, PANEL) + 4
     short = circular_orbit(90, 600, 1000, PANEL, arc_deg=arc, isocenter_mm=ISO)
     inner = region(GRID, 30.0, 20.0)
     for geometry, parker in ((full, False), (short, True)):

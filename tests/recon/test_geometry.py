@@ -138,7 +138,7 @@ def test_helical_orbit_passes_alternate_and_z_advances():
 
 def test_short_scan_arc_is_180_plus_fan():
     fan = 2 * math.degrees(math.atan(0.5 * 64 * 0.8 / 1000))
-    assert short_scan_arc_deg(600, 1000, PANEL) == pytest.approx(180 + fan)
+    assert short_scan_arc_deg(1000, PANEL) == pytest.approx(180 + fan)
     g = circular_orbit(5, 600, 1000, PANEL, arc_deg=200)
     first = math.atan2(g[0].source_mm[0], -g[0].source_mm[1])
     last = math.atan2(g[-1].source_mm[0], -g[-1].source_mm[1])
@@ -185,7 +185,7 @@ def test_orbit_spec_builds_each_kind():
         600,
         1000,
         PANEL,
-        arc_deg=short_scan_arc_deg(600, 1000, PANEL) + 4,
+        arc_deg=short_scan_arc_deg(1000, PANEL) + 4,
         isocenter_mm=(0, 0, 480),
     )
     assert short == expected
