@@ -517,14 +517,15 @@ class OrbitSpec(BaseModel):
 
     ``kind``: ``circular`` (``arc_deg`` default 360), ``short_scan`` (``arc_deg`` default 180
     plus the fan plus ``overscan_deg``), ``helix`` (one pass of ``arc_deg``, which may exceed
-    360) or ``reverse_spiral`` (``passes`` sweeps of ``arc_deg``, alternating direction).
+    360), ``reverse_spiral`` (``passes`` sweeps of ``arc_deg``, alternating direction) or
+    ``static`` (every view at ``start_deg``: a fluoroscopy pose).
     Helices and spirals move z through ``z_travel_mm`` in total, or ``z_step_mm`` per view,
     centred on ``isocenter_mm``'s z.
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    kind: Literal["circular", "short_scan", "helix", "reverse_spiral"]
+    kind: Literal["circular", "short_scan", "helix", "reverse_spiral", "static"]
     views: int = Field(ge=3, le=20000)
     sid_mm: float = Field(gt=0.0, le=3000.0, description="source to rotation axis, mm")
     sdd_mm: float = Field(gt=0.0, le=5000.0, description="source to detector, mm")
@@ -559,6 +560,12 @@ class OrbitSpec(BaseModel):
     def geometry(self, detector: DetectorSpec) -> Geometry:
         """The orbit's views for a panel of ``detector`` pixels."""
         iso = np.array(self.isocenter_mm, dtype=np.float64)
+        if self.kind == "static":
+            _check_distances(self.sid_mm, self.sdd_mm)
+            view = _orbit_view(
+                math.radians(self.start_deg), 0.0, self.sid_mm, self.sdd_mm, detector, iso
+            )
+            return Geometry([view] * self.views)
         if self.kind in ("circular", "short_scan"):
             arc = self.arc_deg
             if arc is None:
