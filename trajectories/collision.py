@@ -49,7 +49,7 @@ def reach_bounds(model: ScannerModel) -> np.ndarray:
     bounds = np.zeros(model.model.nv)
     bounds[model.index["lift"]] = 1.0
     farthest = 0.0
-    for role, arm in (("source", config.source_arm), ("detector", config.detector_arm)):
+    for role, arm in model.arms():
         spec = ARMS[arm.model]
         links = [np.hypot(spec.d_m[k], spec.a_m[k]) for k in range(6)]
         tool = np.linalg.norm(np.asarray(arm.tool.xyz_mm)) / 1000.0

@@ -79,7 +79,7 @@ class ScannerModel:
         self.model.appendBodyToJoint(lift, inertia, pin.SE3.Identity())
         self._joint_ids = {"rotary": rotary, "lift": lift}
         self._segments: list[tuple[str, int, pin.SE3, float]] = []
-        for role, arm in (("source", config.source_arm), ("detector", config.detector_arm)):
+        for role, arm in self.arms():
             self._add_arm(role, arm, lift, inertia)
         self.data = self.model.createData()
         self.joint_names = tuple(
@@ -129,10 +129,7 @@ class ScannerModel:
         i = self.index["lift"]
         lower[i], upper[i] = np.asarray(lift.range_mm) / 1000.0
         vel[i], acc[i] = lift.max_speed_mm_s / 1000.0, lift.max_accel_mm_s2 / 1000.0
-        for role, arm in (
-            ("source", self.config.source_arm),
-            ("detector", self.config.detector_arm),
-        ):
+        for role, arm in self.arms():
             spec = ARMS[arm.model]
             for k, name in enumerate(JOINT_NAMES):
                 i = self.index[f"{role}_{name}"]
@@ -157,10 +154,7 @@ class ScannerModel:
                 add(name, jid, place, coal.Capsule(radius, length), role, k % 6 + 1)
             else:
                 add(name, jid, place, coal.Sphere(radius), role, k % 6 + 1)
-        for role, arm in (
-            ("source", self.config.source_arm),
-            ("detector", self.config.detector_arm),
-        ):
+        for role, _ in self.arms():
             wrist = self._arm_bodies[role][-1]
             tool = self.model.frames[
                 self.model.getFrameId(SOURCE_TOOL if role == "source" else DETECTOR_TOOL)
@@ -220,14 +214,15 @@ class ScannerModel:
 
     # -- kinematics --------------------------------------------------------------------------
 
+    def arms(self) -> tuple[tuple[str, ArmConfig], ...]:
+        """(role, arm) for the source and the detector arm."""
+        return (("source", self.config.source_arm), ("detector", self.config.detector_arm))
+
     def neutral(self) -> np.ndarray:
         """The home configuration: rotary 0, lift at its lowest, arms at their home postures."""
         q = pin.neutral(self.model)
         q[self.index["lift"]] = self.limits.lower[self.index["lift"]]
-        for role, arm in (
-            ("source", self.config.source_arm),
-            ("detector", self.config.detector_arm),
-        ):
+        for role, arm in self.arms():
             for name, value in zip(JOINT_NAMES, arm.home_deg, strict=True):
                 q[self.index[f"{role}_{name}"]] = math.radians(value)
         return q
@@ -256,7 +251,7 @@ class ScannerModel:
     def from_units(self, values: np.ndarray) -> np.ndarray:
         """Inverse of :meth:`to_units`."""
         values = np.asarray(values, dtype=np.float64)
-        q = np.empty(values.shape[:-1] + (self.model.nq,))
+        q = np.empty((*values.shape[:-1], self.model.nq))
         q[..., self._order] = np.radians(values)
         q[..., self.index["lift"]] = values[..., 1] / 1000.0
         return q

@@ -267,9 +267,10 @@ def _solve_views(model: ScannerModel, geometry: Geometry, progress) -> np.ndarra
         q = result.q
         for name, k in model.index.items():
             if not lo[k] - 1e-9 <= q[k] <= hi[k] + 1e-9:
+                low, high = (_joint_label(model, name, x) for x in (lo[k], hi[k]))
                 raise JointLimitError(
                     f"view {i}: joint {name} = {_joint_label(model, name, q[k])} is outside its "
-                    f"range [{_joint_label(model, name, lo[k])}, {_joint_label(model, name, hi[k])}]"
+                    f"range [{low}, {high}]"
                 )
         if q_prev is not None:
             for name, k in model.index.items():
