@@ -1,7 +1,8 @@
 """The operator console ``cbct``.
 
-Commands today: ``simulate-scan`` (scan the digital knee phantom with a protocol), ``recon``
-(weighted FDK of RTK-format inputs) and ``demo`` (the two chained, with a preview). Every
+Commands today: ``plan`` (checked, timed robot motion for a protocol), ``simulate-scan`` (scan
+the digital knee phantom with a protocol), ``recon`` (weighted FDK of RTK-format inputs) and
+``demo`` (simulate and reconstruct chained, with a preview). Every
 command checks its inputs before long work starts, never overwrites an existing output, and
 shows progress on long work.
 """
@@ -16,6 +17,7 @@ from typing import Annotated
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.table import Table
 
 from scanner import demo as demo_job
 from scanner import jobs
@@ -60,6 +62,61 @@ def fail(message: str) -> None:
     """Print an error in words and exit with status 2 (nothing written beyond what is said)."""
     console.print(f"[bold red]error:[/] {message}", soft_wrap=True, highlight=False)
     raise typer.Exit(2)
+
+
+@app.command()
+def plan(
+    protocol: Annotated[Path, typer.Option(help="scan protocol YAML (configs/protocols/)")],
+    out: Annotated[Path, typer.Option(help="study folder; the plan goes to OUT/plan")],
+    scanner: Annotated[Path, typer.Option(help="scanner hardware YAML")] = CONFIGS / "scanner.yaml",
+) -> None:
+    """Plan a protocol on the scanner: IK, collision and limit checks, timing, a recording."""
+    try:
+        with _progress() as bar:
+            result = jobs.plan_to_study(
+                protocol, out, scanner, progress=_views_done(bar, "inverse kinematics")
+            )
+    except (ValueError, OSError) as err:
+        fail(str(err))
+    console.print(_plan_table(result), soft_wrap=True)
+    console.print(
+        f"[green]wrote[/] {out / 'plan'} and {out / 'plan' / 'recording.rrd'} "
+        f"(open with: rerun {out / 'plan' / 'recording.rrd'})",
+        soft_wrap=True,
+        highlight=False,
+    )
+
+
+def _plan_table(result) -> Table:
+    summary = result.summary()
+    table = Table(title=f"plan: {summary['protocol']}", show_header=False)
+    where = summary["min_clearance_at"]
+    rows = [
+        ("views", str(summary["views"])),
+        (
+            "duration",
+            f"{summary['duration_s']:.1f} s (scan {summary['scan_duration_s']:.1f} s, "
+            f"{summary['duration_ratio']:.3f} x the slowest axis' bound)",
+        ),
+        (
+            "min clearance",
+            f"{summary['min_clearance_mm']:.1f} mm (margin "
+            f"{summary['clearance_margin_mm']:g} mm): {' / '.join(where['pair'])}, "
+            f"{where['phase']} at {where['time_s']:.2f} s",
+        ),
+        (
+            "max joint speed",
+            f"{100 * summary['max_speed_share']:.0f} % of the limit ({summary['max_speed_joint']})",
+        ),
+        (
+            "max pose error",
+            f"{summary['max_pose_error_mm']:.2e} mm, {summary['max_pose_error_deg']:.2e} deg",
+        ),
+        ("planning time", f"{summary['plan_s']:.2f} s"),
+    ]
+    for name, value in rows:
+        table.add_row(name, value)
+    return table
 
 
 @app.command("simulate-scan")

@@ -20,6 +20,10 @@ from recon.rtk_xml import read_rtk_geometry, write_rtk_geometry
 from recon.volume import VolumeGrid
 from sim.phantoms.knee import KneePhantomSpec
 from sim.scan import SimulatedScan, simulate_knee_scan
+from trajectories.config import ScannerConfig
+from trajectories.model import ScannerModel
+from trajectories.plan import Plan, plan_scan
+from trajectories.recording import record_plan
 
 Status = Callable[[str], None]
 
@@ -92,6 +96,25 @@ def simulate_to_folder(
         "photons_per_pixel": scan.photons_per_pixel,
     }
     return write_scan(out, scan, manifest)
+
+
+def plan_to_study(
+    protocol_path: Path,
+    study: Path,
+    scanner_path: Path,
+    progress: Progress | None = None,
+) -> Plan:
+    """Plan a protocol and write ``study/plan`` (trajectory, views, RTK geometry, collision
+    report, summary, rerun recording). Nothing is written unless the plan is valid."""
+    protocol = load_protocol(protocol_path)
+    scanner = ScannerModel(load_config(scanner_path, ScannerConfig))
+    folder = study / "plan"
+    if folder.exists():
+        raise FileExistsError(f"{folder} exists: a plan is never written over another")
+    plan = plan_scan(scanner, protocol, progress=progress)
+    plan.save(folder)
+    record_plan(plan, scanner, folder / "recording.rrd")
+    return plan
 
 
 def reconstruct_files(

@@ -92,10 +92,11 @@ def solve_ik(
         if max(pos) < tolerance_m and max(ang) < tolerance_rad:
             return IKResult(q, pos, ang, iteration - 1, True)
         JW = J * w_inv
-        gram = JW @ J.T + damping * np.eye(J.shape[0])
-        pinv = JW.T @ np.linalg.inv(gram)  # weighted damped pseudo-inverse, nv x 12
-        step = pinv @ error
-        null = identity - pinv @ J
+        gram = JW @ J.T
+        step = JW.T @ np.linalg.solve(gram + damping * np.eye(len(gram)), error)
+        # the rest posture moves only within the task's null space: an exact (undamped)
+        # projector, so it never leaks into the tools' poses
+        null = identity - JW.T @ np.linalg.pinv(gram) @ J
         step += null @ (rest_gain * (q_rest - q))
         q = pin.integrate(model.model, q, step)
     error, _ = _errors(model, q, targets)

@@ -239,16 +239,11 @@ def _solve_views(model: ScannerModel, geometry: Geometry, progress) -> np.ndarra
     q_zero_lift[lift] = 0.0
     tool_height = model.tool_poses(q_zero_lift)[0].translation[2]
     lo, hi = model.limits.lower, model.limits.upper
+    angles = _rotary_angles(geometry, lo[rotary], hi[rotary])
     solutions = []
     q_prev = None
-    angle_prev = None
-    for i, view in enumerate(geometry):
+    for i, (view, angle) in enumerate(zip(geometry, angles, strict=True)):
         source_target, detector_target = tool_targets(view)
-        x, y, _ = view.source_mm
-        angle = math.atan2(x, -y)
-        if angle_prev is not None:  # unwrap; the first view takes the turn nearest zero
-            angle = angle_prev + math.remainder(angle - angle_prev, 2 * math.pi)
-        angle_prev = angle
         rest = q_home.copy()
         rest[rotary] = angle
         rest[lift] = source_target.translation[2] - tool_height
@@ -287,6 +282,20 @@ def _solve_views(model: ScannerModel, geometry: Geometry, progress) -> np.ndarra
         if progress is not None:
             progress(i + 1, len(geometry))
     return np.array(solutions)
+
+
+def _rotary_angles(geometry: Geometry, lower: float, upper: float) -> np.ndarray:
+    """The rotary angle (radians) that turns the source to each view: the views' azimuths
+    unwrapped along the scan, shifted by whole turns to fit the rotary's range with the
+    start nearest zero (when no shift fits, the nearest-zero start is kept and the joint
+    limit check names the view)."""
+    sources = np.asarray(geometry.sources_mm)
+    angles = np.unwrap(np.arctan2(sources[:, 0], -sources[:, 1]))
+    turns = np.arange(-3, 4) * 2 * math.pi
+    fits = [t for t in turns if angles.min() + t >= lower and angles.max() + t <= upper]
+    if not fits:
+        fits = list(turns)
+    return angles + min(fits, key=lambda t: abs(angles[0] + t))
 
 
 def _raise_unreachable(model, i, result, source_target, detector_target) -> None:
