@@ -51,11 +51,11 @@ def cylinder(
     return out * np.float32(value / supersample**3)
 
 
-@pytest.fixture
+@pytest.fixture(scope="session")
 def make_ball():
     return ball
 
 
-@pytest.fixture
+@pytest.fixture(scope="session")
 def make_cylinder():
     return cylinder

@@ -25,17 +25,12 @@ def region(grid: VolumeGrid, radius: float, half_height: float) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def cylinder_pair():
+def cylinder_pair(make_ball, make_cylinder):
     """A water cylinder (r 30 mm, 56 mm tall) with a denser ball, fine and coarse versions."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).parent.parent))
-    from conftest import ball, cylinder
 
     def build(grid, supersample):
-        vol = cylinder(grid, ISO, 30.0, 28.0, MU, supersample)
-        return vol + ball(grid, (10.0, -5.0, 486.0), 6.0, MU, supersample)
+        vol = make_cylinder(grid, ISO, 30.0, 28.0, MU, supersample)
+        return vol + make_ball(grid, (10.0, -5.0, 486.0), 6.0, MU, supersample)
 
     return build(FINE, 2), build(GRID, 3)
 

@@ -184,8 +184,14 @@ def test_plan_writes_the_study_plan_and_a_recording(tmp_path):
     result = runner.invoke(app, ["plan", "--protocol", str(protocol), "--out", str(study)])
     assert result.exit_code == 0, result.output
     names = sorted(p.name for p in (study / "plan").iterdir())
-    assert names == ["collision_report.json", "geometry.xml", "recording.rrd", "summary.json",
-                     "trajectory.npz", "views.csv"]
+    assert names == [
+        "collision_report.json",
+        "geometry.xml",
+        "recording.rrd",
+        "summary.json",
+        "trajectory.npz",
+        "views.csv",
+    ]
     summary = json.loads((study / "plan" / "summary.json").read_text())
     assert summary["views"] == 24 and summary["min_clearance_mm"] >= 20.0
     assert "min clearance" in result.output and "max joint speed" in result.output
@@ -201,8 +207,18 @@ def test_plan_refuses_an_unsafe_protocol_and_writes_nothing(tmp_path):
     scanner_path = tmp_path / "scanner.yaml"
     scanner_path.write_text(yaml.safe_dump(scanner))
     study = tmp_path / "study"
-    result = runner.invoke(app, ["plan", "--protocol", str(tiny_protocol(tmp_path, views=12)),
-                                 "--out", str(study), "--scanner", str(scanner_path)])
+    result = runner.invoke(
+        app,
+        [
+            "plan",
+            "--protocol",
+            str(tiny_protocol(tmp_path, views=12)),
+            "--out",
+            str(study),
+            "--scanner",
+            str(scanner_path),
+        ],
+    )
     assert result.exit_code == 2
     assert "view 0: detector_tool and patient0 are 10.0 mm apart" in result.output
     assert not study.exists()
