@@ -1,9 +1,10 @@
 """``cbct demo``: the main job on the simulated scanner, as far as the stack reaches today.
 
-Scan the standing knee phantom with the demo protocol (quantum and readout noise), reconstruct
-it with weighted FDK, write the volume (NIfTI, MetaImage, DICOM series) and a preview, and
-measure the reconstruction against the phantom. Planning, calibration, registration and the
-clinical report join as their packages land.
+Plan the demo protocol on the scanner (robot motion, clearance, timing, a rerun recording),
+scan the standing knee phantom with it (quantum and readout noise), reconstruct it with
+weighted FDK, write the volume (NIfTI, MetaImage, DICOM series) and a preview, and measure the
+reconstruction against the phantom. Calibration, registration and the clinical report join as
+their packages land.
 """
 
 from __future__ import annotations
@@ -23,6 +24,10 @@ from recon.volume import VolumeGrid
 from scanner.jobs import Status, new_folder, software_version, write_scan
 from sim.phantoms.knee import KneePhantomSpec, attenuation_per_mm, rasterize_knee
 from sim.scan import simulate_knee_scan
+from trajectories.config import ScannerConfig
+from trajectories.model import ScannerModel
+from trajectories.plan import plan_scan
+from trajectories.recording import record_plan
 
 FULL = {"views": 180, "panel": 256, "sim_voxel_mm": 0.75, "recon_voxel_mm": 1.0}
 QUICK = {"views": 90, "panel": 128, "sim_voxel_mm": 1.0, "recon_voxel_mm": 1.5}
@@ -51,10 +56,16 @@ def run(
         )
         orbit = protocol.orbit.model_copy(update={"views": size["views"]})
         protocol = protocol.model_copy(update={"detector": panel, "orbit": orbit})
+    scanner = ScannerModel(load_config(configs / "scanner.yaml", ScannerConfig))
     new_folder(out)
     started = time.perf_counter()
 
-    say("stage 1/2: simulated scan of the standing knee phantom")
+    say("stage 1/3: planning the scan on the scanner (IK, clearance, timing)")
+    plan = plan_scan(scanner, protocol)
+    plan.save(out / "plan")
+    record_plan(plan, scanner, out / "plan" / "recording.rrd")
+
+    say("stage 2/3: simulated scan of the standing knee phantom")
     scan = simulate_knee_scan(protocol, phantom, voxel_mm=size["sim_voxel_mm"], status=say)
     scan_dir = new_folder(out / "scan")
     write_scan(
@@ -71,7 +82,7 @@ def run(
         },
     )
 
-    say("stage 2/2: weighted FDK reconstruction")
+    say("stage 3/3: weighted FDK reconstruction")
     sim_grid = scan.attenuation.grid
     spacing = size["recon_voxel_mm"]
     extent = np.array(sim_grid.size_xyz) * np.array(sim_grid.spacing_mm)
@@ -103,6 +114,7 @@ def run(
     error = result.volume.data[inside] - truth[inside]
     metrics = {
         "views": len(scan.geometry),
+        "plan": plan.summary(),
         "panel": [scan.geometry.rows, scan.geometry.cols],
         "recon_voxels_xyz": list(grid.size_xyz),
         "recon_voxel_mm": spacing,
@@ -115,6 +127,8 @@ def run(
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     return (
         f"[green]demo finished[/] in {metrics['total_s']:.0f} s -> {out}\n"
+        f"  plan:    {out}/plan/ ({plan.duration_s:.1f} s of motion, min clearance "
+        f"{plan.min_clearance_mm:.1f} mm), recording {out}/plan/recording.rrd\n"
         f"  scan:    {scan_dir}/projections.mha, geometry.xml (RTK), phantom.nii.gz\n"
         f"  volume:  {recon_dir}/volume.nii.gz (+ .mha, dicom/), preview {recon_dir}/slices.png\n"
         f"  recon RMSE vs phantom inside the leg: {metrics['rmse_per_mm']:.5f} /mm "
