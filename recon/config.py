@@ -37,7 +37,7 @@ def load_config(path: str | Path, model: type[Model]) -> Model:
     """Read ``path`` (YAML) into ``model``, raising :class:`ConfigError` on any problem."""
     path = Path(path)
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8")
     except OSError as err:
         raise ConfigError(f"{path}: cannot read ({err.strerror or err})") from None
     try:

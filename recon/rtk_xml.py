@@ -140,7 +140,7 @@ def write_rtk_geometry(
     ET.indent(root)
     body = ET.tostring(root, encoding="unicode")
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(f'<?xml version="1.0"?>\n<!DOCTYPE RTKGEOMETRY>\n{body}\n')
+    tmp.write_text(f'<?xml version="1.0"?>\n<!DOCTYPE RTKGEOMETRY>\n{body}\n', encoding="utf-8")
     tmp.replace(path)
     return path
 

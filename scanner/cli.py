@@ -1,8 +1,9 @@
 """The operator console ``cbct``.
 
 Commands today: ``plan`` (checked, timed robot motion for a protocol), ``simulate-scan`` (scan
-the digital knee phantom with a protocol), ``recon`` (weighted FDK of RTK-format inputs) and
-``demo`` (simulate and reconstruct chained, with a preview). Every
+the digital knee phantom with a protocol), ``recon`` (weighted FDK of RTK-format inputs),
+``assess`` (knee kinematics report from bone poses) and ``demo`` (the chain that exists, on the
+simulated scanner). Every
 command checks its inputs before long work starts, never overwrites an existing output, and
 shows progress on long work.
 """
@@ -191,6 +192,29 @@ def recon(
         f"[green]wrote[/] {out}: {grid.size_xyz} voxels of {grid.spacing_mm[0]:.3g} mm in "
         f"{time.perf_counter() - start:.1f} s; {100 * (1 - result.mask.mean()):.1f} % of voxels "
         f"masked (seen over < {min_coverage_deg:g} deg)",
+        soft_wrap=True,
+        highlight=False,
+    )
+
+
+@app.command()
+def assess(
+    poses: Annotated[Path, typer.Option(help="poses.csv (frame, bone, 4x4, ...)")],
+    labels: Annotated[Path, typer.Option(help="label volume of the static scan")],
+    out: Annotated[Path, typer.Option(help="new output folder")],
+    side: Annotated[str, typer.Option(help="right or left knee")] = "right",
+    tka: Annotated[bool, typer.Option(help="fit the TP plane to the polyethylene insert")] = False,
+) -> None:
+    """Knee kinematics, TP-condyle distances and flags: report.html, metrics.csv, plots, 4D."""
+    try:
+        result = jobs.assess_files(poses, labels, out, side, tka=tka)
+    except (ValueError, OSError) as err:
+        fail(str(err))
+    kin = result.kinematics
+    console.print(
+        f"[green]wrote[/] {out / 'report.html'}: {len(kin.frames)} frames, flexion "
+        f"{kin.flexion_deg.min():.0f}..{kin.flexion_deg.max():.0f} deg, max |MLD| "
+        f"{abs(kin.mld_mm).max():.2f} mm, {int(kin.flagged.sum())} frame(s) flagged",
         soft_wrap=True,
         highlight=False,
     )

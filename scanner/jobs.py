@@ -12,12 +12,16 @@ from collections.abc import Callable
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
+from assessment.knee import BONE_LABELS, KneeAssessment, assess_knee
+from assessment.report import write_report
+from assessment.series import bone_mesh, export_series, record_series
 from recon.config import load_config, load_protocol
 from recon.fdk import FDKResult, Progress, default_grid, fdk_reconstruct
-from recon.io import read_projections, write_projections, write_volume
+from recon.io import read_projections, read_volume, write_projections, write_volume
 from recon.preview import save_orthogonal_slices
 from recon.rtk_xml import read_rtk_geometry, write_rtk_geometry
-from recon.volume import VolumeGrid
+from recon.volume import Volume, VolumeGrid
+from registration.poses import BonePose, poses_by_frame, read_poses
 from sim.phantoms.knee import KneePhantomSpec
 from sim.scan import SimulatedScan, simulate_knee_scan
 from trajectories.config import ScannerConfig
@@ -63,7 +67,7 @@ def write_scan(folder: Path, scan: SimulatedScan, manifest: dict) -> list[Path]:
     if scan.counts is not None:
         written.append(write_projections(folder / "counts.mha", scan.counts, pitch))
     manifest = dict(manifest, files={p.name: sha256(p) for p in written})
-    (folder / "scan.json").write_text(json.dumps(manifest, indent=2))
+    (folder / "scan.json").write_text(json.dumps(manifest, indent=2), encoding="utf-8")
     return [*written, folder / "scan.json"]
 
 
@@ -164,3 +168,39 @@ def reconstruct_files(
             result.volume, preview, title=f"weighted FDK of {projections_path.name}"
         )
     return result
+
+
+def write_assessment(
+    labels: Volume,
+    poses: list[BonePose],
+    out: Path,
+    side: str,
+    *,
+    tka: bool = False,
+    title: str = "Knee kinematics",
+) -> KneeAssessment:
+    """Assess the motion and write the report, metrics.csv, plots and the 4D series (meshes
+    per frame and a rerun recording) into the new folder ``out``."""
+    result = assess_knee(labels, poses, side, tka=tka)
+    new_folder(out)
+    extra = {"TP plane": "polyethylene insert" if tka else "fitted tibial plateau"}
+    write_report(result.kinematics, out, title=title, extra_rows=extra)
+    bones = sorted({p.bone for p in poses})
+    frames, stacks = poses_by_frame(poses, tuple(bones))
+    meshes = {bone: bone_mesh(labels, BONE_LABELS[bone]) for bone in bones}
+    export_series(meshes, frames, stacks, out / "series")
+    record_series(meshes, frames, stacks, out / "series.rrd")
+    return result
+
+
+def assess_files(
+    poses_path: Path, labels_path: Path, out: Path, side: str, *, tka: bool = False
+) -> KneeAssessment:
+    """``cbct assess``: read poses.csv and the label volume, then :func:`write_assessment`."""
+    if out.exists():
+        raise FileExistsError(f"{out} exists: choose a new output folder")
+    poses = read_poses(poses_path)
+    labels = read_volume(labels_path, unit="label")
+    return write_assessment(
+        labels, poses, out, side, tka=tka, title=f"Knee kinematics: {poses_path.name}"
+    )

@@ -171,7 +171,9 @@ class Plan:
                 values += [*view.source_mm, *view.detector_center_mm]
             values += [*self.pose_error_mm[i], *self.pose_error_deg[i], self.view_clearance_mm[i]]
             rows.append(",".join(f"{v:.6g}" if isinstance(v, float) else str(v) for v in values))
-        (tmp / "views.csv").write_text(",".join(header) + "\n" + "\n".join(rows) + "\n")
+        (tmp / "views.csv").write_text(
+            ",".join(header) + "\n" + "\n".join(rows) + "\n", encoding="utf-8"
+        )
         write_rtk_geometry(tmp / "geometry.xml", self.achieved)
         report = {
             "clearance_margin_mm": self.clearance_margin_mm,
@@ -180,8 +182,8 @@ class Plan:
             "where": self.min_clearance_at,
             "view_clearance_mm": self.view_clearance_mm.round(3).tolist(),
         }
-        (tmp / "collision_report.json").write_text(json.dumps(report, indent=2))
-        (tmp / "summary.json").write_text(json.dumps(self.summary(), indent=2))
+        (tmp / "collision_report.json").write_text(json.dumps(report, indent=2), encoding="utf-8")
+        (tmp / "summary.json").write_text(json.dumps(self.summary(), indent=2), encoding="utf-8")
         tmp.rename(folder)
         return sorted(folder.iterdir())
 

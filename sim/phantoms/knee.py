@@ -79,7 +79,7 @@ _ENVELOPE_OFFSET_Y_MM = -4.0  # leg axis relative to the knee centre (anterior)
 
 # femur: condyles are spindle tori about the TEA (x axis): (centre x, major, minor radius)
 _MEDIAL_CONDYLE = (23.0, 11.5, 14.0)  # outer radius 25.5
-_LATERAL_CONDYLE = (-23.0, 10.0, 13.5)  # outer radius 23.5
+_LATERAL_CONDYLE = (-23.0, 11.5, 14.0)  # outer radius 25.5: balanced joint gaps
 _EPICONDYLE_TIP_X = (41.0, -41.0)  # medial, lateral
 _EPICONDYLE_RADII = ((8.0, 13.0, 13.0), (7.0, 12.0, 12.0))
 _GROOVE_X, _GROOVE_RHO = -2.0, 28.0  # trochlear groove: x, and facet apex distance from TEA

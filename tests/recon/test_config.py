@@ -32,7 +32,7 @@ def write(tmp_path: Path, data) -> Path:
 
 
 def demo_data() -> dict:
-    return yaml.safe_load((CONFIGS / "protocols" / "demo_knee.yaml").read_text())
+    return yaml.safe_load((CONFIGS / "protocols" / "demo_knee.yaml").read_text(encoding="utf-8"))
 
 
 @pytest.mark.parametrize(

@@ -108,7 +108,7 @@ def test_malformed_files_are_refused_with_the_file_named(tmp_path, case):
 def test_a_stored_matrix_that_disagrees_with_its_parameters_is_refused(tmp_path):
     geometry = helical_orbit(3, 600, 1000, PANEL, arc_deg=90, z_start_mm=0, z_end_mm=0)
     path = write_rtk_geometry(tmp_path / "g.xml", geometry)
-    text = path.read_text().replace("<GantryAngle>", "<GantryAngle>1", 1)
+    text = path.read_text(encoding="utf-8").replace("<GantryAngle>", "<GantryAngle>1", 1)
     path.write_text(text)
     with pytest.raises(ValueError, match="projection 0: stored <Matrix> disagrees"):
         read_rtk_geometry(path, PANEL)

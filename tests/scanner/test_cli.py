@@ -23,7 +23,7 @@ runner = CliRunner()
 
 def tiny_protocol(tmp_path: Path, **orbit) -> Path:
     """The demo protocol read out 8x8 binned with 60 views: a scan in seconds."""
-    data = yaml.safe_load((CONFIGS / "protocols" / "demo_knee.yaml").read_text())
+    data = yaml.safe_load((CONFIGS / "protocols" / "demo_knee.yaml").read_text(encoding="utf-8"))
     data["detector"] = {"rows": 64, "cols": 64, "pixel_pitch_mm": 9.6}
     data["orbit"].update({"views": 60} | orbit)
     path = tmp_path / "tiny.yaml"
@@ -52,7 +52,7 @@ def scan_folder(tmp_path_factory) -> Path:
 
 
 def test_simulate_scan_writes_a_checksummed_rtk_readable_scan(scan_folder):
-    manifest = json.loads((scan_folder / "scan.json").read_text())
+    manifest = json.loads((scan_folder / "scan.json").read_text(encoding="utf-8"))
     for name, digest in manifest["files"].items():
         assert hashlib.sha256((scan_folder / name).read_bytes()).hexdigest() == digest
     stack = read_projections(scan_folder / "projections.mha")
@@ -164,7 +164,7 @@ def test_demo_quick_reconstructs_the_knee(tmp_path):
     out = tmp_path / "demo"
     result = runner.invoke(app, ["demo", "--out", str(out), "--quick"])
     assert result.exit_code == 0, result.output
-    metrics = json.loads((out / "metrics.json").read_text())
+    metrics = json.loads((out / "metrics.json").read_text(encoding="utf-8"))
     volume = read_volume(out / "recon" / "volume.nii.gz")
     spec = KneePhantomSpec()
     labels, _ = rasterize_knee(spec, volume.grid, supersample=1)
@@ -192,7 +192,7 @@ def test_plan_writes_the_study_plan_and_a_recording(tmp_path):
         "trajectory.npz",
         "views.csv",
     ]
-    summary = json.loads((study / "plan" / "summary.json").read_text())
+    summary = json.loads((study / "plan" / "summary.json").read_text(encoding="utf-8"))
     assert summary["views"] == 24 and summary["min_clearance_mm"] >= 20.0
     assert "min clearance" in result.output and "max joint speed" in result.output
     geometry = read_rtk_geometry(study / "plan" / "geometry.xml", load_protocol(protocol).detector)
@@ -200,7 +200,7 @@ def test_plan_writes_the_study_plan_and_a_recording(tmp_path):
 
 
 def test_plan_refuses_an_unsafe_protocol_and_writes_nothing(tmp_path):
-    scanner = yaml.safe_load((CONFIGS / "scanner.yaml").read_text())
+    scanner = yaml.safe_load((CONFIGS / "scanner.yaml").read_text(encoding="utf-8"))
     scanner["obstacles"]["patient"] = [
         {"center_xy_mm": [0, 0], "radius_mm": 390, "z_min_mm": 0, "z_max_mm": 1800}
     ]
@@ -222,3 +222,50 @@ def test_plan_refuses_an_unsafe_protocol_and_writes_nothing(tmp_path):
     assert result.exit_code == 2
     assert "view 0: detector_tool and patient0 are 10.0 mm apart" in result.output
     assert not study.exists()
+
+
+def test_assess_writes_the_report_and_the_4d_series(tmp_path):
+    from recon.io import write_volume
+    from recon.volume import Volume, VolumeGrid
+    from registration.poses import BonePose, write_poses
+    from sim.motion import flexion_extension
+
+    spec = KneePhantomSpec()
+    grid = VolumeGrid.centered((96, 96, 220), 1.5, (0.0, -4.0, 490.0))
+    labels = Volume(rasterize_knee(spec, grid, supersample=1)[0], grid, "label")
+    write_volume(tmp_path / "labels.nii.gz", labels)
+    motion = flexion_extension(
+        spec, frames=6, max_flexion_deg=60.0, varus_deg=4.0, varus_frames=(2, 3)
+    )
+    poses = [
+        BonePose(int(f), b, motion.poses[b][i])
+        for i, f in enumerate(motion.frames)
+        for b in ("femur", "tibia", "patella")
+    ]
+    write_poses(
+        tmp_path / "poses.csv", poses, {b: np.zeros(3) for b in ("femur", "tibia", "patella")}
+    )
+    out = tmp_path / "assessment"
+    args = [
+        "assess",
+        "--poses",
+        str(tmp_path / "poses.csv"),
+        "--labels",
+        str(tmp_path / "labels.nii.gz"),
+        "--out",
+        str(out),
+    ]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert "6 frames" in result.output and "2 frame(s) flagged" in result.output
+    page = (out / "report.html").read_text(encoding="utf-8")
+    assert "frames 2–3" in page and page.count("data:image/png;base64,") == 5
+    assert len((out / "metrics.csv").read_text(encoding="utf-8").splitlines()) == 7
+    assert sorted(p.name for p in (out / "series" / "frame_0003").iterdir()) == [
+        "femur.stl",
+        "patella.stl",
+        "tibia.stl",
+    ]
+    assert (out / "series.rrd").stat().st_size > 0
+    again = runner.invoke(app, args)
+    assert again.exit_code == 2 and "exists" in again.output

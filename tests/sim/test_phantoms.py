@@ -365,7 +365,7 @@ def test_point_labels_match_the_raster_without_supersampling():
 
 
 def test_config_file_is_the_complete_default_spec():
-    data = yaml.safe_load(CONFIG.read_text())
+    data = yaml.safe_load(CONFIG.read_text(encoding="utf-8"))
     assert set(data) == set(KneePhantomSpec.model_fields)
     assert load_config(CONFIG, KneePhantomSpec) == KneePhantomSpec()
 
@@ -385,7 +385,7 @@ def test_bad_spec_names_the_field(tmp_path, update, field):
     with pytest.raises(ValidationError, match=field):
         KneePhantomSpec(**update)
     bad = tmp_path / "knee.yaml"
-    bad.write_text(yaml.safe_dump({**yaml.safe_load(CONFIG.read_text()), **update}))
+    bad.write_text(yaml.safe_dump({**yaml.safe_load(CONFIG.read_text(encoding="utf-8")), **update}))
     with pytest.raises(ConfigError, match=field) as info:
         load_config(bad, KneePhantomSpec)
     assert str(bad) in str(info.value)

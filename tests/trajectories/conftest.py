@@ -16,7 +16,7 @@ CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
 def scanner_config(**changes) -> ScannerConfig:
     """configs/scanner.yaml with top-level sections replaced (nested dicts merged one level)."""
-    data = yaml.safe_load((CONFIGS / "scanner.yaml").read_text())
+    data = yaml.safe_load((CONFIGS / "scanner.yaml").read_text(encoding="utf-8"))
     for key, value in changes.items():
         if isinstance(value, dict) and isinstance(data.get(key), dict):
             data[key] = {**data[key], **value}

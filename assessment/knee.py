@@ -1,0 +1,115 @@
+"""Assess a knee motion: label volume + per-frame bone poses -> :class:`KneeKinematics`.
+
+Labels follow the phantom's and the segmentation's convention (sim.phantoms.knee.KNEE_LABELS:
+femur 2, tibia 3, fibula 4, patella 5) plus :data:`INSERT_LABEL` for a TKA polyethylene insert.
+The tibia's pose may be given as "tibia" or "tibia_fibula" (the unit registration tracks).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from assessment.anatomy import (
+    FemurAnatomy,
+    TibiaAnatomy,
+    femur_anatomy,
+    mirror_x,
+    tibia_anatomy,
+)
+from assessment.kinematics import knee_kinematics
+from assessment.results import MLD_FLAG_MM, KneeKinematics
+from recon.volume import Volume
+from registration.poses import BonePose, poses_by_frame
+from sim.phantoms.knee import KNEE_LABELS
+
+INSERT_LABEL = 6
+"""Label of a TKA polyethylene insert; with ``tka`` the TP plane is fitted to its top."""
+
+BONE_LABELS = {
+    "femur": (KNEE_LABELS["femur"],),
+    "tibia": (KNEE_LABELS["tibia"],),
+    "tibia_fibula": (KNEE_LABELS["tibia"], KNEE_LABELS["fibula"]),
+    "fibula": (KNEE_LABELS["fibula"],),
+    "patella": (KNEE_LABELS["patella"],),
+}
+
+
+@dataclass(frozen=True)
+class KneeAssessment:
+    """Result of :func:`assess_knee`: the metrics and the anatomy they were measured on (the
+    anatomy of a left knee is mirrored into a right knee's frame)."""
+
+    kinematics: KneeKinematics
+    femur: FemurAnatomy
+    tibia: TibiaAnatomy
+
+
+def _tibia_name(poses: list[BonePose]) -> str:
+    names = {p.bone for p in poses}
+    for name in ("tibia_fibula", "tibia"):
+        if name in names:
+            return name
+    raise ValueError("no tibia poses: expected bone 'tibia_fibula' or 'tibia' in the poses")
+
+
+def check_bones_present(labels: Volume, poses: list[BonePose]) -> None:
+    """Every posed bone must exist in the label volume (error names the frame and bone)."""
+    present = set(np.unique(labels.data).tolist())
+    for pose in poses:
+        wanted = BONE_LABELS.get(pose.bone)
+        if wanted is None:
+            raise ValueError(
+                f"frame {pose.frame}, bone {pose.bone}: unknown bone name "
+                f"(known: {', '.join(BONE_LABELS)})"
+            )
+        if not present.intersection(wanted):
+            raise ValueError(
+                f"frame {pose.frame}, bone {pose.bone}: the label volume has no "
+                f"such bone (labels {list(wanted)}), so it has no mesh"
+            )
+
+
+def assess_knee(
+    labels: Volume,
+    poses: list[BonePose],
+    side: Literal["right", "left"],
+    *,
+    tka: bool = False,
+    plateau_offset_mm: float = 0.0,
+    flag_mm: float = MLD_FLAG_MM,
+) -> KneeAssessment:
+    """Joint angles, TP-condyle distances and flags of a knee over a motion.
+
+    Args:
+        labels: static-scan label volume (world LPS).
+        poses: per-frame ``T_world_bone`` of at least the femur and the tibia.
+        side: which knee.
+        tka: fit the TP plane to the polyethylene insert (label :data:`INSERT_LABEL`).
+        plateau_offset_mm: shift of the TP plane along its normal (SYSTEM.md's configurable
+            offset; negative is below the fitted plateau).
+        flag_mm: MLD flag threshold.
+    """
+    if labels.unit != "label":
+        raise ValueError(f"labels must be a label volume, got unit {labels.unit!r}")
+    if side not in ("right", "left"):
+        raise ValueError(f"side must be 'right' or 'left', got {side!r}")
+    check_bones_present(labels, poses)
+    tibia_name = _tibia_name(poses)
+    frames, stacks = poses_by_frame(poses, ("femur", tibia_name))
+    anatomy_labels = mirror_x(labels) if side == "left" else labels
+    femur = femur_anatomy(anatomy_labels, KNEE_LABELS["femur"])
+    if tka:
+        if not np.any(anatomy_labels.data == INSERT_LABEL):
+            raise ValueError(
+                f"--tka needs the polyethylene insert (label {INSERT_LABEL}) in the label volume"
+            )
+        tibia = tibia_anatomy(anatomy_labels, INSERT_LABEL, plateau_offset_mm)
+    else:
+        tibia = tibia_anatomy(anatomy_labels, KNEE_LABELS["tibia"], plateau_offset_mm)
+    kinematics = knee_kinematics(
+        femur, tibia, frames, stacks["femur"], stacks[tibia_name], side, flag_mm
+    )
+    return KneeAssessment(kinematics, femur, tibia)

@@ -1,0 +1,271 @@
+"""The knee-assessment report: per-frame metrics CSV, plot PNGs and a self-contained HTML page.
+
+The HTML embeds the plots as base64 data URIs and uses inline CSS only: no external resources,
+no JavaScript, so it opens offline and renders the same everywhere.
+"""
+
+from __future__ import annotations
+
+import base64
+import csv
+import html
+from pathlib import Path
+
+import numpy as np
+
+from assessment.flags import angle_text, describe_flags
+from assessment.plots import save_all
+from assessment.results import KneeKinematics
+
+CSV_COLUMNS = (
+    "frame",
+    "flexion_deg",
+    "varus_deg",
+    "internal_rotation_deg",
+    "tx_mm",
+    "ty_mm",
+    "tz_mm",
+    "medial_distance_mm",
+    "lateral_distance_mm",
+    "mld_mm",
+    "flagged",
+    "medial_ml_mm",
+    "medial_ap_mm",
+    "lateral_ml_mm",
+    "lateral_ap_mm",
+)
+"""Header of metrics.csv; tx/ty/tz are the JCS translations (medial-lateral shift, anterior
+drawer, distraction), *_ml/*_ap the projection points on the TP plane."""
+
+_CAPTIONS = {
+    "distance_scatter": "Medial vs lateral TP–condyle distance per frame; the band marks "
+    "|MLD| within the flag threshold around y = x (equal gaps).",
+    "mld": "Medial–lateral difference per frame; flagged frames in red.",
+    "extension_distance": "Medial and lateral TP–condyle distances against the extension angle.",
+    "trajectories": "Medial and lateral condyle points projected on the TP plane, joined per "
+    "frame, light to dark over time (Feng's method).",
+    "angles": "Joint angles per frame (Grood–Suntay).",
+}
+
+_CSS = """
+body { font-family: "DejaVu Sans", Arial, sans-serif; color: #222; margin: 24px 32px;
+       max-width: 1336px; }
+h1 { font-size: 26px; margin: 0 0 16px 0; }
+h2 { font-size: 20px; margin: 28px 0 10px 0; border-bottom: 1px solid #ccc; }
+table { border-collapse: collapse; font-size: 14px; }
+th, td { border: 1px solid #ccc; padding: 4px 10px; text-align: right; }
+th { background: #f0f0f0; }
+table.summary th, table.summary td { text-align: left; }
+tr.flagged td { background: #fde2e1; }
+.flags { border: 2px solid #d9822b; background: #fff4e5; padding: 10px 16px; font-size: 16px; }
+.flags.clear { border-color: #3d8b40; background: #eaf6ea; }
+.flags p { margin: 6px 0; }
+.note { font-size: 13px; color: #555; }
+.plots { display: grid; grid-template-columns: 1fr 1fr; gap: 16px; }
+figure { margin: 0; }
+figure img { width: 100%; height: auto; border: 1px solid #ddd; }
+figcaption { font-size: 13px; color: #444; margin-top: 4px; }
+"""
+
+
+def _fmt(value: float, digits: int) -> str:
+    """A float with fixed decimals, without a minus sign on values that round to zero."""
+    text = f"{value:.{digits}f}"
+    return text[1:] if text.startswith("-") and float(text) == 0 else text
+
+
+def _metric_rows(kin: KneeKinematics) -> list[dict[str, str]]:
+    """Per-frame rows keyed by CSV_COLUMNS (distances and angles to 4 decimals)."""
+    mld, flagged = kin.mld_mm, kin.flagged
+    rows = []
+    for i, frame in enumerate(kin.frames):
+        values = (
+            kin.flexion_deg[i],
+            kin.varus_deg[i],
+            kin.internal_rotation_deg[i],
+            *kin.translation_mm[i],
+            kin.medial_distance_mm[i],
+            kin.lateral_distance_mm[i],
+            mld[i],
+        )
+        points = (*kin.medial_point_mm[i], *kin.lateral_point_mm[i])
+        rows.append(
+            {
+                "frame": str(int(frame)),
+                **dict(zip(CSV_COLUMNS[1:10], (_fmt(v, 4) for v in values), strict=True)),
+                "flagged": str(int(flagged[i])),
+                **dict(zip(CSV_COLUMNS[11:], (_fmt(v, 4) for v in points), strict=True)),
+            }
+        )
+    return rows
+
+
+def write_metrics_csv(kin: KneeKinematics, path: Path | str) -> Path:
+    """Write one row per frame with the CSV_COLUMNS header ("flagged" is 0 or 1).
+
+    Args:
+        kin: per-frame knee metrics.
+        path: output file.
+
+    Returns:
+        The written path.
+    """
+    path = Path(path)
+    with path.open("w", newline="", encoding="utf-8") as f:
+        writer = csv.DictWriter(f, fieldnames=CSV_COLUMNS)
+        writer.writeheader()
+        writer.writerows(_metric_rows(kin))
+    return path
+
+
+def summary_rows(kin: KneeKinematics) -> dict[str, str]:
+    """The report's summary table: frames, flexion range, max |MLD| and where, DDV, flags.
+
+    Args:
+        kin: per-frame knee metrics.
+
+    Returns:
+        Plain-text values by row label.
+    """
+    mld = kin.mld_mm
+    peak = int(np.argmax(np.abs(mld)))
+    side = "medial" if mld[peak] > 0 else "lateral"
+    n_flagged = int(np.count_nonzero(kin.flagged))
+    return {
+        "Side": kin.side,
+        "Frames": f"{len(kin.frames)} ({int(kin.frames[0])}–{int(kin.frames[-1])})",
+        "Flexion range": f"{kin.flexion_deg.min():.1f}° to {kin.flexion_deg.max():.1f}°",
+        "Max |MLD|": f"{abs(mld[peak]):.2f} mm, {side} gap larger, frame {int(kin.frames[peak])} "
+        f"({angle_text(kin.flexion_deg[peak])})",
+        "DDV (variance of MLD)": f"{kin.ddv_mm2:.2f} mm²",
+        "Flagged frames": f"{n_flagged} of {len(kin.frames)} (|MLD| > {kin.flag_mm:g} mm)",
+    }
+
+
+def _table(
+    rows: list[list[str]],
+    header: list[str] | None = None,
+    css_class: str = "",
+    flagged: np.ndarray | None = None,
+) -> str:
+    """An HTML table with escaped cells; rows where ``flagged`` is true are shaded."""
+    out = [f'<table class="{css_class}">' if css_class else "<table>"]
+    if header:
+        out.append("<tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in header) + "</tr>")
+    for i, row in enumerate(rows):
+        cls = ' class="flagged"' if flagged is not None and flagged[i] else ""
+        out.append(f"<tr{cls}>" + "".join(f"<td>{html.escape(c)}</td>" for c in row) + "</tr>")
+    out.append("</table>")
+    return "\n".join(out)
+
+
+def _frame_table(kin: KneeKinematics) -> str:
+    """Per-frame HTML table (angles and distances to 1-2 decimals), flagged rows shaded."""
+    header = [
+        "Frame",
+        "Flexion (°)",
+        "Varus (°)",
+        "Int. rot. (°)",
+        "ML shift (mm)",
+        "AP drawer (mm)",
+        "Distraction (mm)",
+        "Medial (mm)",
+        "Lateral (mm)",
+        "MLD (mm)",
+        "Flagged",
+    ]
+    rows = []
+    for i, frame in enumerate(kin.frames):
+        rows.append(
+            [
+                str(int(frame)),
+                _fmt(kin.flexion_deg[i], 1),
+                _fmt(kin.varus_deg[i], 1),
+                _fmt(kin.internal_rotation_deg[i], 1),
+                *(_fmt(t, 2) for t in kin.translation_mm[i]),
+                _fmt(kin.medial_distance_mm[i], 2),
+                _fmt(kin.lateral_distance_mm[i], 2),
+                _fmt(kin.mld_mm[i], 2),
+                "yes" if kin.flagged[i] else "",
+            ]
+        )
+    return _table(rows, header, flagged=kin.flagged)
+
+
+def _html(
+    kin: KneeKinematics, title: str, extra_rows: dict[str, str], plots: dict[str, Path]
+) -> str:
+    """The complete report page."""
+    summary = {**summary_rows(kin), **extra_rows}
+    sentences = describe_flags(kin)
+    box_class = "flags" if kin.flagged.any() else "flags clear"
+    figures = []
+    for name, path in plots.items():
+        data = base64.b64encode(path.read_bytes()).decode("ascii")
+        caption = html.escape(_CAPTIONS[name])
+        figures.append(
+            f'<figure><img src="data:image/png;base64,{data}" alt="{html.escape(name)}">'
+            f"<figcaption>{caption}</figcaption></figure>"
+        )
+    flags = "\n".join(f"<p>{html.escape(s)}</p>" for s in sentences)
+    return f"""<!DOCTYPE html>
+<html lang="en">
+<head>
+<meta charset="utf-8">
+<title>{html.escape(title)}</title>
+<style>{_CSS}</style>
+</head>
+<body>
+<h1>{html.escape(title)}</h1>
+<h2>Summary</h2>
+{_table([[k, v] for k, v in summary.items()], css_class="summary")}
+<h2>Flags</h2>
+<div class="{box_class}">
+{flags}
+</div>
+<p class="note">TP–condyle distances: lowest medial / lateral femoral condyle point to the tibial
+plateau plane (Scarvell's method). MLD = medial − lateral distance; a frame is flagged when
+|MLD| &gt; {kin.flag_mm:g} mm. DDV = variance of the MLD over the motion. Flags are cues for
+review of alignment and ligament balance, not a diagnosis.</p>
+<h2>Plots</h2>
+<div class="plots">
+{"".join(figures)}
+</div>
+<h2>Per-frame metrics</h2>
+{_frame_table(kin)}
+</body>
+</html>
+"""
+
+
+def write_report(
+    kin: KneeKinematics,
+    folder: Path | str,
+    *,
+    title: str,
+    extra_rows: dict[str, str] | None = None,
+) -> dict[str, Path]:
+    """Write metrics.csv, the plot PNGs and a self-contained report.html into ``folder``.
+
+    Args:
+        kin: per-frame knee metrics.
+        folder: output folder (created if missing).
+        title: page title and heading.
+        extra_rows: more summary-table rows (label -> text), e.g. subject or scan id; shown
+            after the computed rows, escaped.
+
+    Returns:
+        Paths by name: "report", "metrics" and one per plot (see ``assessment.plots.PLOTS``).
+
+    Raises:
+        FileExistsError: if ``folder/report.html`` exists; nothing is written then.
+    """
+    folder = Path(folder)
+    report = folder / "report.html"
+    if report.exists():
+        raise FileExistsError(f"{report} exists; refusing to overwrite the report")
+    plots = save_all(kin, folder)
+    metrics = write_metrics_csv(kin, folder / "metrics.csv")
+    with report.open("x", encoding="utf-8") as f:
+        f.write(_html(kin, title, extra_rows or {}, plots))
+    return {"report": report, "metrics": metrics, **plots}

@@ -1,0 +1,171 @@
+"""Bone poses per frame and their file, ``poses.csv`` (DESIGN.md).
+
+A pose ``T_world_bone`` (4x4) moves a bone from where the static CBCT scan saw it (the bone's
+reference frame: world coordinates at the time of the scan) to where it is in a frame. The
+6-DoF row of the file repeats it as DESIGN.md parameterises poses: the world position of the
+bone's centroid (tx, ty, tz) mm and the rotation as extrinsic x-y-z angles (scipy "xyz") in
+degrees about that centroid. The 16 matrix entries are authoritative when reading.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+MATRIX_COLUMNS = tuple(f"t{r}{c}" for r in range(4) for c in range(4))
+COLUMNS = (
+    "frame",
+    "bone",
+    *MATRIX_COLUMNS,
+    "tx_mm",
+    "ty_mm",
+    "tz_mm",
+    "rx_deg",
+    "ry_deg",
+    "rz_deg",
+    "similarity",
+    "seconds",
+)
+RIGID_TOLERANCE = 1e-5
+"""Largest |R^T R - I| entry and |det R - 1| accepted as a rotation."""
+
+
+@dataclass(frozen=True)
+class BonePose:
+    """One bone in one frame.
+
+    Attributes:
+        frame: frame number.
+        bone: bone name (e.g. "femur", "tibia", "patella").
+        T_world_bone: 4x4 rigid motion from the reference (CBCT) pose, mm.
+        similarity: the registration's similarity at this pose (NaN when unknown).
+        seconds: time the registration spent on it (NaN when unknown).
+    """
+
+    frame: int
+    bone: str
+    T_world_bone: np.ndarray
+    similarity: float = math.nan
+    seconds: float = math.nan
+
+    def six_dof(self, centroid_mm: np.ndarray) -> np.ndarray:
+        """(tx, ty, tz) mm of the moved centroid and (rx, ry, rz) deg, extrinsic xyz."""
+        T = self.T_world_bone
+        moved = T[:3, :3] @ np.asarray(centroid_mm, dtype=np.float64) + T[:3, 3]
+        angles = Rotation.from_matrix(T[:3, :3]).as_euler("xyz", degrees=True)
+        return np.concatenate((moved, angles))
+
+
+def check_rigid(T: np.ndarray, where: str) -> np.ndarray:
+    """``T`` as a float 4x4 rigid transform, or ValueError naming ``where`` and the defect."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise ValueError(f"{where}: pose must be 4x4, got shape {T.shape}")
+    if not np.all(np.isfinite(T)):
+        raise ValueError(f"{where}: pose contains NaN or infinite values")
+    R = T[:3, :3]
+    orthogonality = float(np.abs(R.T @ R - np.eye(3)).max())
+    det = float(np.linalg.det(R))
+    if orthogonality > RIGID_TOLERANCE or abs(det - 1.0) > RIGID_TOLERANCE:
+        raise ValueError(
+            f"{where}: pose is not rigid (|R^T R - I| = {orthogonality:.2e}, det R = {det:.6f}, "
+            f"tolerance {RIGID_TOLERANCE:g})"
+        )
+    if np.abs(T[3] - [0.0, 0.0, 0.0, 1.0]).max() > RIGID_TOLERANCE:
+        raise ValueError(f"{where}: last row of the pose is {T[3].tolist()}, not [0, 0, 0, 1]")
+    return T
+
+
+def write_poses(
+    path: str | Path, poses: list[BonePose], centroids_mm: dict[str, np.ndarray]
+) -> Path:
+    """Write ``poses.csv``; ``centroids_mm`` gives each bone's reference centroid (mm)."""
+    path = Path(path)
+    if path.exists():
+        raise FileExistsError(f"{path} exists: poses are never written over")
+    rows = []
+    for pose in poses:
+        where = f"frame {pose.frame}, bone {pose.bone}"
+        T = check_rigid(pose.T_world_bone, where)
+        if pose.bone not in centroids_mm:
+            raise ValueError(f"{where}: no reference centroid for bone {pose.bone!r}")
+        six = pose.six_dof(centroids_mm[pose.bone])
+        rows.append([pose.frame, pose.bone, *T.ravel(), *six, pose.similarity, pose.seconds])
+    tmp = path.with_name(path.name + ".partial")
+    with open(tmp, "w", newline="", encoding="utf-8") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(COLUMNS)
+        for row in rows:
+            writer.writerow([row[0], row[1], *(repr(float(x)) for x in row[2:])])
+    tmp.rename(path)
+    return path
+
+
+def read_poses(path: str | Path) -> list[BonePose]:
+    """Read ``poses.csv``; every matrix is checked to be rigid (errors name frame and bone)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such poses file")
+    with open(path, newline="", encoding="utf-8") as fh:
+        reader = csv.DictReader(fh)
+        missing = [
+            c for c in ("frame", "bone", *MATRIX_COLUMNS) if c not in (reader.fieldnames or [])
+        ]
+        if missing:
+            raise ValueError(f"{path}: missing columns {missing}")
+        poses = []
+        for line, row in enumerate(reader, start=2):
+            try:
+                frame = int(row["frame"])
+                values = np.array([float(row[c]) for c in MATRIX_COLUMNS])
+            except (TypeError, ValueError):
+                raise ValueError(
+                    f"{path}: line {line}: frame or matrix entry is not a number"
+                ) from None
+            bone = row["bone"]
+            T = check_rigid(values.reshape(4, 4), f"{path}: frame {frame}, bone {bone}")
+            poses.append(
+                BonePose(
+                    frame, bone, T, _number(row.get("similarity")), _number(row.get("seconds"))
+                )
+            )
+    if not poses:
+        raise ValueError(f"{path}: no poses")
+    return poses
+
+
+def _number(text: str | None) -> float:
+    try:
+        return float(text) if text not in (None, "") else math.nan
+    except ValueError:
+        return math.nan
+
+
+def poses_by_frame(
+    poses: list[BonePose], bones: tuple[str, ...]
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Frames (sorted) and, per bone, the (F, 4, 4) stack of poses; every frame must hold every
+    bone exactly once (ValueError naming the frame and bone otherwise)."""
+    frames = np.array(sorted({p.frame for p in poses}))
+    stacks = {bone: np.full((len(frames), 4, 4), np.nan) for bone in bones}
+    index = {f: i for i, f in enumerate(frames)}
+    for pose in poses:
+        if pose.bone not in stacks:
+            continue
+        slot = stacks[pose.bone][index[pose.frame]]
+        if np.isfinite(slot).all():
+            raise ValueError(f"frame {pose.frame}, bone {pose.bone}: pose given twice")
+        slot[:] = pose.T_world_bone
+    for bone, stack in stacks.items():
+        missing = frames[~np.isfinite(stack).all(axis=(1, 2))]
+        if missing.size:
+            raise ValueError(
+                f"frame {int(missing[0])}, bone {bone}: no pose ({missing.size} "
+                f"frame(s) miss this bone)"
+            )
+    return frames, stacks

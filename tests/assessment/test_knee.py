@@ -1,0 +1,125 @@
+"""assessment: landmarks, Grood-Suntay angles, TP-condyle distances and flags on the phantom,
+whose anatomy and motion are known by construction."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from assessment.anatomy import femur_anatomy, mirror_x, tibia_anatomy
+from assessment.knee import assess_knee
+from recon.volume import Volume, VolumeGrid
+from registration.poses import BonePose, read_poses, write_poses
+from sim.motion import flexion_extension
+from sim.phantoms.knee import KNEE_LABELS, KneePhantomSpec, knee_landmarks, rasterize_knee
+
+# a standing scan long enough to hold 150 mm of each shaft, as the clinical spirals do
+GRID = VolumeGrid.centered((140, 140, 320), 1.0, (0.0, -4.0, 490.0))
+
+
+@pytest.fixture(scope="module")
+def knees():
+    out = {}
+    for side in ("right", "left"):
+        spec = KneePhantomSpec(side=side)
+        labels, _ = rasterize_knee(spec, GRID, supersample=1)
+        out[side] = (spec, Volume(labels, GRID, "label"))
+    return out
+
+
+def poses_of(motion, bones=("femur", "tibia")):
+    return [
+        BonePose(int(f), b, motion.poses[b][i]) for i, f in enumerate(motion.frames) for b in bones
+    ]
+
+
+def test_landmarks_are_found_where_the_phantom_put_them(knees):
+    """Epicondyles within 2 mm (1 mm voxels, rounded tips), TEA and long axes within 0.5 deg,
+    the TP plane normal within 1 deg of the plateau's."""
+    spec, labels = knees["right"]
+    truth = knee_landmarks(spec)
+    femur = femur_anatomy(labels, KNEE_LABELS["femur"])
+    tibia = tibia_anatomy(labels, KNEE_LABELS["tibia"])
+    np.testing.assert_allclose(femur.medial_epicondyle_mm, truth["medial_epicondyle"], atol=2.0)
+    np.testing.assert_allclose(femur.lateral_epicondyle_mm, truth["lateral_epicondyle"], atol=2.0)
+    tea = truth["lateral_epicondyle"] - truth["medial_epicondyle"]
+    angle = np.degrees(np.arccos(femur.lateral_axis @ tea / np.linalg.norm(tea)))
+    assert angle < 0.5
+    for axis in (femur.proximal_axis, tibia.proximal_axis):
+        assert np.degrees(np.arccos(axis[2])) < 0.5  # the phantom's shafts stand vertical
+    normal = truth["tibial_plateau_normal"]
+    assert np.degrees(np.arccos(tibia.plateau_normal @ normal)) < 1.0
+    lowest = femur.medial_condyle_mm[np.argmin(femur.medial_condyle_mm[:, 2])]
+    assert lowest[2] == pytest.approx(truth["medial_condyle_lowest"][2], abs=1.0)
+
+
+def test_flexion_is_recovered_across_the_motion(knees):
+    spec, labels = knees["right"]
+    motion = flexion_extension(spec, frames=19, max_flexion_deg=90.0)
+    kin = assess_knee(labels, poses_of(motion), "right").kinematics
+    assert np.abs(kin.flexion_deg - motion.flexion_deg).max() < 0.5
+    assert np.abs(kin.varus_deg).max() < 0.5
+    assert np.abs(kin.internal_rotation_deg).max() < 0.5
+    assert kin.flexion_deg.max() == pytest.approx(90.0, abs=0.5)
+
+
+def test_a_varus_tilt_of_known_size_gives_the_expected_mld_and_flags_only_its_frames(knees):
+    """Tilting the femur by delta about the AP axis through the knee centre drops the medial
+    condyle by x_m sin(delta) and lifts the lateral one as much: with the condyles 23 mm
+    either side of the centre, MLD changes by -46 sin(delta) = -2.41 mm at 3 degrees."""
+    spec, labels = knees["right"]
+    plain = flexion_extension(spec, frames=20, max_flexion_deg=90.0)
+    tilted = flexion_extension(
+        spec, frames=20, max_flexion_deg=90.0, varus_deg=3.0, varus_frames=(8, 11)
+    )
+    base = assess_knee(labels, poses_of(plain), "right").kinematics
+    kin = assess_knee(labels, poses_of(tilted), "right").kinematics
+    change = kin.mld_mm - base.mld_mm
+    expected = -46.0 * np.sin(np.radians(3.0))
+    np.testing.assert_allclose(change[8:12], expected, atol=0.2)
+    np.testing.assert_allclose(np.delete(change, range(8, 12)), 0.0, atol=0.2)
+    assert np.flatnonzero(kin.flagged).tolist() == [8, 9, 10, 11]
+    np.testing.assert_allclose(kin.varus_deg[8:12], 3.0, atol=0.1)
+
+
+def test_a_left_knee_reads_like_the_mirrored_right_knee(knees):
+    right_spec, right_labels = knees["right"]
+    left_spec, left_labels = knees["left"]
+    kwargs = {"frames": 10, "max_flexion_deg": 90.0, "varus_deg": 2.0, "varus_frames": (3, 5)}
+    right = assess_knee(
+        right_labels, poses_of(flexion_extension(right_spec, **kwargs)), "right"
+    ).kinematics
+    left = assess_knee(
+        left_labels, poses_of(flexion_extension(left_spec, **kwargs)), "left"
+    ).kinematics
+    for name in ("flexion_deg", "varus_deg", "internal_rotation_deg", "mld_mm"):
+        np.testing.assert_allclose(getattr(left, name), getattr(right, name), atol=1e-6)
+    assert (mirror_x(mirror_x(left_labels)).data == left_labels.data).all()
+
+
+def test_poses_round_trip_and_bad_poses_name_frame_and_bone(knees, tmp_path):
+    spec, labels = knees["right"]
+    motion = flexion_extension(spec, frames=4)
+    poses = poses_of(motion)
+    path = write_poses(tmp_path / "poses.csv", poses, {"femur": np.zeros(3), "tibia": np.zeros(3)})
+    back = read_poses(path)
+    assert [(p.frame, p.bone) for p in back] == [(p.frame, p.bone) for p in poses]
+    for a, b in zip(back, poses, strict=True):
+        np.testing.assert_allclose(a.T_world_bone, b.T_world_bone, atol=1e-12)
+    text = path.read_text(encoding="utf-8").splitlines()
+    fields = text[3].split(",")
+    fields[2] = "1.5"  # scale the rotation: not rigid
+    (tmp_path / "bad.csv").write_text("\n".join([text[0], ",".join(fields)]) + "\n")
+    with pytest.raises(ValueError, match=r"bad.csv: frame 1, bone femur: pose is not rigid"):
+        read_poses(tmp_path / "bad.csv")
+    nan = [BonePose(0, "femur", np.full((4, 4), np.nan))]
+    with pytest.raises(ValueError, match="frame 0, bone femur: pose contains NaN"):
+        write_poses(tmp_path / "nan.csv", nan, {"femur": np.zeros(3)})
+    with pytest.raises(ValueError, match="frame 2, bone femur: no pose"):
+        assess_knee(labels, poses[:4] + poses[5:], "right")
+    without_patella = Volume(np.where(labels.data == 5, 1, labels.data), labels.grid, "label")
+    extra = [*poses, BonePose(0, "patella", np.eye(4))]
+    with pytest.raises(ValueError, match="frame 0, bone patella: the label volume has no such"):
+        assess_knee(without_patella, extra, "right")
+    with pytest.raises(ValueError, match="needs the polyethylene insert"):
+        assess_knee(labels, poses, "right", tka=True)

@@ -1,0 +1,201 @@
+"""Flags, plots, the HTML report and its Chromium rendering on synthetic knee kinematics."""
+
+from __future__ import annotations
+
+import base64
+import csv
+import importlib.util
+import io
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import matplotlib.image
+import numpy as np
+import pytest
+
+from assessment.flags import FlagRun, angle_text, describe_flags, flag_runs
+from assessment.plots import DPI, PLOTS, save_all
+from assessment.report import CSV_COLUMNS, write_report
+from assessment.results import KneeKinematics
+
+ROOT = Path(__file__).resolve().parents[2]
+RENDER_SCRIPT = ROOT / "scripts" / "render_report.py"
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+N_FRAMES = 30
+BUMP = {12: 2.2, 13: 2.4, 14: 2.6, 15: 2.5, 16: 2.3, 17: 2.1}
+"""MLD (mm) in the flagged frames; everything else stays within ±0.5 mm."""
+
+
+def _render_module():
+    """scripts/render_report.py imported as a module (scripts is not a package)."""
+    spec = importlib.util.spec_from_file_location("render_report", RENDER_SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+render_report = _render_module()
+
+
+def make_kin(mld_mm: np.ndarray | None = None, flexion_deg: np.ndarray | None = None):
+    """30 frames of a knee flexing 0 -> 90 -> 0 degrees, MLD bump above 2 mm in frames 12-17."""
+    i = np.arange(N_FRAMES)
+    if flexion_deg is None:
+        flexion_deg = 90.0 * np.sin(np.pi * i / (N_FRAMES - 1))
+    if mld_mm is None:
+        mld_mm = 0.5 * np.sin(2 * np.pi * i / (N_FRAMES - 1))
+        for frame, value in BUMP.items():
+            mld_mm[frame] = value
+    lateral = 4.0 + 1.5 * np.sin(np.pi * i / (N_FRAMES - 1))
+    ap = -12.0 * flexion_deg / 90.0
+    return KneeKinematics(
+        side="right",
+        frames=i,
+        flexion_deg=flexion_deg,
+        varus_deg=2.0 * np.sin(np.pi * i / (N_FRAMES - 1)),
+        internal_rotation_deg=8.0 * flexion_deg / 90.0,
+        translation_mm=np.stack([0.2 * np.sin(i / 5), ap / 2, 0.1 * np.cos(i / 7)], axis=1),
+        medial_distance_mm=lateral + mld_mm,
+        lateral_distance_mm=lateral,
+        medial_point_mm=np.stack([20.0 + 0.3 * np.sin(i / 4), ap + 2.0], axis=1),
+        lateral_point_mm=np.stack([-20.0 + 0.3 * np.cos(i / 4), 1.5 * ap], axis=1),
+    )
+
+
+@pytest.fixture(scope="module")
+def kin() -> KneeKinematics:
+    return make_kin()
+
+
+@pytest.fixture(scope="module")
+def report(kin, tmp_path_factory) -> dict[str, Path]:
+    return write_report(
+        kin, tmp_path_factory.mktemp("report"), title="Knee test", extra_rows={"Scan": "<s1>"}
+    )
+
+
+def test_flag_runs_exact(kin):
+    expected_flexion = float(kin.flexion_deg[14])
+    assert flag_runs(kin) == [FlagRun(12, 17, pytest.approx(2.6), "medial", expected_flexion)]
+
+
+def test_flag_runs_split_single_frames_and_sign():
+    mld = np.zeros(N_FRAMES)
+    mld[[3, 4]] = [2.5, -3.0]  # adjacent but opposite sides: two runs
+    mld[10] = -2.1
+    mld[-1] = 4.0  # run touching the last frame
+    flexion = np.linspace(-5.0, 40.0, N_FRAMES)
+    runs = flag_runs(make_kin(mld, flexion))
+    assert [(r.first_frame, r.last_frame, r.sign) for r in runs] == [
+        (3, 3, "medial"),
+        (4, 4, "lateral"),
+        (10, 10, "lateral"),
+        (29, 29, "medial"),
+    ]
+    assert runs[1].max_abs_mld_mm == pytest.approx(3.0)
+    assert runs[0].flexion_deg == pytest.approx(flexion[3])
+
+
+def test_angle_text_uses_extension_for_negative_flexion():
+    assert angle_text(-8.2) == "8° extension"
+    assert angle_text(35.4) == "35° flexion"
+    assert angle_text(-0.2) == "0° flexion"
+
+
+def test_describe_flags_sentences(kin):
+    sentences = describe_flags(kin)
+    assert len(sentences) == 2
+    first = sentences[0]
+    assert first.startswith("Medial–lateral difference above 2 mm in frames 12–17")
+    assert f"max 2.6 mm at {round(kin.flexion_deg[14])}° flexion" in first
+    assert "medial gap larger" in first and "not a diagnosis" in first
+    assert "6 of 30 frames flagged" in sentences[1]
+    assert f"{kin.ddv_mm2:.2f} mm²" in sentences[1]
+
+
+def test_describe_flags_single_frame_in_extension():
+    mld = np.zeros(N_FRAMES)
+    mld[5] = -2.4
+    flexion = np.linspace(-10.0, 20.0, N_FRAMES)
+    first = describe_flags(make_kin(mld, flexion))[0]
+    assert "in frame 5 (max 2.4 mm at 5° extension): lateral gap larger" in first
+
+
+def test_describe_flags_none_flagged():
+    clear = make_kin(0.5 * np.sin(np.arange(N_FRAMES) / 3))
+    (sentence,) = describe_flags(clear)
+    assert sentence == (
+        "No medial–lateral difference above 2 mm over the motion "
+        f"(max |MLD| {np.abs(clear.mld_mm).max():.1f} mm); DDV {clear.ddv_mm2:.2f} mm²."
+    )
+    assert flag_runs(clear) == []
+
+
+def test_plots_decode(kin, tmp_path):
+    paths = save_all(kin, tmp_path / "plots")
+    assert list(paths) == list(PLOTS)
+    for path in paths.values():
+        image = matplotlib.image.imread(path)
+        height, width = image.shape[:2]
+        assert 6 * DPI <= width <= 8 * DPI and 4 * DPI <= height <= 7 * DPI
+        assert image[..., :3].std() > 0.05  # drawn, not blank
+
+
+def test_report_html_self_contained(report):
+    text = report["report"].read_text(encoding="utf-8")
+    payloads = re.findall(r'<img src="data:image/png;base64,([A-Za-z0-9+/=]+)"', text)
+    assert len(payloads) == len(PLOTS)
+    for payload in payloads:
+        png = base64.b64decode(payload, validate=True)
+        assert png.startswith(PNG_SIGNATURE)
+        assert matplotlib.image.imread(io.BytesIO(png)).shape[0] > 100
+    assert "Medial–lateral difference above 2 mm in frames 12–17" in text
+    assert "&lt;s1&gt;" in text  # extra rows are escaped
+    assert not re.search(r"https?:", text)
+    assert "<script" not in text.lower()
+    assert "<td>-0.00</td>" not in text  # no negative zeros in the per-frame table
+    for name in PLOTS:
+        assert report[name].read_bytes().startswith(PNG_SIGNATURE)
+
+
+def test_metrics_csv(report, kin):
+    with report["metrics"].open(newline="", encoding="utf-8") as f:
+        rows = list(csv.DictReader(f))
+    assert tuple(rows[0]) == CSV_COLUMNS
+    assert len(rows) == N_FRAMES
+    assert [int(r["flagged"]) for r in rows] == kin.flagged.astype(int).tolist()
+    np.testing.assert_allclose([float(r["mld_mm"]) for r in rows], kin.mld_mm, atol=1e-4)
+
+
+def test_overwrite_refused(report, kin):
+    before = report["report"].read_bytes()
+    with pytest.raises(FileExistsError, match=re.escape(str(report["report"]))):
+        write_report(kin, report["report"].parent, title="again")
+    assert report["report"].read_bytes() == before
+
+
+def test_render_without_chromium_says_how_to_install(report, tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(render_report, "find_chromium", lambda: None)
+    assert render_report.main([str(report["report"]), str(tmp_path / "out.png")]) == 1
+    assert "apt-get install -y chromium" in capsys.readouterr().err
+
+
+def test_render_with_chromium(report, tmp_path):
+    if render_report.find_chromium() is None:
+        pytest.skip("chromium not installed (" + render_report.INSTALL_HINT + ")")
+    out = tmp_path / "report.png"
+    proc = subprocess.run(
+        [sys.executable, str(RENDER_SCRIPT), str(report["report"]), str(out)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stderr
+    image = matplotlib.image.imread(out)
+    assert image.shape[:2] == (render_report.WINDOW_PX[1], render_report.WINDOW_PX[0])
+    assert image[..., :3].std() > 0.05
+    top = image[: render_report.WINDOW_PX[1] // 2, :, :3]
+    assert (top.std(axis=(0, 1)) > 0.02).all()  # content (text, plots) in the top half
