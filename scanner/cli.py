@@ -204,10 +204,15 @@ def assess(
     out: Annotated[Path, typer.Option(help="new output folder")],
     side: Annotated[str, typer.Option(help="right or left knee")] = "right",
     tka: Annotated[bool, typer.Option(help="fit the TP plane to the polyethylene insert")] = False,
+    plateau_offset_mm: Annotated[
+        float, typer.Option(help="shift of the TP plane along its normal, mm")
+    ] = 0.0,
 ) -> None:
     """Knee kinematics, TP-condyle distances and flags: report.html, metrics.csv, plots, 4D."""
     try:
-        result = jobs.assess_files(poses, labels, out, side, tka=tka)
+        result = jobs.assess_files(
+            poses, labels, out, side, tka=tka, plateau_offset_mm=plateau_offset_mm
+        )
     except (ValueError, OSError) as err:
         fail(str(err))
     kin = result.kinematics

@@ -177,13 +177,15 @@ def write_assessment(
     side: str,
     *,
     tka: bool = False,
+    plateau_offset_mm: float = 0.0,
     title: str = "Knee kinematics",
 ) -> KneeAssessment:
     """Assess the motion and write the report, metrics.csv, plots and the 4D series (meshes
     per frame and a rerun recording) into the new folder ``out``."""
-    result = assess_knee(labels, poses, side, tka=tka)
+    result = assess_knee(labels, poses, side, tka=tka, plateau_offset_mm=plateau_offset_mm)
     new_folder(out)
-    extra = {"TP plane": "polyethylene insert" if tka else "fitted tibial plateau"}
+    plane = "polyethylene insert" if tka else "fitted tibial plateau"
+    extra = {"TP plane": f"{plane}, offset {plateau_offset_mm:g} mm along its normal"}
     write_report(result.kinematics, out, title=title, extra_rows=extra)
     bones = sorted({p.bone for p in poses})
     frames, stacks = poses_by_frame(poses, tuple(bones))
@@ -194,7 +196,13 @@ def write_assessment(
 
 
 def assess_files(
-    poses_path: Path, labels_path: Path, out: Path, side: str, *, tka: bool = False
+    poses_path: Path,
+    labels_path: Path,
+    out: Path,
+    side: str,
+    *,
+    tka: bool = False,
+    plateau_offset_mm: float = 0.0,
 ) -> KneeAssessment:
     """``cbct assess``: read poses.csv and the label volume, then :func:`write_assessment`."""
     if out.exists():
