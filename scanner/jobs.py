@@ -210,5 +210,11 @@ def assess_files(
     poses = read_poses(poses_path)
     labels = read_volume(labels_path, unit="label")
     return write_assessment(
-        labels, poses, out, side, tka=tka, title=f"Knee kinematics: {poses_path.name}"
+        labels,
+        poses,
+        out,
+        side,
+        tka=tka,
+        plateau_offset_mm=plateau_offset_mm,
+        title=f"Knee kinematics: {poses_path.name}",
     )
