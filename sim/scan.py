@@ -59,7 +59,7 @@ class SimulatedScan:
     Attributes:
         projections: line integrals -ln(I/I0), float32 (views, rows, cols).
         counts: detected photons per pixel, float32 (views, rows, cols); None when noise-free.
-        geometry: the views (the protocol's planned orbit).
+        geometry: the views acquired.
         attenuation: the phantom, 1/mm, on the simulation grid.
         labels: the phantom's labels (sim.phantoms.knee.KNEE_LABELS) on the same grid.
         photons_per_pixel: mean unattenuated photons per pixel per view (0 when noise-free).
@@ -81,6 +81,7 @@ def simulate_knee_scan(
     supersample: int = 2,
     noise: bool = True,
     seed: int = 0,
+    geometry: Geometry | None = None,
     status: Callable[[str], None] | None = None,
 ) -> SimulatedScan:
     """Scan the knee phantom with ``protocol``.
@@ -93,10 +94,13 @@ def simulate_knee_scan(
         supersample: sub-voxel samples per edge when rasterising (partial volume).
         noise: add quantum and readout noise at the protocol's technique.
         seed: noise seed (repeatable scans).
+        geometry: the views actually acquired (e.g. sim.vibration.vibrate of the plan);
+            default the protocol's planned views.
         status: optional callback receiving a line per stage.
     """
     say = status or (lambda _msg: None)
-    geometry = protocol.orbit.geometry(protocol.detector)
+    if geometry is None:
+        geometry = protocol.orbit.geometry(protocol.detector)
     grid = knee_grid(phantom, spacing_mm=voxel_mm)
     say(f"rasterising the knee phantom on {grid.size_xyz} voxels of {voxel_mm} mm")
     labels, mu = rasterize_knee(phantom, grid, supersample=supersample)
