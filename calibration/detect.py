@@ -5,8 +5,9 @@ maxima closer than a ball's radius dropped (a flat-topped shadow has several). A
 quadratic surface fitted to a ring of pixels outside the ball (and outside its neighbours)
 removes the smooth body's line integral; the centroid is the background-free,
 intensity-weighted mean within a disc re-centred on it until it settles (a disc centred on the
-peak pixel would clip the shadow), and the mass (the sum of those line integrals, pixel units) measures its volume. Blobs touching the
-panel's edge, merged (overlapping) or not round are rejected.
+peak pixel would clip the shadow), and the mass (the sum of those line integrals, pixel
+units) measures its volume. Blobs touching the panel's edge, merged (overlapping) or not round
+are rejected.
 
 Centroid bias: the intensity-weighted centroid of a sphere's shadow differs from the
 projection of its centre by perspective, ~ r^2 tan(gamma) / L (r ball radius, L source
