@@ -7,9 +7,10 @@ view's focal spot and panel (9 parameters, prior toward the plan); report per vi
 reprojection error and the deviation from the plan (the arms' vibration).
 
 A calibration belongs to one protocol and one plan: it records the protocol's name and a hash
-of the planned views (:func:`plan_hash`), and :func:`corrected_geometry` refuses to apply it
-to a scan of any other protocol or plan. Views with fewer than ``min_balls`` identified balls
-keep their planned geometry and are reported as such, never filled in silently.
+of its plan (orbit and panel, :func:`plan_hash`), and :func:`corrected_geometry` refuses to
+apply it to a scan of any other protocol or plan. Views with fewer than ``min_balls``
+identified balls keep their planned geometry and are reported as such, never filled in
+silently.
 """
 
 from __future__ import annotations
@@ -27,7 +28,8 @@ import numpy as np
 from calibration.detect import detect_balls
 from calibration.fit import Prior, fit_phantom_pose, fit_view
 from calibration.identify import identify
-from recon.geometry import DetectorSpec, Geometry
+from recon.config import ScanProtocol
+from recon.geometry import Geometry
 from recon.rtk_xml import read_rtk_geometry, write_rtk_geometry
 from sim.phantoms.bb import BBPhantomSpec
 
@@ -61,9 +63,14 @@ class ViewReport:
     detector_deviation_deg: float
 
 
-def plan_hash(geometry: Geometry) -> str:
-    """SHA-256 of the planned views' matrices (rounded to 1e-6): which plan a calibration is for."""
-    return hashlib.sha256(np.round(np.asarray(geometry.matrices), 6).tobytes()).hexdigest()
+def plan_hash(protocol: ScanProtocol) -> str:
+    """SHA-256 of the protocol's views (orbit and panel, canonical JSON): which plan a
+    calibration is for."""
+    plan = {
+        "orbit": protocol.orbit.model_dump(mode="json"),
+        "detector": protocol.detector.model_dump(mode="json"),
+    }
+    return hashlib.sha256(json.dumps(plan, sort_keys=True).encode()).hexdigest()
 
 
 def _deviation(calibrated, planned) -> tuple[float, float, float]:
@@ -164,7 +171,7 @@ def calibrate(
     projections: np.ndarray,
     planned: Geometry,
     phantom: BBPhantomSpec,
-    protocol: str,
+    protocol: ScanProtocol,
     *,
     prior: Prior | None = None,
     min_balls: int = MIN_BALLS,
@@ -177,7 +184,8 @@ def calibrate(
         projections: line integrals (views, rows, cols).
         planned: the protocol's planned views, one per projection.
         phantom: the phantom's layout and nominal placement.
-        protocol: the protocol's name (recorded for matching later scans).
+        protocol: the protocol that acquired the scan (its name and plan hash are recorded
+            for matching later scans).
         prior: the planned pose's uncertainty.
         min_balls: fewest identified balls per calibrated view.
         phantom_pose: "estimate" (fit the placement through the planned views: the gauge
@@ -205,7 +213,7 @@ def calibrate_balls(
     counts: list[int],
     planned: Geometry,
     phantom: BBPhantomSpec,
-    protocol: str,
+    protocol: ScanProtocol,
     *,
     prior: Prior | None = None,
     min_balls: int = MIN_BALLS,
@@ -253,8 +261,8 @@ def calibrate_balls(
                 ViewReport(k, "calibrated", counts[k], len(ids), rms, *_deviation(fitted, view))
             )
     return Calibration(
-        protocol,
-        plan_hash(planned),
+        protocol.name,
+        plan_hash(protocol),
         planned,
         Geometry(views),
         T_wp,
@@ -263,21 +271,19 @@ def calibrate_balls(
     )
 
 
-def corrected_geometry(
-    folder: Path, protocol: str, planned: Geometry, detector: DetectorSpec
-) -> Geometry:
-    """The calibrated views stored in ``folder`` for a scan of ``protocol`` with ``planned``
-    views; refuses a calibration made for another protocol or plan."""
+def corrected_geometry(folder: Path, protocol: ScanProtocol) -> Geometry:
+    """The calibrated views stored in ``folder`` for a scan of ``protocol``; refuses a
+    calibration made for another protocol or another plan of it."""
     folder = Path(folder)
     report = json.loads((folder / "report.json").read_text(encoding="utf-8"))["summary"]
-    if report["protocol"] != protocol:
+    if report["protocol"] != protocol.name:
         raise ValueError(
-            f"{folder}: calibration of protocol {report['protocol']!r} cannot "
-            f"correct a scan of protocol {protocol!r}"
+            f"{folder}: calibration of protocol {report['protocol']!r} cannot correct a scan "
+            f"of protocol {protocol.name!r}"
         )
-    if report["plan_hash"] != plan_hash(planned):
+    if report["plan_hash"] != plan_hash(protocol):
         raise ValueError(
-            f"{folder}: calibration was made for another plan of {protocol!r} "
-            "(plan hash differs): recalibrate after replanning"
+            f"{folder}: calibration was made for another plan of {protocol.name!r} (plan "
+            "hash differs): recalibrate after changing the protocol"
         )
-    return read_rtk_geometry(folder / "geometry.xml", detector)
+    return read_rtk_geometry(folder / "geometry.xml", protocol.detector)

@@ -15,6 +15,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated
 
+import numpy as np
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
@@ -22,6 +23,7 @@ from rich.table import Table
 
 from scanner import demo as demo_job
 from scanner import jobs
+from sim.vibration import VibrationSpec
 
 app = typer.Typer(
     add_completion=False,
@@ -124,30 +126,95 @@ def _plan_table(result) -> Table:
 def simulate_scan(
     protocol: Annotated[Path, typer.Option(help="scan protocol YAML (configs/protocols/)")],
     out: Annotated[Path, typer.Option(help="output folder; must not exist or be empty")],
-    phantom: Annotated[str, typer.Option(help="phantom to scan")] = "knee",
-    phantom_config: Annotated[Path, typer.Option(help="phantom YAML")] = CONFIGS
-    / "phantoms"
-    / "knee.yaml",
-    voxel_mm: Annotated[float, typer.Option(help="simulation voxel size, mm")] = 0.5,
+    phantom: Annotated[str, typer.Option(help="knee, or bb (steel-ball calibration)")] = "knee",
+    phantom_config: Annotated[
+        Path | None, typer.Option(help="phantom YAML (default configs/phantoms/<phantom>)")
+    ] = None,
+    voxel_mm: Annotated[float, typer.Option(help="knee simulation voxel size, mm")] = 0.5,
     seed: Annotated[int, typer.Option(help="noise seed")] = 0,
     noise: Annotated[bool, typer.Option(help="quantum and readout noise")] = True,
+    vibration_mm: Annotated[
+        float, typer.Option(help="RMS arm vibration of source and panel, mm (0: none)")
+    ] = 0.0,
+    vibration_deg: Annotated[float, typer.Option(help="RMS panel tilt, degrees")] = 0.0,
+    vibration_seed: Annotated[int, typer.Option(help="vibration pattern (repeats per seed)")] = 0,
 ) -> None:
-    """Scan the digital knee phantom: projections .mha, geometry .xml, phantom volumes."""
-    if phantom != "knee":
-        fail(f"--phantom {phantom!r}: the only phantom is 'knee'")
+    """Scan a digital phantom: projections .mha, the planned geometry .xml (and the acquired
+    one, true_geometry.xml, on vibrating arms), phantom volumes for the knee."""
+    if phantom_config is None:
+        phantom_config = (
+            CONFIGS / "phantoms" / ("knee.yaml" if phantom == "knee" else "bb_helix.yaml")
+        )
+    vibration = None
+    if vibration_mm > 0 or vibration_deg > 0:
+        try:
+            vibration = VibrationSpec(
+                source_mm=vibration_mm,
+                detector_mm=vibration_mm,
+                detector_deg=vibration_deg,
+                seed=vibration_seed,
+            )
+        except ValueError as err:
+            fail(str(err))
     try:
         written = jobs.simulate_to_folder(
             protocol,
             out,
+            phantom,
             phantom_config,
             voxel_mm=voxel_mm,
             seed=seed,
             noise=noise,
+            vibration=vibration,
             status=lambda msg: console.print(f"  {msg}"),
         )
     except (ValueError, OSError) as err:
         fail(str(err))
     console.print(f"[green]wrote[/] {len(written)} files to {out}")
+
+
+@app.command()
+def calibrate(
+    projections: Annotated[Path, typer.Option(help="BB-phantom projection stack .mha")],
+    geometry: Annotated[Path, typer.Option(help="the scan's planned geometry (RTK XML)")],
+    protocol: Annotated[Path, typer.Option(help="the protocol that acquired it")],
+    study: Annotated[Path, typer.Option(help="study folder; writes STUDY/calibration")],
+    phantom_config: Annotated[Path, typer.Option(help="BB phantom YAML")] = CONFIGS
+    / "phantoms"
+    / "bb_helix.yaml",
+) -> None:
+    """Per-view geometry from a steel-ball phantom scan: the vibration correction later scans of
+    the same protocol and plan reconstruct with (cbct recon --calibration)."""
+    try:
+        with _progress() as bar:
+            result = jobs.calibrate_to_study(
+                projections,
+                geometry,
+                protocol,
+                phantom_config,
+                study,
+                progress=_views_done(bar, "finding balls"),
+            )
+    except (ValueError, OSError) as err:
+        fail(str(err))
+    summary = result.summary()
+    used = [v for v in result.views if v.status == "calibrated"]
+    deviation = np.array([v.source_deviation_mm for v in used])
+    console.print(
+        f"[green]wrote[/] {study / 'calibration'}: {summary['calibrated_views']} of "
+        f"{summary['views']} views calibrated, reprojection RMS median "
+        f"{summary['reprojection_rms_px_median']:.3f} px (max "
+        f"{summary['reprojection_rms_px_max']:.3f} px, worst views "
+        f"{summary['worst_views']}), source deviation from the plan median "
+        f"{np.median(deviation):.2f} mm",
+        soft_wrap=True,
+        highlight=False,
+    )
+    if summary["uncalibrated_views"]:
+        console.print(
+            f"[yellow]views kept at their plan (too few balls):[/] {summary['uncalibrated_views']}",
+            soft_wrap=True,
+        )
 
 
 @app.command()
@@ -166,6 +233,12 @@ def recon(
         float, typer.Option(help="mask voxels seen over less of the orbit, degrees")
     ] = 170.0,
     preview: Annotated[Path | None, typer.Option(help="also write orthogonal slices PNG")] = None,
+    calibration: Annotated[
+        Path | None, typer.Option(help="STUDY/calibration of the same protocol and plan")
+    ] = None,
+    protocol: Annotated[
+        Path | None, typer.Option(help="the scan's protocol (needed with --calibration)")
+    ] = None,
 ) -> None:
     """Reconstruct RTK-format projections with weighted FDK."""
     if out.exists():
@@ -184,6 +257,8 @@ def recon(
                 min_coverage_deg=min_coverage_deg,
                 progress=_views_done(bar, "weighted FDK"),
                 preview=preview,
+                calibration=calibration,
+                protocol_path=protocol,
             )
     except (ValueError, OSError) as err:
         fail(str(err))

@@ -73,19 +73,17 @@ def run(
     say("stage 2/4: simulated scan of the standing knee phantom")
     scan = simulate_knee_scan(protocol, phantom, voxel_mm=size["sim_voxel_mm"], status=say)
     scan_dir = new_folder(out / "scan")
-    write_scan(
-        scan_dir,
-        scan,
-        {
-            "software_version": software_version(),
-            "protocol": protocol.model_dump(mode="json"),
-            "phantom": phantom.model_dump(mode="json"),
-            "voxel_mm": size["sim_voxel_mm"],
-            "seed": 0,
-            "noise": True,
-            "photons_per_pixel": scan.photons_per_pixel,
-        },
-    )
+    manifest = {
+        "software_version": software_version(),
+        "protocol": protocol.model_dump(mode="json"),
+        "phantom": {"kind": "knee", **phantom.model_dump(mode="json")},
+        "voxel_mm": size["sim_voxel_mm"],
+        "seed": 0,
+        "noise": True,
+        "photons_per_pixel": scan.photons_per_pixel,
+    }
+    volumes = {"phantom.nii.gz": scan.attenuation, "labels.nii.gz": scan.labels}
+    write_scan(scan_dir, scan.projections, scan.counts, scan.geometry, manifest, None, volumes)
 
     say("stage 3/4: weighted FDK reconstruction")
     sim_grid = scan.attenuation.grid

@@ -12,18 +12,24 @@ from collections.abc import Callable
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
+import numpy as np
+
 from assessment.knee import BONE_LABELS, KneeAssessment, assess_knee
 from assessment.report import write_report
 from assessment.series import bone_mesh, export_series, record_series
+from calibration.calibrate import Calibration, calibrate, corrected_geometry
 from recon.config import load_config, load_protocol
 from recon.fdk import FDKResult, Progress, default_grid, fdk_reconstruct
+from recon.geometry import Geometry
 from recon.io import read_projections, read_volume, write_projections, write_volume
 from recon.preview import save_orthogonal_slices
 from recon.rtk_xml import read_rtk_geometry, write_rtk_geometry
 from recon.volume import Volume, VolumeGrid
 from registration.poses import BonePose, poses_by_frame, read_poses
+from sim.phantoms.bb import BBPhantomSpec, project_bb
 from sim.phantoms.knee import KneePhantomSpec
-from sim.scan import SimulatedScan, simulate_knee_scan
+from sim.scan import add_noise, photons_per_pixel, simulate_knee_scan
+from sim.vibration import VibrationSpec, vibrate
 from trajectories.config import ScannerConfig
 from trajectories.model import ScannerModel
 from trajectories.plan import Plan, plan_scan
@@ -55,17 +61,29 @@ def new_folder(path: Path) -> Path:
     return path
 
 
-def write_scan(folder: Path, scan: SimulatedScan, manifest: dict) -> list[Path]:
-    """Write a simulated scan: projections/counts (.mha), geometry (.xml), phantom, manifest."""
-    pitch = scan.geometry[0].pitch_u_mm
+def write_scan(
+    folder: Path,
+    projections: np.ndarray,
+    counts: np.ndarray | None,
+    planned: Geometry,
+    manifest: dict,
+    acquired: Geometry | None = None,
+    volumes: dict[str, Volume] | None = None,
+) -> list[Path]:
+    """Write a scan: projections (and raw counts) as .mha, the planned views as geometry.xml
+    (what the scanner knows), the acquired views as true_geometry.xml when they differ
+    (simulation ground truth), phantom volumes, and scan.json with every file's sha256."""
+    pitch = planned[0].pitch_u_mm
     written = [
-        write_projections(folder / "projections.mha", scan.projections, pitch),
-        write_rtk_geometry(folder / "geometry.xml", scan.geometry),
-        write_volume(folder / "phantom.nii.gz", scan.attenuation),
-        write_volume(folder / "labels.nii.gz", scan.labels),
+        write_projections(folder / "projections.mha", projections, pitch),
+        write_rtk_geometry(folder / "geometry.xml", planned),
     ]
-    if scan.counts is not None:
-        written.append(write_projections(folder / "counts.mha", scan.counts, pitch))
+    if acquired is not None and acquired != planned:
+        written.append(write_rtk_geometry(folder / "true_geometry.xml", acquired))
+    if counts is not None:
+        written.append(write_projections(folder / "counts.mha", counts, pitch))
+    for name, volume in (volumes or {}).items():
+        written.append(write_volume(folder / name, volume))
     manifest = dict(manifest, files={p.name: sha256(p) for p in written})
     (folder / "scan.json").write_text(json.dumps(manifest, indent=2), encoding="utf-8")
     return [*written, folder / "scan.json"]
@@ -74,32 +92,56 @@ def write_scan(folder: Path, scan: SimulatedScan, manifest: dict) -> list[Path]:
 def simulate_to_folder(
     protocol_path: Path,
     out: Path,
+    phantom: str,
     phantom_path: Path,
     *,
     voxel_mm: float = 0.5,
     seed: int = 0,
     noise: bool = True,
+    vibration: VibrationSpec | None = None,
     status: Status | None = None,
 ) -> list[Path]:
-    """Load the protocol and phantom, simulate the knee scan, write it to a new folder."""
+    """Scan the knee or BB phantom with a protocol (optionally on vibrating arms) into a new
+    folder."""
     protocol = load_protocol(protocol_path)
-    phantom = load_config(phantom_path, KneePhantomSpec)
+    if phantom not in ("knee", "bb"):
+        raise ValueError(f"phantom must be 'knee' or 'bb', got {phantom!r}")
+    spec = load_config(phantom_path, KneePhantomSpec if phantom == "knee" else BBPhantomSpec)
     if not voxel_mm > 0:
         raise ValueError(f"voxel_mm must be > 0, got {voxel_mm!r}")
     new_folder(out)
-    scan = simulate_knee_scan(
-        protocol, phantom, voxel_mm=voxel_mm, noise=noise, seed=seed, status=status
-    )
+    planned = protocol.orbit.geometry(protocol.detector)
+    acquired = vibrate(planned, vibration) if vibration is not None else planned
     manifest = {
         "software_version": software_version(),
         "protocol": protocol.model_dump(mode="json"),
-        "phantom": phantom.model_dump(mode="json"),
-        "voxel_mm": voxel_mm,
+        "phantom": {"kind": phantom, **spec.model_dump(mode="json")},
+        "vibration": vibration.model_dump(mode="json") if vibration else None,
         "seed": seed,
         "noise": noise,
-        "photons_per_pixel": scan.photons_per_pixel,
     }
-    return write_scan(out, scan, manifest)
+    if phantom == "knee":
+        scan = simulate_knee_scan(
+            protocol,
+            spec,
+            voxel_mm=voxel_mm,
+            noise=noise,
+            seed=seed,
+            geometry=acquired,
+            status=status,
+        )
+        manifest |= {"voxel_mm": voxel_mm, "photons_per_pixel": scan.photons_per_pixel}
+        volumes = {"phantom.nii.gz": scan.attenuation, "labels.nii.gz": scan.labels}
+        return write_scan(out, scan.projections, scan.counts, planned, manifest, acquired, volumes)
+    if status is not None:
+        status(f"projecting the steel-ball phantom into {len(planned)} views")
+    line_integrals = project_bb(spec, acquired)
+    counts = None
+    if noise:
+        photons = photons_per_pixel(protocol.exposure, protocol.detector, protocol.orbit.sdd_mm)
+        counts, line_integrals = add_noise(line_integrals, photons, np.random.default_rng(seed))
+        manifest["photons_per_pixel"] = photons
+    return write_scan(out, line_integrals, counts, planned, manifest, acquired)
 
 
 def plan_to_study(
@@ -133,6 +175,8 @@ def reconstruct_files(
     min_coverage_deg: float = 170.0,
     progress: Progress | None = None,
     preview: Path | None = None,
+    calibration: Path | None = None,
+    protocol_path: Path | None = None,
 ) -> FDKResult:
     """Reconstruct an RTK projection stack + geometry XML into a volume file (and a PNG).
 
@@ -144,6 +188,13 @@ def reconstruct_files(
             raise FileExistsError(f"{path} exists: nothing is overwritten")
     stack = read_projections(projections_path)
     geometry = read_rtk_geometry(geometry_path, stack.detector, stack.origin_uv_mm)
+    if calibration is not None:
+        if protocol_path is None:
+            raise ValueError("--calibration needs --protocol (the scan's protocol)")
+        protocol = load_protocol(protocol_path)
+        if geometry != protocol.orbit.geometry(protocol.detector):
+            raise ValueError(f"{geometry_path} is not the plan of protocol {protocol.name!r}")
+        geometry = corrected_geometry(calibration, protocol)
     if len(geometry) != stack.data.shape[0]:
         raise ValueError(
             f"{projections_path} holds {stack.data.shape[0]} projections but {geometry_path} "
@@ -218,3 +269,29 @@ def assess_files(
         plateau_offset_mm=plateau_offset_mm,
         title=f"Knee kinematics: {poses_path.name}",
     )
+
+
+def calibrate_to_study(
+    projections_path: Path,
+    geometry_path: Path,
+    protocol_path: Path,
+    phantom_path: Path,
+    study: Path,
+    progress: Progress | None = None,
+) -> Calibration:
+    """``cbct calibrate``: a BB-phantom scan + its planned views -> ``study/calibration``."""
+    folder = study / "calibration"
+    if folder.exists():
+        raise FileExistsError(f"{folder} exists: a calibration is never written over")
+    protocol = load_protocol(protocol_path)
+    phantom = load_config(phantom_path, BBPhantomSpec)
+    stack = read_projections(projections_path)
+    planned = read_rtk_geometry(geometry_path, stack.detector, stack.origin_uv_mm)
+    if planned != protocol.orbit.geometry(protocol.detector):
+        raise ValueError(
+            f"{geometry_path} is not the plan of protocol {protocol.name!r}: "
+            "calibrate with the protocol that acquired the scan"
+        )
+    calibration = calibrate(stack.data, planned, phantom, protocol, progress=progress)
+    calibration.save(folder)
+    return calibration

@@ -94,7 +94,7 @@ def test_views_are_recovered_within_tolerance(vibrating_scan):
     views reproject held-out points to < 0.08 px, place the source within 0.4 mm (median) and
     tilt the panel < 0.2 deg; the planned views miss by several times that."""
     p, planned, true, proj = vibrating_scan
-    cal = calibrate(proj, planned, BB, p.name)
+    cal = calibrate(proj, planned, BB, p)
     assert not [v for v in cal.views if v.status != "calibrated"]
     align = PLACED.T_world_phantom @ np.linalg.inv(cal.T_world_phantom)
     aligned = [moved(v, align) for v in cal.geometry]
@@ -127,7 +127,7 @@ def test_a_view_with_too_few_balls_keeps_its_plan_and_is_reported(vibrating_scan
     p, planned, _, proj = vibrating_scan
     found, counts = find_balls(proj[:12], planned[:12], BB)
     found[4] = (found[4][0][:5], found[4][1][:5])
-    cal = calibrate_balls(found, counts, planned[:12], BB, p.name)
+    cal = calibrate_balls(found, counts, planned[:12], BB, p)
     report = cal.views[4]
     assert report.status == "planned: too few balls (5 < 8)"
     assert cal.geometry[4] == planned[4]
@@ -136,19 +136,20 @@ def test_a_view_with_too_few_balls_keeps_its_plan_and_is_reported(vibrating_scan
 
 def test_calibration_corrects_only_its_own_protocol_and_plan(vibrating_scan, tmp_path):
     p, planned, _, proj = vibrating_scan
-    cal = calibrate(proj[:12], planned[:12], BB, p.name)
+    cal = calibrate(proj[:12], planned[:12], BB, p)
     cal.save(tmp_path / "calibration")
     with pytest.raises(FileExistsError):
         cal.save(tmp_path / "calibration")
-    detector = p.detector
-    geometry = corrected_geometry(tmp_path / "calibration", p.name, planned[:12], detector)
+    geometry = corrected_geometry(tmp_path / "calibration", p)
     assert geometry == cal.geometry
+    other = p.model_copy(update={"name": "other"})
     with pytest.raises(ValueError, match="cannot correct a scan of protocol 'other'"):
-        corrected_geometry(tmp_path / "calibration", "other", planned[:12], detector)
+        corrected_geometry(tmp_path / "calibration", other)
+    replanned = p.model_copy(update={"orbit": p.orbit.model_copy(update={"z_travel_mm": 80.0})})
     with pytest.raises(ValueError, match="another plan"):
-        corrected_geometry(tmp_path / "calibration", p.name, planned[1:13], detector)
+        corrected_geometry(tmp_path / "calibration", replanned)
     with pytest.raises(ValueError, match="no balls identified"):
-        calibrate(np.zeros((12, 1024, 1024), np.float32), planned[:12], BB, p.name)
+        calibrate(np.zeros((12, 1024, 1024), np.float32), planned[:12], BB, p)
 
 
 def test_a_knee_scan_on_vibrating_arms_reconstructs_better_with_the_calibration():
@@ -158,7 +159,7 @@ def test_a_knee_scan_on_vibrating_arms_reconstructs_better_with_the_calibration(
     p = protocol(120, 512, 1.2)
     planned = p.orbit.geometry(p.detector)
     true = vibrate(planned, VibrationSpec(source_mm=1.0, detector_mm=1.0, detector_deg=0.4))
-    cal = calibrate(project_bb(PLACED, true), planned, BB, p.name)
+    cal = calibrate(project_bb(PLACED, true), planned, BB, p)
     spec = KneePhantomSpec()
     scan = simulate_knee_scan(p, spec, voxel_mm=0.5, geometry=true, noise=False)
     grid = VolumeGrid.centered((120, 120, 120), 0.8, (0.0, -4.0, 480.0))

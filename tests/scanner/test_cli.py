@@ -269,3 +269,92 @@ def test_assess_writes_the_report_and_the_4d_series(tmp_path):
     assert (out / "series.rrd").stat().st_size > 0
     again = runner.invoke(app, args)
     assert again.exit_code == 2 and "exists" in again.output
+
+
+def test_calibrate_then_reconstruct_a_scan_of_the_same_protocol(tmp_path):
+    """A BB scan and a knee scan on the same vibrating arms (same pattern): calibrate from the
+    first, reconstruct the second with it; a scan of another protocol is refused."""
+    data = yaml.safe_load((CONFIGS / "protocols" / "calibration_spiral.yaml").read_text())
+    data["orbit"]["views"] = 24
+    protocol = tmp_path / "cal.yaml"
+    protocol.write_text(yaml.safe_dump(data))
+    shake = ["--vibration-mm", "0.5", "--vibration-deg", "0.2"]
+    for phantom, folder in (("bb", "bb"), ("knee", "knee")):
+        result = runner.invoke(
+            app,
+            [
+                "simulate-scan",
+                "--protocol",
+                str(protocol),
+                "--out",
+                str(tmp_path / folder),
+                "--phantom",
+                phantom,
+                "--voxel-mm",
+                "1.0",
+                "--no-noise",
+                *shake,
+            ],
+        )
+        assert result.exit_code == 0, result.output
+        assert (tmp_path / folder / "true_geometry.xml").exists()
+    bb = tmp_path / "bb"
+    result = runner.invoke(
+        app,
+        [
+            "calibrate",
+            "--projections",
+            str(bb / "projections.mha"),
+            "--geometry",
+            str(bb / "geometry.xml"),
+            "--protocol",
+            str(protocol),
+            "--study",
+            str(tmp_path / "study"),
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    assert "24 of 24 views calibrated" in result.output
+    knee = tmp_path / "knee"
+    args = [
+        "recon",
+        "--projections",
+        str(knee / "projections.mha"),
+        "--geometry",
+        str(knee / "geometry.xml"),
+        "--size",
+        "32",
+        "32",
+        "32",
+        "--spacing-mm",
+        "3",
+    ]
+    result = runner.invoke(
+        app,
+        [
+            *args,
+            "--out",
+            str(tmp_path / "v.mha"),
+            "--calibration",
+            str(tmp_path / "study" / "calibration"),
+            "--protocol",
+            str(protocol),
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    other = tmp_path / "other.yaml"
+    other.write_text(yaml.safe_dump(data | {"name": "other"}))
+    result = runner.invoke(
+        app,
+        [
+            *args,
+            "--out",
+            str(tmp_path / "w.mha"),
+            "--calibration",
+            str(tmp_path / "study" / "calibration"),
+            "--protocol",
+            str(other),
+        ],
+    )
+    assert result.exit_code == 2
+    assert "cannot correct a scan of protocol 'other'" in result.output
