@@ -50,8 +50,16 @@ CENTROID_NOISE_PX = 0.1
 
 def moved(view: View, A: np.ndarray) -> View:
     R, t = A[:3, :3], A[:3, 3]
-    return View(R @ view.source_mm + t, R @ view.detector_origin_mm + t, R @ view.e_u,
-                R @ view.e_v, view.pitch_u_mm, view.pitch_v_mm, view.rows, view.cols)
+    return View(
+        R @ view.source_mm + t,
+        R @ view.detector_origin_mm + t,
+        R @ view.e_u,
+        R @ view.e_v,
+        view.pitch_u_mm,
+        view.pitch_v_mm,
+        view.rows,
+        view.cols,
+    )
 
 
 def main() -> None:
@@ -92,17 +100,30 @@ def main() -> None:
     points = grid.reshape(-1, 3) + np.array(protocol.orbit.isocenter_mm)
 
     def holdout(geometry) -> np.ndarray:
-        return np.concatenate([np.linalg.norm(g.project(points) - t.project(points), axis=1)
-                               for g, t in zip(geometry, true, strict=True)])
+        return np.concatenate(
+            [
+                np.linalg.norm(g.project(points) - t.project(points), axis=1)
+                for g, t in zip(geometry, true, strict=True)
+            ]
+        )
 
     held = holdout(aligned)
     uncalibrated = holdout(planned)
-    source = np.array([np.linalg.norm(a.source_mm - t.source_mm) for a, t in
-                       zip(aligned, true, strict=True)])
-    center = np.array([np.linalg.norm(a.detector_center_mm - t.detector_center_mm) for a, t in
-                       zip(aligned, true, strict=True)])
-    angle = np.array([np.degrees(np.arccos(np.clip(a.normal @ t.normal, -1, 1)))
-                      for a, t in zip(aligned, true, strict=True)])
+    source = np.array(
+        [np.linalg.norm(a.source_mm - t.source_mm) for a, t in zip(aligned, true, strict=True)]
+    )
+    center = np.array(
+        [
+            np.linalg.norm(a.detector_center_mm - t.detector_center_mm)
+            for a, t in zip(aligned, true, strict=True)
+        ]
+    )
+    angle = np.array(
+        [
+            np.degrees(np.arccos(np.clip(a.normal @ t.normal, -1, 1)))
+            for a, t in zip(aligned, true, strict=True)
+        ]
+    )
     # the free 11-parameter fit, for comparison (source position from its decomposition)
     world = placed.ball_positions_mm()
     free_source = []
@@ -122,10 +143,10 @@ def main() -> None:
     labels, truth = rasterize_knee(spec, grid3d, supersample=3)
     inside = labels > 0
     rmse = {}
-    for name, geometry in (("nominal", planned), ("calibrated", Geometry(aligned)),
-                           ("true", true)):
-        volume = fdk_reconstruct(scan.projections, Geometry(list(geometry)), grid3d,
-                                 window="ram-lak").volume.data
+    for name, geometry in (("nominal", planned), ("calibrated", Geometry(aligned)), ("true", true)):
+        volume = fdk_reconstruct(
+            scan.projections, Geometry(list(geometry)), grid3d, window="ram-lak"
+        ).volume.data
         rmse[name] = float(np.sqrt(np.mean((volume - truth)[inside] ** 2)))
         log(f"recon RMSE with the {name} geometry: {rmse[name]:.6f} /mm")
 

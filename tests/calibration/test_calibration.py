@@ -188,3 +188,18 @@ def test_a_knee_scan_on_vibrating_arms_reconstructs_better_with_the_calibration(
     assert fwhm["calibrated"] < fwhm["planned"] - 0.05
     assert peak["calibrated"] > 1.2 * peak["planned"]
     assert fwhm["calibrated"] < fwhm["true"] + 0.05
+
+
+def test_the_free_dlt_recovers_a_projection_matrix_from_exact_correspondences(vibrating_scan):
+    from calibration.fit import dlt, project
+
+    _, _, true, _ = vibrating_scan
+    view = true[7]
+    rng = np.random.default_rng(0)
+    balls = rng.normal(size=(24, 3)) * 40 + np.array([0.0, 0.0, 480.0])
+    P = dlt(balls, view.project(balls))
+    others = rng.normal(size=(50, 3)) * 40 + np.array([0.0, 0.0, 480.0])
+    np.testing.assert_allclose(project(P, others), view.project(others), atol=1e-6)
+    assert View.from_matrix(P, view.pitch_u_mm, view.rows, view.cols) == view
+    with pytest.raises(ValueError, match="needs >= 6 balls"):
+        dlt(balls[:5], view.project(balls[:5]))
