@@ -48,20 +48,6 @@ from sim.vibration import VibrationSpec, vibrate  # noqa: E402
 CENTROID_NOISE_PX = 0.1
 
 
-def moved(view: View, A: np.ndarray) -> View:
-    R, t = A[:3, :3], A[:3, 3]
-    return View(
-        R @ view.source_mm + t,
-        R @ view.detector_origin_mm + t,
-        R @ view.e_u,
-        R @ view.e_v,
-        view.pitch_u_mm,
-        view.pitch_v_mm,
-        view.rows,
-        view.cols,
-    )
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--views", type=int, default=360)
@@ -93,7 +79,7 @@ def main() -> None:
     log(f"calibrated in {seconds:.1f} s")
 
     gauge = placed.T_world_phantom @ np.linalg.inv(calibration.T_world_phantom)
-    aligned = [moved(v, gauge) for v in calibration.geometry]
+    aligned = [v.transformed(gauge) for v in calibration.geometry]
     calibrated = [r.view for r in calibration.views if r.status == "calibrated"]
     rms = np.array([r.reprojection_rms_px for r in calibration.views if r.view in calibrated])
     grid = np.stack(np.meshgrid(*[np.linspace(-40, 40, 5)] * 3, indexing="ij"), -1)

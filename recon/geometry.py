@@ -266,6 +266,63 @@ class View:
             + v * self.pitch_v_mm * self.e_v
         )
 
+    def transformed(self, T: np.ndarray) -> View:
+        """The view carried by the rigid motion ``T`` (4x4, mm): source, panel and axes move.
+
+        Projecting a volume moved by ``T`` through this view equals projecting the unmoved
+        volume through ``view.transformed(inv(T))``.
+        """
+        T = np.asarray(T, dtype=np.float64)
+        R, t = T[:3, :3], T[:3, 3]
+        return View(
+            R @ self.source_mm + t,
+            R @ self.detector_origin_mm + t,
+            R @ self.e_u,
+            R @ self.e_v,
+            self.pitch_u_mm,
+            self.pitch_v_mm,
+            self.rows,
+            self.cols,
+        )
+
+    def binned(self, factor: int) -> View:
+        """The view read out with ``factor x factor`` pixels binned (pitch x factor)."""
+        if int(factor) != factor or factor < 1:
+            raise ValueError(f"binning factor must be a positive integer, got {factor!r}")
+        if factor == 1:
+            return self
+        shift = 0.5 * (factor - 1)
+        origin = self.pixel_to_world(shift, shift)
+        return View(
+            self.source_mm,
+            origin,
+            self.e_u,
+            self.e_v,
+            self.pitch_u_mm * factor,
+            self.pitch_v_mm * factor,
+            self.rows // factor,
+            self.cols // factor,
+        )
+
+    def cropped(self, row0: int, col0: int, rows: int, cols: int) -> View:
+        """The sub-panel of ``rows x cols`` pixels starting at pixel (row0, col0)."""
+        if not (
+            0 <= row0
+            and 0 <= col0
+            and rows > 0
+            and cols > 0
+            and row0 + rows <= self.rows
+            and col0 + cols <= self.cols
+        ):
+            raise ValueError(
+                f"crop ({row0}, {col0}) + ({rows}, {cols}) leaves the "
+                f"{self.rows} x {self.cols} panel"
+            )
+        origin = self.pixel_to_world(col0, row0)
+        return View(
+            self.source_mm, origin, self.e_u, self.e_v, self.pitch_u_mm, self.pitch_v_mm, rows, cols
+        )
+
     # -- value semantics ----------------------------------------------------------------
 
     def isclose(self, other: View, atol_mm: float = ATOL_MM) -> bool:
@@ -358,6 +415,10 @@ class Geometry(Sequence[View]):
         out = np.stack([v.source_mm for v in self._views])
         out.setflags(write=False)
         return out
+
+    def transformed(self, T: np.ndarray) -> Geometry:
+        """Every view carried by the rigid motion ``T`` (see :meth:`View.transformed`)."""
+        return Geometry([v.transformed(T) for v in self._views])
 
     def __len__(self) -> int:
         return len(self._views)

@@ -116,6 +116,40 @@ def _joseph_kernel(
             out[view, r, c] = total
 
 
+class JosephProjector:
+    """A volume prepared once for many Joseph projections (DRRs in registration loops)."""
+
+    def __init__(self, volume: np.ndarray, grid: VolumeGrid) -> None:
+        vol = _check_volume(volume, grid)
+        padded = np.pad(vol, _PAD)
+        self.grid = grid
+        self._flat = padded.ravel()
+        self._strides = np.array(padded.strides[::-1], dtype=np.int64) // padded.itemsize
+        self._dims = np.array(grid.size_xyz, dtype=np.int64)
+        self._origin = np.array(grid.origin_mm)
+        self._spacing = np.array(grid.spacing_mm)
+
+    def project(self, geometry: Geometry, out: np.ndarray | None = None) -> np.ndarray:
+        """Line integrals through every pixel of every view, float32 (views, rows, cols)."""
+        check_in_front(geometry, self.grid)
+        sources, origins, du, dv = _view_arrays(geometry)
+        if out is None:
+            out = np.empty((len(geometry), geometry.rows, geometry.cols), dtype=np.float32)
+        _joseph_kernel(
+            self._flat,
+            self._strides,
+            self._dims,
+            self._origin,
+            self._spacing,
+            sources,
+            origins,
+            du,
+            dv,
+            out,
+        )
+        return out
+
+
 def forward_project(volume: np.ndarray, grid: VolumeGrid, geometry: Geometry) -> np.ndarray:
     """Line integrals of ``volume`` through every pixel centre of every view (Joseph).
 
@@ -127,25 +161,7 @@ def forward_project(volume: np.ndarray, grid: VolumeGrid, geometry: Geometry) ->
     Returns:
         float32 (views, rows, cols): line integrals (value x mm, dimensionless for 1/mm).
     """
-    vol = _check_volume(volume, grid)
-    check_in_front(geometry, grid)
-    padded = np.pad(vol, _PAD)
-    strides = np.array(padded.strides[::-1], dtype=np.int64) // padded.itemsize  # x, y, z
-    sources, origins, du, dv = _view_arrays(geometry)
-    out = np.empty((len(geometry), geometry.rows, geometry.cols), dtype=np.float32)
-    _joseph_kernel(
-        padded.ravel(),
-        strides,
-        np.array(grid.size_xyz, dtype=np.int64),
-        np.array(grid.origin_mm),
-        np.array(grid.spacing_mm),
-        sources,
-        origins,
-        du,
-        dv,
-        out,
-    )
-    return out
+    return JosephProjector(volume, grid).project(geometry)
 
 
 FDK_WEIGHT, ADJOINT_WEIGHT, COUNT_WEIGHT = 0, 1, 2

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from recon.geometry import Geometry, View
+from recon.geometry import Geometry
 from recon.rtk_xml import centered_origin_uv_mm, rtk_parameters
 from recon.volume import VolumeGrid
 
@@ -71,21 +71,10 @@ def _axis_to_y(axis: np.ndarray) -> np.ndarray:
 
 def _move_geometry(geometry: Geometry, T: np.ndarray, center: np.ndarray) -> Geometry:
     """The views seen in the frame ``x' = T (x - center)``."""
-    return Geometry(
-        [
-            View(
-                T @ (v.source_mm - center),
-                T @ (v.detector_origin_mm - center),
-                T @ v.e_u,
-                T @ v.e_v,
-                v.pitch_u_mm,
-                v.pitch_v_mm,
-                v.rows,
-                v.cols,
-            )
-            for v in geometry
-        ]
-    )
+    motion = np.eye(4)
+    motion[:3, :3] = T
+    motion[:3, 3] = -T @ center
+    return geometry.transformed(motion)
 
 
 def _move_volume(array: np.ndarray, grid: VolumeGrid, T: np.ndarray, center: np.ndarray):

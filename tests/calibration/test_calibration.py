@@ -38,20 +38,6 @@ def protocol(views: int, size: int, pitch: float):
     )
 
 
-def moved(view: View, A: np.ndarray) -> View:
-    R, t = A[:3, :3], A[:3, 3]
-    return View(
-        R @ view.source_mm + t,
-        R @ view.detector_origin_mm + t,
-        R @ view.e_u,
-        R @ view.e_v,
-        view.pitch_u_mm,
-        view.pitch_v_mm,
-        view.rows,
-        view.cols,
-    )
-
-
 @pytest.fixture(scope="module")
 def vibrating_scan():
     """60 full-resolution views of the phantom on arms vibrating 0.5 mm / 0.2 deg."""
@@ -97,7 +83,7 @@ def test_views_are_recovered_within_tolerance(vibrating_scan):
     cal = calibrate(proj, planned, BB, p)
     assert not [v for v in cal.views if v.status != "calibrated"]
     align = PLACED.T_world_phantom @ np.linalg.inv(cal.T_world_phantom)
-    aligned = [moved(v, align) for v in cal.geometry]
+    aligned = [v.transformed(align) for v in cal.geometry]
     grid = np.stack(np.meshgrid(*[np.linspace(-40, 40, 5)] * 3, indexing="ij"), -1)
     points = grid.reshape(-1, 3) + np.array([0.0, 0.0, 480.0])
     held_out = np.concatenate(

@@ -1,0 +1,125 @@
+"""Fluoroscopy frames from files: RTK-style .mha stacks or clinical DICOM.
+
+.mha/.mhd stacks (recon.io) hold line integrals already. DICOM comes as single CR/DX images, a
+folder of them (one series, ordered by instance number), or a multi-frame XA/RF file. This is
+the one place where DICOM pixels become registration frames:
+
+- values are taken after the modality rescale (SimpleITK applies RescaleSlope/Intercept);
+- displayed brightness follows the photometric interpretation: MONOCHROME2 as stored,
+  MONOCHROME1 inverted (``max - value``: its minimum is displayed white);
+- radiographs are displayed with attenuation bright and approximately log-encoded, so the
+  brightness stands in for the line integral up to scale and offset, which the registration's
+  similarity (NCC) ignores; each sequence is normalised to 0..1 by its 0.5 and 99.5
+  percentiles;
+- pixel spacing from Imager Pixel Spacing (0018,1164), else Pixel Spacing (0028,0030), else
+  the caller's ``pixel_pitch_mm`` (a clear error when neither exists);
+- frame times from Frame Time (0018,1063) or the Frame Time Vector (0018,1065), in seconds.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import SimpleITK as sitk
+
+from recon.io import ImageFileError, read_projections
+
+
+@dataclass(frozen=True)
+class Frames:
+    """A fluoroscopy sequence ready to register.
+
+    Attributes:
+        data: float32 (F, rows, cols), line integrals (or their normalised stand-in).
+        pixel_pitch_mm: panel pitch (u, v), mm.
+        times_s: frame times (F,) or None.
+        photometric: "line integrals", "MONOCHROME1" or "MONOCHROME2".
+    """
+
+    data: np.ndarray
+    pixel_pitch_mm: tuple[float, float]
+    times_s: np.ndarray | None
+    photometric: str
+
+
+def _tag(reader, key: str) -> str | None:
+    return reader.GetMetaData(key).strip() if reader.HasMetaDataKey(key) else None
+
+
+def _dicom_files(path: Path) -> list[str]:
+    if path.is_dir():
+        ids = sitk.ImageSeriesReader.GetGDCMSeriesIDs(str(path))
+        if not ids:
+            raise ImageFileError(f"{path}: no DICOM series in this folder")
+        if len(ids) > 1:
+            raise ValueError(f"{path}: {len(ids)} DICOM series in one folder; give one")
+        return list(sitk.ImageSeriesReader.GetGDCMSeriesFileNames(str(path), ids[0]))
+    return [str(path)]
+
+
+def read_frames(path: str | Path, pixel_pitch_mm: float | None = None) -> Frames:
+    """Frames from an .mha/.mhd stack, a DICOM file or a folder of DICOM files."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such file or folder")
+    if path.suffix.lower() in (".mha", ".mhd"):
+        stack = read_projections(path)
+        return Frames(stack.data, stack.pixel_pitch_mm, None, "line integrals")
+    files = _dicom_files(path)
+    arrays, times, spacing, photometric = [], [], None, None
+    for name in files:
+        reader = sitk.ImageFileReader()
+        reader.SetFileName(name)
+        try:
+            reader.ReadImageInformation()
+            image = reader.Execute()
+        except RuntimeError as err:
+            raise ImageFileError(f"{name}: not a readable DICOM image ({err})") from None
+        kind = _tag(reader, "0028|0004")
+        if kind not in ("MONOCHROME1", "MONOCHROME2"):
+            raise ValueError(
+                f"{name}: photometric interpretation {kind!r}; frames must be "
+                "grey-scale (MONOCHROME1 or MONOCHROME2)"
+            )
+        if photometric not in (None, kind):
+            raise ValueError(f"{name}: {kind} in a series of {photometric} images")
+        photometric = kind
+        pixels = sitk.GetArrayFromImage(image).astype(np.float64)
+        pixels = pixels.reshape(-1, *pixels.shape[-2:])
+        arrays.append(pixels.max() - pixels if kind == "MONOCHROME1" else pixels)
+        spacing = spacing or _spacing(reader)
+        times.extend(_times(reader, len(pixels)))
+    data = np.concatenate(arrays)
+    if spacing is None:
+        if pixel_pitch_mm is None:
+            raise ValueError(
+                f"{path}: no pixel spacing in the DICOM header (0018,1164 or "
+                "0028,0030); give the panel's pixel pitch explicitly"
+            )
+        spacing = (float(pixel_pitch_mm), float(pixel_pitch_mm))
+    low, high = np.percentile(data, (0.5, 99.5))
+    normalised = ((data - low) / max(high - low, 1e-12)).astype(np.float32)
+    times_s = np.array(times) if len(times) == len(data) and None not in times else None
+    return Frames(normalised, spacing, times_s, photometric)
+
+
+def _spacing(reader) -> tuple[float, float] | None:
+    for key in ("0018|1164", "0028|0030"):
+        text = _tag(reader, key)
+        if text:
+            row, col = (float(x) for x in text.split("\\")[:2])
+            return (col, row)
+    return None
+
+
+def _times(reader, count: int) -> list[float | None]:
+    vector = _tag(reader, "0018|1065")
+    if vector:
+        increments = np.array([float(x) for x in vector.split("\\")]) / 1000.0
+        return list(np.cumsum(increments)[:count])
+    frame_ms = _tag(reader, "0018|1063")
+    if frame_ms:
+        return list(np.arange(count) * float(frame_ms) / 1000.0)
+    return [None] * count

@@ -1,0 +1,37 @@
+"""Image similarity for 2D-3D registration: normalised cross-correlation (NCC) of high-pass
+filtered images over a mask, and gradient NCC.
+
+High-pass filtering (the image minus its Gaussian blur of a few mm) removes what the rigid
+bone model cannot explain: soft-tissue and scatter backgrounds, beam hardening's slow trends.
+NCC is 1 for identical images and unchanged by any affine change of intensity (a x + b, a > 0).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.ndimage import gaussian_filter, sobel
+
+
+def highpass(image: np.ndarray, sigma_px: float) -> np.ndarray:
+    """``image`` minus its Gaussian blur (sigma in pixels)."""
+    image = np.asarray(image, dtype=np.float32)
+    return image - gaussian_filter(image, sigma_px, mode="nearest")
+
+
+def ncc(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """Normalised cross-correlation of ``a`` and ``b`` over ``mask`` (all pixels if None);
+    0 when either is constant there."""
+    if mask is not None:
+        a, b = a[mask], b[mask]
+    a = a.astype(np.float64).ravel() - a.mean()
+    b = b.astype(np.float64).ravel() - b.mean()
+    denominator = np.sqrt(np.dot(a, a) * np.dot(b, b))
+    return float(np.dot(a, b) / denominator) if denominator > 0 else 0.0
+
+
+def gradient_ncc(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """Mean NCC of the two images' row and column gradients (Sobel) over ``mask``."""
+    return 0.5 * sum(
+        ncc(sobel(np.asarray(a, np.float32), axis), sobel(np.asarray(b, np.float32), axis), mask)
+        for axis in (0, 1)
+    )

@@ -1,0 +1,135 @@
+"""Tests of registration.segment: bones of a simulated, reconstructed knee CBCT scan."""
+
+from __future__ import annotations
+
+from functools import cache
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from recon.config import load_protocol
+from recon.fdk import fdk_reconstruct
+from recon.volume import Volume, VolumeGrid
+from registration.segment import BONE_UNITS, LABELS, bone_points, bone_surfaces, segment_bones
+from sim.phantoms.knee import KNEE_LABELS, KneePhantomSpec, attenuation_per_mm, rasterize_knee
+from sim.scan import simulate_knee_scan
+
+PROTOCOL = Path(__file__).resolve().parents[2] / "configs" / "protocols" / "demo_knee.yaml"
+RECON_VOXEL_MM = 1.0
+DICE_TARGETS = {"femur": 0.95, "tibia_fibula": 0.95, "patella": 0.90}
+"""The issue's targets per registration unit."""
+
+
+@cache
+def _knee(side: str) -> tuple[Volume, Volume, Volume]:
+    """Demo-protocol scan (noise on) of a knee, its FDK reconstruction on a 1 mm grid over the
+    phantom, the phantom's labels on that grid and the segmentation."""
+    spec = KneePhantomSpec(side=side)
+    scan = simulate_knee_scan(load_protocol(PROTOCOL), spec, voxel_mm=1.0, noise=True, seed=0)
+    sim_grid = scan.attenuation.grid
+    extent = np.array(sim_grid.size_xyz) * np.array(sim_grid.spacing_mm)
+    grid = VolumeGrid.centered(
+        tuple(int(n) for n in np.floor(extent / RECON_VOXEL_MM)),
+        RECON_VOXEL_MM,
+        sim_grid.center_mm,
+    )
+    recon = fdk_reconstruct(scan.projections, scan.geometry, grid).volume
+    truth = Volume(rasterize_knee(spec, grid, supersample=3)[0], grid, "label")
+    return recon, truth, segment_bones(recon)
+
+
+def _dice(a: np.ndarray, b: np.ndarray) -> float:
+    return 2.0 * float(np.sum(a & b)) / float(np.sum(a) + np.sum(b))
+
+
+def _crop_z(volume: Volume, z_max_mm: float) -> Volume:
+    """The slices of ``volume`` below world z = ``z_max_mm``."""
+    n = int(np.sum(volume.grid.axes_mm()[2] < z_max_mm))
+    grid = VolumeGrid((n, *volume.grid.shape[1:]), volume.grid.spacing_mm, volume.grid.origin_mm)
+    return Volume(volume.data[:n], grid, volume.unit)
+
+
+def test_labels_follow_the_phantom() -> None:
+    assert LABELS == KNEE_LABELS
+    assert set(BONE_UNITS) == {"femur", "tibia_fibula", "patella"}
+
+
+@pytest.mark.parametrize("side", ["right", "left"])
+def test_segmentation_matches_the_phantom(side: str) -> None:
+    recon, truth, seg = _knee(side)
+    assert seg.unit == "label" and seg.grid == recon.grid and seg.data.dtype == np.uint8
+    for unit, values in BONE_UNITS.items():
+        dice = _dice(np.isin(seg.data, values), np.isin(truth.data, values))
+        assert dice >= DICE_TARGETS[unit], (side, unit, dice)
+    # the fibula is its own bone (0.94 at 1 mm: the 1.5 mm tibiofibular gap is not resolved)
+    assert _dice(seg.data == LABELS["fibula"], truth.data == LABELS["fibula"]) >= 0.85
+    assert _dice(seg.data > 0, truth.data > 0) >= 0.98
+
+
+def test_side_is_inferred_from_the_fibula_or_enforced() -> None:
+    recon, _, seg = _knee("left")
+    x = recon.grid.axes_mm()[0]
+    centre_x = {
+        name: x[np.nonzero(seg.data == LABELS[name])[2]].mean() for name in ("tibia", "fibula")
+    }
+    assert centre_x["fibula"] > centre_x["tibia"] + 20.0  # lateral is +x for a left knee
+    assert np.array_equal(segment_bones(recon, side="left").data, seg.data)
+    with pytest.raises(ValueError, match="no fibula found"):
+        segment_bones(recon, side="right")
+
+
+def test_given_soft_tissue_level_gives_the_same_bones() -> None:
+    recon, truth, _ = _knee("right")
+    muscle = attenuation_per_mm(KneePhantomSpec().effective_energy_kev)["muscle"]
+    seg = segment_bones(recon, soft_tissue_per_mm=muscle)
+    for unit, values in BONE_UNITS.items():
+        dice = _dice(np.isin(seg.data, values), np.isin(truth.data, values))
+        assert dice >= DICE_TARGETS[unit], (unit, dice)
+
+
+def test_volume_without_bone_is_refused(make_cylinder) -> None:
+    grid = VolumeGrid.centered((100, 100, 60), 1.0, (0.0, 0.0, 480.0))
+    leg = make_cylinder(grid, (0.0, 0.0, 480.0), 45.0, 100.0, value=0.0202)
+    leg += np.random.default_rng(1).normal(0.0, 0.001, leg.shape).astype(np.float32)
+    with pytest.raises(ValueError, match="a volume without bone"):
+        segment_bones(Volume(leg, grid, "1/mm"))
+
+
+def test_volume_without_the_femur_is_refused() -> None:
+    recon, _, _ = _knee("right")
+    below_joint = _crop_z(recon, KneePhantomSpec().joint_line_height_mm)
+    with pytest.raises(ValueError, match="no bone found above or below"):
+        segment_bones(below_joint)
+    with pytest.raises(ValueError, match="linear attenuation"):
+        segment_bones(Volume(recon.data, recon.grid, "HU"))
+
+
+def test_surfaces_are_closed_and_hold_the_label_volume() -> None:
+    _, _, seg = _knee("right")
+    meshes = bone_surfaces(seg)
+    assert set(meshes) == set(BONE_UNITS)
+    lo, hi = seg.grid.corners_mm().min(axis=0), seg.grid.corners_mm().max(axis=0)
+    for unit, mesh in meshes.items():
+        label_mm3 = np.isin(seg.data, BONE_UNITS[unit]).sum() * seg.grid.voxel_volume_mm3
+        assert mesh.is_watertight, unit
+        assert mesh.volume == pytest.approx(label_mm3, rel=0.05), unit
+        assert np.all(mesh.bounds[0] >= lo - 1e-6) and np.all(mesh.bounds[1] <= hi + 1e-6)
+
+
+def test_bone_points_are_the_labelled_voxels() -> None:
+    recon, _, seg = _knee("right")
+    clouds = bone_points(seg, recon)
+    assert set(clouds) == set(BONE_UNITS)
+    for unit, (points, mu) in clouds.items():
+        mask = np.isin(seg.data, BONE_UNITS[unit])
+        assert points.shape == (mask.sum(), 3) and mu.shape == (mask.sum(),)
+        index = np.rint(seg.grid.world_to_index(points)).astype(int)
+        assert np.all(mask[index[:, 2], index[:, 1], index[:, 0]])
+        assert np.allclose(mu, recon.data[index[:, 2], index[:, 1], index[:, 0]])
+    femur, tibia = clouds["femur"][0], clouds["tibia_fibula"][0]
+    assert femur[:, 2].mean() > tibia[:, 2].mean()
+    with pytest.raises(ValueError, match="differs"):
+        bone_points(seg, _crop_z(recon, recon.grid.axes_mm()[2][-1]))
+    with pytest.raises(ValueError, match="no patella"):
+        bone_points(Volume(np.where(seg.data == 5, 1, seg.data), seg.grid, "label"), recon)
