@@ -28,11 +28,16 @@ from scipy.optimize import differential_evolution, minimize, minimize_scalar
 from scipy.spatial.transform import Rotation
 
 from recon.geometry import View
-from registration.drr import BoneModel
+from registration.drr import BoneModel, RigidVolume, scene
 from registration.similarity import gradient_ncc, highpass, ncc
 
 TRACK_ORDER = ("tibia_fibula", "femur", "patella")
 """Bones are registered in this order each frame (largest and slowest first)."""
+
+LONG_BONES = ("tibia_fibula", "femur")
+
+MAX_KPM_STEP = (25.0, 25.0)
+"""A frame-to-frame motion beyond (mm, deg) is not extrapolated (it is a failure, not motion)."""
 
 
 @dataclass(frozen=True)
@@ -54,6 +59,8 @@ class Settings:
     global_init: bool = True
     powell: bool = True
     fail_ncc: float = 0.5
+    refine_range: tuple[float, float] = (6.0, 6.0)
+    """Powell's search box about the start, mm and degrees (line searches stay inside)."""
     seed: int = 0
 
 
@@ -86,7 +93,12 @@ def compose(x: np.ndarray, T0: np.ndarray, center_mm: np.ndarray) -> np.ndarray:
 
 
 class _Objective:
-    """-NCC of one bone at one binning level against a frame, the rest of the scene fixed."""
+    """-NCC of one bone at one pyramid level against a frame, the rest of the scene fixed.
+
+    The bone moves with the soft tissue part attached to it (if any); the similarity is taken
+    over the bone's silhouette at the start pose, dilated (the frame's 2D mask), in a crop of
+    the view around it.
+    """
 
     def __init__(
         self,
@@ -94,11 +106,13 @@ class _Objective:
         target_hp: np.ndarray,
         background_hp: np.ndarray,
         bone: BoneModel,
+        attached: RigidVolume | None,
         T0: np.ndarray,
         sigma_px: float,
         dilation_px: int,
+        coarse: bool,
     ) -> None:
-        silhouette = bone.render(view, T0) > 0.02
+        silhouette = bone.render(view, T0, coarse) > 0.02
         if silhouette.sum() < 20:
             raise ValueError(f"bone {bone.name} leaves the field of view")
         mask = binary_dilation(silhouette, iterations=max(1, dilation_px))
@@ -110,16 +124,26 @@ class _Objective:
         self.mask = mask[r0:r1, c0:c1]
         self.target = target_hp[r0:r1, c0:c1]
         self.background = background_hp[r0:r1, c0:c1]
-        self.bone, self.T0, self.sigma = bone, T0, sigma_px
+        self.bone, self.attached, self.T0 = bone, attached, T0
+        self.sigma, self.coarse = sigma_px, coarse
         self.evaluations = 0
 
     def image(self, T: np.ndarray) -> np.ndarray:
-        return self.background + highpass(self.bone.render(self.view, T), self.sigma)
+        moving = self.bone.render(self.view, T, self.coarse)
+        if self.attached is not None:
+            moving += self.attached.render(self.view, T, coarse=True)
+        return self.background + highpass(moving, self.sigma)
 
     def __call__(self, x: np.ndarray) -> float:
         self.evaluations += 1
-        T = compose(np.asarray(x, dtype=np.float64), self.T0, self.bone.centroid_mm)
-        return -ncc(self.target, self.image(T), self.mask)
+        return self.cost(compose(np.asarray(x, dtype=np.float64), self.T0, self.bone.centroid_mm))
+
+    def cost(self, T: np.ndarray) -> float:
+        """-NCC at pose T; +1 (worst) for poses no view can render (e.g. behind the source)."""
+        try:
+            return -ncc(self.target, self.image(T), self.mask)
+        except ValueError:
+            return 1.0
 
 
 def principal_axes(points_mm: np.ndarray) -> np.ndarray:
@@ -136,8 +160,9 @@ class Tracker:
         view: the fluoroscopy view at full resolution.
         frames: line integrals (F, rows, cols).
         bones: the tracked bones (registration.drr.bone_models).
-        background: fixed scene part per frame (soft tissue), or None.
         settings: registration settings.
+        soft_tissue: soft tissue parts moving with "femur" and "tibia_fibula"
+            (registration.drr.soft_tissue_parts); None leaves the soft tissue out.
     """
 
     def __init__(
@@ -146,10 +171,12 @@ class Tracker:
         frames: np.ndarray,
         bones: dict[str, BoneModel],
         settings: Settings | None = None,
+        soft_tissue: dict[str, RigidVolume] | None = None,
     ) -> None:
         self.view = view
         self.frames = np.asarray(frames, dtype=np.float32)
         self.bones = bones
+        self.soft_tissue = soft_tissue or {}
         self.settings = settings or Settings()
         self._views = {b: view.binned(b) for b in self.settings.levels}
         self._targets: dict[tuple[int, int], np.ndarray] = {}
@@ -171,21 +198,36 @@ class Tracker:
             self._targets[key] = highpass(image, self._sigma_px(level))
         return self._targets[key]
 
-    def _objective(self, frame: int, level: int, name: str, poses: dict[str, np.ndarray]):
+    def _coarse(self, level: int, name: str) -> bool:
+        """Render with the pooled volumes when a pixel spans two voxels at the bone."""
+        view, bone = self._views[level], self.bones[name]
+        pixel_at_bone = view.pitch_u_mm * float(view.depth(bone.centroid_mm)[0])
+        return pixel_at_bone >= 2.0 * bone.volume.voxel_mm()
+
+    def _objective(
+        self, frame: int, level: int, name: str, poses: dict[str, np.ndarray], lone: bool = False
+    ):
+        """The objective of bone ``name``, the others at ``poses`` (``lone``: bone alone)."""
         view = self._views[level]
-        others = np.zeros((view.rows, view.cols), dtype=np.float32)
-        for other, model in self.bones.items():
-            if other != name:
-                others += model.render(view, poses[other])
+        coarse = self._coarse(level, name)
+        others = scene(
+            view,
+            {} if lone else {b: m for b, m in self.bones.items() if b != name},
+            poses,
+            {} if lone else {b: v for b, v in self.soft_tissue.items() if b != name},
+            coarse,
+        )
         dilation = round(self.settings.mask_dilation_mm / view.pitch_u_mm)
         return _Objective(
             view,
             self._target(frame, level),
             highpass(others, self._sigma_px(level)),
             self.bones[name],
+            None if lone else self.soft_tissue.get(name),
             poses[name],
             self._sigma_px(level),
             dilation,
+            coarse,
         )
 
     def _refine(
@@ -201,6 +243,8 @@ class Tracker:
                     objective,
                     x0,
                     method="Powell",
+                    bounds=[(-s.refine_range[0], s.refine_range[0])] * 3
+                    + [(-s.refine_range[1], s.refine_range[1])] * 3,
                     options={"maxfev": s.powell_maxfev, "xtol": 1e-2, "ftol": 1e-6},
                 ).x
             step = 1.0 if i == 0 else 0.3
@@ -221,12 +265,17 @@ class Tracker:
         return poses[name], evaluations
 
     def _global(
-        self, frame: int, name: str, poses: dict[str, np.ndarray], scale: float = 1.0
+        self,
+        frame: int,
+        name: str,
+        poses: dict[str, np.ndarray],
+        scale: float = 1.0,
+        lone: bool = False,
     ) -> tuple[np.ndarray, int]:
         """Differential evolution in a box aligned with the bone's principal axes."""
         s = self.settings
         level = s.levels[0]
-        objective = self._objective(frame, level, name, poses)
+        objective = self._objective(frame, level, name, poses, lone)
         axes = principal_axes(self.bones[name].points_mm)
         R_pose = poses[name][:3, :3]
         axes = R_pose @ axes  # the principal axes at the current pose
@@ -269,12 +318,16 @@ class Tracker:
         """Line search along the last frame-to-frame motion (the kinematic direction)."""
         T1, T2 = history[-2][name], history[-1][name]
         twist = np.real(logm(np.linalg.inv(T1) @ T2))
+        step_mm = np.linalg.norm(twist[:3, 3])
+        step_deg = math.degrees(np.linalg.norm([twist[2, 1], twist[0, 2], twist[1, 0]]))
+        if step_mm > MAX_KPM_STEP[0] or step_deg > MAX_KPM_STEP[1]:
+            return T2, 0  # the last step is no motion to extrapolate from
         level = self.settings.levels[0]
         base = {**poses, name: T2}
         objective = self._objective(frame, level, name, base)
 
         def along(lam: float) -> float:
-            return -ncc(objective.target, objective.image(T2 @ expm(lam * twist)), objective.mask)
+            return objective.cost(T2 @ expm(lam * twist))
 
         best = minimize_scalar(
             along, bounds=(-0.5, 2.5), method="bounded", options={"xatol": 0.02, "maxiter": 25}
@@ -284,17 +337,28 @@ class Tracker:
     def register(
         self, frame: int, poses: dict[str, np.ndarray], history: list[dict[str, np.ndarray]]
     ) -> FrameResult:
-        """Register every bone in ``frame`` starting from ``poses`` (previous estimates)."""
+        """Register every bone in ``frame`` starting from ``poses`` (previous estimates).
+
+        Cold frames (no history) with global initialisation run differential evolution on
+        every bone first: the long bones alone (the rest of the scene is still at its wrong
+        starting estimate), the patella, small and overlapped by the femoral condyles, against
+        the long bones' new estimates; then every bone is refined against the others' global
+        estimates (bone by bone alternation).
+        """
         s = self.settings
         result = FrameResult(frame)
         poses = dict(poses)
+        spent = {name: (0.0, 0) for name in TRACK_ORDER}
+        if not history and s.global_init:
+            for name in TRACK_ORDER:
+                start = time.perf_counter()
+                lone = name in LONG_BONES
+                poses[name], n = self._global(frame, name, poses, lone=lone)
+                spent[name] = (time.perf_counter() - start, n)
         for name in TRACK_ORDER:
             start = time.perf_counter()
-            evaluations = 0
-            if not history and s.global_init:
-                poses[name], n = self._global(frame, name, poses)
-                evaluations += n
-            elif s.kpm and len(history) >= 2:
+            evaluations = spent[name][1]
+            if s.kpm and len(history) >= 2:
                 poses[name], n = self._kpm(frame, name, poses, history)
                 evaluations += n
             poses[name], n = self._refine(frame, name, poses)
@@ -307,9 +371,8 @@ class Tracker:
                 evaluations += n + m
                 score, grad = self._score(frame, name, poses)
                 failed = score < s.fail_ncc
-            result.bones[name] = BoneResult(
-                poses[name], score, grad, time.perf_counter() - start, evaluations, failed
-            )
+            seconds = spent[name][0] + time.perf_counter() - start
+            result.bones[name] = BoneResult(poses[name], score, grad, seconds, evaluations, failed)
         return result
 
     def track(self, initial: dict[str, np.ndarray], progress=None) -> list[FrameResult]:

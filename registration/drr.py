@@ -2,10 +2,13 @@
 
 A bone is its CBCT attenuation minus the soft tissue's, in a sub-volume cropped around it
 (:class:`BoneModel`); the soft tissue is the CBCT volume with every bone voxel filled with the
-soft tissue's attenuation (the bones displace it, no hole is left). A frame's scene is the soft
+soft tissue's attenuation (the bones displace it, no hole is left), in two parts that follow
+the femur and the tibia (:func:`soft_tissue_parts`). A frame's scene is the soft
 tissue plus every bone at its pose; moving a bone by ``T`` is rendering the unmoved bone
 through the view moved by ``T^-1`` (recon.geometry.View.transformed), with the recon
-projector (Joseph). Views are binned for the coarse levels of a resolution pyramid.
+projector (Joseph). Views are binned for the coarse levels of a resolution pyramid, and
+volumes are averaged over 2 x 2 x 2 voxels for the views whose pixels (at the volume) are at
+least twice the voxel size (:class:`RigidVolume`).
 """
 
 from __future__ import annotations
@@ -23,26 +26,58 @@ SOFT_TISSUE_LABEL = LABELS["soft_tissue"]
 CROP_MARGIN_MM = 3.0
 
 
+def _pooled(data: np.ndarray, grid: VolumeGrid) -> tuple[np.ndarray, VolumeGrid]:
+    """Mean over 2 x 2 x 2 voxel blocks (a trailing odd slice is dropped)."""
+    nz, ny, nx = (n // 2 for n in data.shape)
+    blocks = data[: 2 * nz, : 2 * ny, : 2 * nx].reshape(nz, 2, ny, 2, nx, 2)
+    spacing = np.asarray(grid.spacing_mm)
+    origin = np.asarray(grid.origin_mm) + 0.5 * spacing
+    pooled = VolumeGrid((nz, ny, nx), tuple(2 * spacing), tuple(origin))
+    return blocks.mean(axis=(1, 3, 5), dtype=np.float32), pooled
+
+
+@dataclass(frozen=True)
+class RigidVolume:
+    """Attenuation (1/mm) that moves rigidly, ready to render at two resolutions."""
+
+    fine: JosephProjector
+    coarse: JosephProjector
+
+    @classmethod
+    def of(cls, data: np.ndarray, grid: VolumeGrid, fine: bool = True) -> RigidVolume:
+        """Prepare ``data`` on ``grid``; ``fine=False`` keeps only the pooled copy (smooth
+        volumes such as soft tissue, whose detail the high-pass similarity does not see)."""
+        coarse = JosephProjector(*_pooled(data, grid))
+        return cls(JosephProjector(data, grid) if fine else coarse, coarse)
+
+    def voxel_mm(self) -> float:
+        return float(min(self.fine.grid.spacing_mm))
+
+    def render(self, view: View, T_world: np.ndarray, coarse: bool = False) -> np.ndarray:
+        """Line integrals of the volume moved by ``T_world``, float32 (rows, cols)."""
+        moved = view.transformed(np.linalg.inv(T_world))
+        return (self.coarse if coarse else self.fine).project(Geometry([moved]))[0]
+
+
 @dataclass(frozen=True)
 class BoneModel:
     """One rigid bone for rendering and error measurement.
 
     Attributes:
         name: "femur", "tibia_fibula" or "patella".
-        projector: the bone's excess attenuation (1/mm over soft tissue) on its cropped grid.
+        volume: the bone's excess attenuation (1/mm over soft tissue) on its cropped grid.
         points_mm: centres of the bone's voxels at the reference pose (N, 3).
         centroid_mm: their mean (rotations of the 6-DoF parameterisation are about it).
     """
 
     name: str
-    projector: JosephProjector
+    volume: RigidVolume
     points_mm: np.ndarray
     centroid_mm: np.ndarray
 
-    def render(self, view: View, T_world_bone: np.ndarray) -> np.ndarray:
+    def render(self, view: View, T_world_bone: np.ndarray, coarse: bool = False) -> np.ndarray:
         """Line integrals of the bone moved by ``T_world_bone``, float32 (rows, cols)."""
-        moved = view.transformed(np.linalg.inv(T_world_bone))
-        return self.projector.project(Geometry([moved]))[0]
+        return self.volume.render(view, T_world_bone, coarse)
 
 
 def _crop(
@@ -87,30 +122,43 @@ def bone_models(
         excess = np.where(mask[box], volume.data[box] - soft, 0.0).astype(np.float32)
         kz, ky, kx = np.nonzero(mask)
         points = np.column_stack((axes[0][kx], axes[1][ky], axes[2][kz]))
-        models[name] = BoneModel(name, JosephProjector(excess, sub), points, points.mean(axis=0))
+        models[name] = BoneModel(name, RigidVolume.of(excess, sub), points, points.mean(axis=0))
     return models
 
 
-def soft_tissue_projector(volume: Volume, labels: Volume) -> JosephProjector:
-    """The CBCT volume with every bone voxel filled with soft tissue, ready to project."""
+def soft_tissue_parts(volume: Volume, labels: Volume) -> dict[str, RigidVolume]:
+    """The soft tissue (every bone voxel filled with the soft tissue's attenuation), split at
+    the joint line (midway between the femur's lowest and the tibia's highest voxel) into the
+    part that moves with the femur and the part that moves with the tibia and fibula; kept at
+    half resolution only."""
     soft = soft_tissue_level(volume, labels)
     bone = labels.data > SOFT_TISSUE_LABEL
     filled = np.where(bone, soft, volume.data).astype(np.float32)
-    return JosephProjector(filled, volume.grid)
+    z = volume.grid.axes_mm()[2]
+    femur_z = z[np.flatnonzero(np.isin(labels.data, BONE_UNITS["femur"]).any(axis=(1, 2)))]
+    tibia_z = z[np.flatnonzero(np.isin(labels.data, BONE_UNITS["tibia_fibula"]).any(axis=(1, 2)))]
+    if not femur_z.size or not tibia_z.size:
+        raise ValueError("the soft tissue is split at the knee: femur and tibia must be labelled")
+    joint = 0.5 * (femur_z.min() + tibia_z.max())
+    upper = (z >= joint)[:, None, None]
+    return {
+        "femur": RigidVolume.of(np.where(upper, filled, 0.0), volume.grid, fine=False),
+        "tibia_fibula": RigidVolume.of(np.where(upper, 0.0, filled), volume.grid, fine=False),
+    }
 
 
 def scene(
     view: View,
     bones: dict[str, BoneModel],
     poses: dict[str, np.ndarray],
-    soft_tissue: JosephProjector | None = None,
-    soft_pose: np.ndarray | None = None,
+    soft_tissue: dict[str, RigidVolume] | None = None,
+    coarse: bool = False,
 ) -> np.ndarray:
-    """Line integrals of the soft tissue (moved by ``soft_pose``) plus every bone at its pose."""
+    """Line integrals of every bone at its pose plus the soft tissue parts moved with theirs
+    (``coarse``: the bones' pooled volumes)."""
     image = np.zeros((view.rows, view.cols), dtype=np.float32)
-    if soft_tissue is not None:
-        T = np.eye(4) if soft_pose is None else soft_pose
-        image += soft_tissue.project(Geometry([view.transformed(np.linalg.inv(T))]))[0]
+    for name, part in (soft_tissue or {}).items():
+        image += part.render(view, poses[name], coarse=True)
     for name, model in bones.items():
-        image += model.render(view, poses[name])
+        image += model.render(view, poses[name], coarse)
     return image

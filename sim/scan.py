@@ -21,7 +21,7 @@ import numpy as np
 from recon.config import ExposureSpec, ScanProtocol
 from recon.geometry import DetectorSpec, Geometry
 from recon.project import forward_project
-from recon.volume import Volume
+from recon.volume import Volume, VolumeGrid
 from sim.phantoms.knee import KneePhantomSpec, knee_grid, rasterize_knee
 
 FLUENCE_PER_MM2_MAS_AT_1M = 2.0e6
@@ -82,6 +82,7 @@ def simulate_knee_scan(
     noise: bool = True,
     seed: int = 0,
     geometry: Geometry | None = None,
+    grid: VolumeGrid | None = None,
     status: Callable[[str], None] | None = None,
 ) -> SimulatedScan:
     """Scan the knee phantom with ``protocol``.
@@ -96,12 +97,14 @@ def simulate_knee_scan(
         seed: noise seed (repeatable scans).
         geometry: the views actually acquired (e.g. sim.vibration.vibrate of the plan);
             default the protocol's planned views.
+        grid: the simulation grid; default sim.phantoms.knee.knee_grid at ``voxel_mm``.
         status: optional callback receiving a line per stage.
     """
     say = status or (lambda _msg: None)
     if geometry is None:
         geometry = protocol.orbit.geometry(protocol.detector)
-    grid = knee_grid(phantom, spacing_mm=voxel_mm)
+    if grid is None:
+        grid = knee_grid(phantom, spacing_mm=voxel_mm)
     say(f"rasterising the knee phantom on {grid.size_xyz} voxels of {voxel_mm} mm")
     labels, mu = rasterize_knee(phantom, grid, supersample=supersample)
     say(f"projecting {len(geometry)} views of {geometry.rows} x {geometry.cols} pixels")

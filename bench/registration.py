@@ -1,0 +1,183 @@
+"""Benchmark: 2D-3D registration of simulated knee fluoroscopy (BoneAxis-Reg and ablations).
+
+Two regimes (SYSTEM.md, issue "4D virtual imaging"):
+
+- ``matched``: the paper's setting. Bone models come from the phantom itself (its attenuation
+  and labels); targets are our own scene DRRs of those models at the true poses (the same
+  renderer family), with quantum and readout noise and 1 px of pincushion distortion.
+- ``independent``: bones segmented from the RECONSTRUCTED volume of a simulated CBCT scan of
+  the phantom; targets rendered by sim.fluoro from the rasterised phantom at full detector
+  resolution with beam hardening, scatter, detector blur, distortion, Poisson + readout noise
+  and soft tissue that deforms non-rigidly and is displaced by the bones.
+
+Per regime, every method runs the same sequences (squat motions with different seeds), from the
+same start perturbation of the first frame: ``boneaxis_kpm`` (PCA + differential evolution on
+the first frame, KPM prediction and line search, Powell + Nelder-Mead coarse to fine),
+``boneaxis`` (the same without KPM: each frame starts from the previous pose),
+``powell_nelder_mead`` (no global initialisation, no KPM) and ``nelder_mead`` (Nelder-Mead
+alone). Prints one JSON object ``{"regimes": [...]}``.
+
+Usage: ``python bench/registration.py [--sequences 3] [--frames 30] [--panel 512]
+[--methods ...] [--regimes ...]``; ``--quick`` runs 1 sequence of 8 frames per regime.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numba
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from recon.config import load_protocol  # noqa: E402
+from recon.fdk import fdk_reconstruct  # noqa: E402
+from recon.geometry import DetectorSpec  # noqa: E402
+from recon.volume import Volume, VolumeGrid  # noqa: E402
+from registration.boneaxis import Settings, Tracker, compose  # noqa: E402
+from registration.drr import bone_models, scene, soft_tissue_parts  # noqa: E402
+from registration.metrics import pose_error, summarize  # noqa: E402
+from registration.segment import segment_bones  # noqa: E402
+from sim.fluoro import add_fluoro_noise, distort, lateral_view, simulate_fluoroscopy  # noqa: E402
+from sim.motion import squat_motion  # noqa: E402
+from sim.phantoms.knee import KneePhantomSpec, rasterize_knee  # noqa: E402
+from sim.scan import simulate_knee_scan  # noqa: E402
+
+METHODS = {
+    "boneaxis_kpm": Settings(kpm=True, global_init=True, powell=True),
+    "boneaxis": Settings(kpm=False, global_init=True, powell=True),
+    "powell_nelder_mead": Settings(kpm=False, global_init=False, powell=True),
+    "nelder_mead": Settings(kpm=False, global_init=False, powell=False),
+}
+TRACKED = ("femur", "tibia_fibula", "patella")
+START_PERTURBATION = (4.0, 4.0)
+"""First-frame start: the truth moved by up to this many mm and degrees per axis."""
+CBCT_GRID = VolumeGrid.centered((140, 140, 440), 0.6, (0.0, -4.0, 490.0))
+"""The registration's CBCT volume: 84 x 84 x 264 mm around the knee, 0.6 mm voxels (the
+fluoroscopy field sees about 205 mm of the leg)."""
+SIMULATION_GRID = VolumeGrid.centered((187, 187, 400), 0.75, (0.0, -4.0, 490.0))
+
+
+def log(msg: str) -> None:
+    print(f"[bench/registration] {msg}", file=sys.stderr, flush=True)
+
+
+def cbct(spec: KneePhantomSpec) -> tuple[Volume, Volume]:
+    """A simulated weight-bearing CBCT scan of the phantom, reconstructed and segmented."""
+    protocol = load_protocol(ROOT / "configs" / "protocols" / "knee_reverse_spiral_360.yaml")
+    panel = protocol.detector.model_copy(update={"rows": 512, "cols": 512, "pixel_pitch_mm": 1.2})
+    orbit = protocol.orbit.model_copy(
+        update={"z_step_mm": None, "z_travel_mm": 120.0, "isocenter_mm": (0.0, 0.0, 490.0)}
+    )
+    protocol = protocol.model_copy(update={"detector": panel, "orbit": orbit})
+    scan = simulate_knee_scan(protocol, spec, seed=7, grid=SIMULATION_GRID)
+    volume = fdk_reconstruct(scan.projections, scan.geometry, CBCT_GRID).volume
+    return volume, segment_bones(volume, side=spec.side)
+
+
+def phantom_volumes(spec: KneePhantomSpec) -> tuple[Volume, Volume]:
+    labels, mu = rasterize_knee(spec, CBCT_GRID, supersample=2)
+    return Volume(mu, CBCT_GRID, "1/mm"), Volume(labels, CBCT_GRID, "label")
+
+
+def truth_of(motion, k: int) -> dict[str, np.ndarray]:
+    return {b: motion.poses[b][k] for b in TRACKED}
+
+
+def perturbed(poses: dict[str, np.ndarray], models, rng) -> dict[str, np.ndarray]:
+    t, r = START_PERTURBATION
+    return {
+        b: compose(np.concatenate((rng.uniform(-t, t, 3), rng.uniform(-r, r, 3))), T,
+                   models[b].centroid_mm)
+        for b, T in poses.items()
+    }
+
+
+def run(method: str, view, frames, models, soft, motion, start) -> dict:
+    tracker = Tracker(view, frames, models, METHODS[method], soft)
+    started = time.perf_counter()
+    results = tracker.track(start)
+    log(f"  {method}: {time.perf_counter() - started:.0f} s")
+    errors, first, warm = [], 0.0, []
+    for result in results:
+        seconds = sum(r.seconds for r in result.bones.values())
+        if result.frame == 0:
+            first = seconds
+        else:
+            warm.append(seconds)
+        for bone, r in result.bones.items():
+            errors.append(pose_error(bone, result.frame, r.pose, motion.poses[bone][result.frame],
+                                     models[bone].points_mm, view))
+    return {"errors": errors, "first": first, "warm": warm}
+
+
+def drr_ms_256(models, view) -> float:
+    numba.set_num_threads(2)
+    coarse = view.binned(max(1, view.cols // 256))
+    femur = models["femur"]
+    femur.render(coarse, np.eye(4))
+    started = time.perf_counter()
+    for _ in range(20):
+        femur.render(coarse, np.eye(4))
+    return (time.perf_counter() - started) / 20 * 1000.0
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sequences", type=int, default=3)
+    parser.add_argument("--frames", type=int, default=30)
+    parser.add_argument("--panel", type=int, default=512, help="pixels across (0.3 mm panel "
+                        "binned to 307 mm / panel)")
+    parser.add_argument("--methods", nargs="+", default=list(METHODS))
+    parser.add_argument("--regimes", nargs="+", default=["matched", "independent"])
+    parser.add_argument("--quick", action="store_true")
+    args = parser.parse_args()
+    if args.quick:
+        args.sequences, args.frames = 1, 10
+    spec = KneePhantomSpec()
+    detector = DetectorSpec(rows=args.panel, cols=args.panel, pixel_pitch_mm=307.2 / args.panel)
+    view = lateral_view(spec, detector)
+    entries = []
+    for regime in args.regimes:
+        log(f"regime {regime}: bone models")
+        volume, labels = phantom_volumes(spec) if regime == "matched" else cbct(spec)
+        models = bone_models(volume, labels)
+        soft = soft_tissue_parts(volume, labels)
+        drr_ms = drr_ms_256(models, view)
+        runs = {m: {"errors": [], "first": [], "warm": []} for m in args.methods}
+        for seq in range(args.sequences):
+            motion = squat_motion(spec, frames=args.frames, seed=seq)
+            log(f"regime {regime}, sequence {seq}: rendering {args.frames} frames")
+            if regime == "matched":
+                rng = np.random.default_rng(100 + seq)
+                clean = np.stack([scene(view, models, truth_of(motion, k), soft)
+                                  for k in range(args.frames)])
+                photons = 2.0e4 * (detector.pixel_pitch_mm / 0.3) ** 2
+                frames = distort(add_fluoro_noise(clean, photons, rng)[1], 1.0)
+            else:
+                frames = simulate_fluoroscopy(spec, motion, view, seed=seq).frames
+            start = perturbed(truth_of(motion, 0), models, np.random.default_rng(seq))
+            for method in args.methods:
+                out = run(method, view, frames, models, soft, motion, start)
+                runs[method]["errors"] += out["errors"]
+                runs[method]["first"].append(out["first"])
+                runs[method]["warm"] += out["warm"]
+        for method, data in runs.items():
+            entry = {"regime": regime, "method": method}
+            entry |= summarize(data["errors"], data["warm"], float(np.mean(data["first"])))
+            entry["drr_ms_256"] = round(drr_ms, 2)
+            entry["sequences"] = args.sequences
+            entry["frames"] = args.frames
+            entries.append(entry)
+            log(f"{regime} {method}: TRE {entry['tre_mm']:.3f} mm (median "
+                f"{entry['tre_mm_median']:.3f}), RSR {entry['rsr_pct']:.1f} %")
+    print(json.dumps({"benchmark": "registration", "regimes": entries}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
