@@ -40,12 +40,21 @@ MAX_KPM_STEP = (25.0, 25.0)
 """A frame-to-frame motion beyond (mm, deg) is not extrapolated (it is a failure, not motion)."""
 
 
+MIN_SILHOUETTE_PX = 20
+"""A bone casting fewer pixels (at a pyramid level) than this is out of the field of view."""
+
+
+class OutOfView(ValueError):
+    """The bone's projection (nearly) misses the detector: its frame is flagged, not guessed."""
+
+
 @dataclass(frozen=True)
 class Settings:
     """Registration settings (mm and degrees)."""
 
-    levels: tuple[int, ...] = (4, 2)
-    """Panel binning factors, coarse to fine."""
+    pyramid_mm: tuple[float, ...] = (2.4, 1.2)
+    """Pixel sizes of the resolution pyramid, coarse to fine, mm at the panel; each level bins
+    the panel by the nearest whole factor (at least 1)."""
     highpass_mm: float = 3.0
     mask_dilation_mm: float = 4.0
     de_translation_mm: float = 12.0
@@ -54,12 +63,19 @@ class Settings:
     de_popsize: int = 10
     de_maxiter: int = 30
     powell_maxfev: int = 400
-    nelder_mead_maxfev: int = 300
+    nelder_mead_maxfev: int = 120
+    passes: int = 2
+    """Passes over the bones per frame; later passes refine each against the others' newest
+    estimates (Powell in a box of 0.4 x refine_range, then Nelder-Mead)."""
     kpm: bool = True
     global_init: bool = True
     powell: bool = True
     fail_ncc: float = 0.5
-    refine_range: tuple[float, float] = (6.0, 6.0)
+    """A bone whose final NCC is below this is flagged failed."""
+    drop_ncc: float = 0.02
+    """A warm frame whose NCC falls this far below the bone's previous frame widens the search
+    (a differential evolution box of half the first frame's) and keeps the better pose."""
+    refine_range: tuple[float, float] = (5.0, 5.0)
     """Powell's search box about the start, mm and degrees (line searches stay inside)."""
     seed: int = 0
 
@@ -74,6 +90,8 @@ class BoneResult:
     seconds: float
     evaluations: int
     failed: bool
+    reason: str = ""
+    """Why the bone failed (empty when it did not)."""
 
 
 @dataclass
@@ -113,8 +131,8 @@ class _Objective:
         coarse: bool,
     ) -> None:
         silhouette = bone.render(view, T0, coarse) > 0.02
-        if silhouette.sum() < 20:
-            raise ValueError(f"bone {bone.name} leaves the field of view")
+        if silhouette.sum() < MIN_SILHOUETTE_PX:
+            raise OutOfView(f"bone {bone.name} leaves the field of view")
         mask = binary_dilation(silhouette, iterations=max(1, dilation_px))
         rows, cols = np.nonzero(mask)
         margin = math.ceil(3 * sigma_px)
@@ -153,6 +171,23 @@ def principal_axes(points_mm: np.ndarray) -> np.ndarray:
     return vt.T
 
 
+def kinematic_twist(T_before: np.ndarray, T_last: np.ndarray) -> np.ndarray | None:
+    """The last frame-to-frame motion as a 4x4 twist in the bone's frame (``T_last =
+    T_before expm(S)``), or None when it is too large to be motion (MAX_KPM_STEP)."""
+    twist = np.real(logm(np.linalg.inv(T_before) @ T_last))
+    step_mm = np.linalg.norm(twist[:3, 3])
+    step_deg = math.degrees(np.linalg.norm([twist[2, 1], twist[0, 2], twist[1, 0]]))
+    if step_mm > MAX_KPM_STEP[0] or step_deg > MAX_KPM_STEP[1]:
+        return None
+    return twist
+
+
+def predict(T_before: np.ndarray, T_last: np.ndarray, lam: float = 1.0) -> np.ndarray:
+    """The KPM prediction ``T_last expm(lam S)``: constant velocity for ``lam = 1``."""
+    twist = kinematic_twist(T_before, T_last)
+    return T_last if twist is None else T_last @ expm(lam * twist)
+
+
 class Tracker:
     """Registers every bone in every frame of a fluoroscopy sequence.
 
@@ -178,8 +213,13 @@ class Tracker:
         self.bones = bones
         self.soft_tissue = soft_tissue or {}
         self.settings = settings or Settings()
-        self._views = {b: view.binned(b) for b in self.settings.levels}
+        self.levels = tuple(
+            dict.fromkeys(max(1, round(mm / view.pitch_u_mm)) for mm in self.settings.pyramid_mm)
+        )
+        """Binning factors of the pyramid, coarse to fine."""
+        self._views = {b: view.binned(b) for b in self.levels}
         self._targets: dict[tuple[int, int], np.ndarray] = {}
+        self._last_ncc: dict[str, float] = {}
 
     def _sigma_px(self, level: int) -> float:
         return self.settings.highpass_mm / self._views[level].pitch_u_mm
@@ -231,35 +271,38 @@ class Tracker:
         )
 
     def _refine(
-        self, frame: int, name: str, poses: dict[str, np.ndarray]
+        self, frame: int, name: str, poses: dict[str, np.ndarray], scale: float = 1.0
     ) -> tuple[np.ndarray, int]:
+        """Coarse to fine: Powell (bounded about the start by ``scale`` x refine_range) on the
+        coarsest level, Nelder-Mead on the finer ones (on every level without Powell)."""
         s = self.settings
+        t_max, r_max = scale * s.refine_range[0], scale * s.refine_range[1]
         evaluations = 0
-        for i, level in enumerate(s.levels):
+        for i, level in enumerate(self.levels):
             objective = self._objective(frame, level, name, poses)
-            x0 = np.zeros(6)
+            fine = i == len(self.levels) - 1
             if s.powell and i == 0:
-                x0 = minimize(
+                x = minimize(
+                    objective,
+                    np.zeros(6),
+                    method="Powell",
+                    bounds=[(-t_max, t_max)] * 3 + [(-r_max, r_max)] * 3,
+                    options={"maxfev": s.powell_maxfev, "xtol": 1e-2, "ftol": 1e-5},
+                ).x
+            if not (s.powell and i == 0) or len(self.levels) == 1:
+                x0 = np.zeros(6) if not (s.powell and i == 0) else x
+                step = 0.3 if fine and i > 0 else 1.0
+                x = minimize(
                     objective,
                     x0,
-                    method="Powell",
-                    bounds=[(-s.refine_range[0], s.refine_range[0])] * 3
-                    + [(-s.refine_range[1], s.refine_range[1])] * 3,
-                    options={"maxfev": s.powell_maxfev, "xtol": 1e-2, "ftol": 1e-6},
+                    method="Nelder-Mead",
+                    options={
+                        "maxfev": s.nelder_mead_maxfev,
+                        "initial_simplex": np.vstack((x0, x0 + step * np.eye(6))),
+                        "xatol": 1e-2,
+                        "fatol": 1e-6,
+                    },
                 ).x
-            step = 1.0 if i == 0 else 0.3
-            simplex = np.vstack((x0, x0 + step * np.eye(6)))
-            x = minimize(
-                objective,
-                x0,
-                method="Nelder-Mead",
-                options={
-                    "maxfev": s.nelder_mead_maxfev,
-                    "initial_simplex": simplex,
-                    "xatol": 1e-3,
-                    "fatol": 1e-7,
-                },
-            ).x
             poses = {**poses, name: compose(x, poses[name], self.bones[name].centroid_mm)}
             evaluations += objective.evaluations
         return poses[name], evaluations
@@ -274,7 +317,7 @@ class Tracker:
     ) -> tuple[np.ndarray, int]:
         """Differential evolution in a box aligned with the bone's principal axes."""
         s = self.settings
-        level = s.levels[0]
+        level = self.levels[0]
         objective = self._objective(frame, level, name, poses, lone)
         axes = principal_axes(self.bones[name].points_mm)
         R_pose = poses[name][:3, :3]
@@ -306,7 +349,7 @@ class Tracker:
         return pose, objective.evaluations
 
     def _score(self, frame: int, name: str, poses: dict[str, np.ndarray]) -> tuple[float, float]:
-        level = self.settings.levels[-1]
+        level = self.levels[-1]
         objective = self._objective(frame, level, name, poses)
         image = objective.image(poses[name])
         return (
@@ -317,14 +360,10 @@ class Tracker:
     def _kpm(self, frame: int, name: str, poses, history) -> tuple[np.ndarray, int]:
         """Line search along the last frame-to-frame motion (the kinematic direction)."""
         T1, T2 = history[-2][name], history[-1][name]
-        twist = np.real(logm(np.linalg.inv(T1) @ T2))
-        step_mm = np.linalg.norm(twist[:3, 3])
-        step_deg = math.degrees(np.linalg.norm([twist[2, 1], twist[0, 2], twist[1, 0]]))
-        if step_mm > MAX_KPM_STEP[0] or step_deg > MAX_KPM_STEP[1]:
-            return T2, 0  # the last step is no motion to extrapolate from
-        level = self.settings.levels[0]
-        base = {**poses, name: T2}
-        objective = self._objective(frame, level, name, base)
+        twist = kinematic_twist(T1, T2)
+        if twist is None:
+            return poses[name], 0
+        objective = self._objective(frame, self.levels[0], name, poses)  # mask: the prediction
 
         def along(lam: float) -> float:
             return objective.cost(T2 @ expm(lam * twist))
@@ -339,6 +378,8 @@ class Tracker:
     ) -> FrameResult:
         """Register every bone in ``frame`` starting from ``poses`` (previous estimates).
 
+        Warm frames with the KPM start every bone at its constant-velocity prediction, so each
+        bone is scored against the others' predictions rather than their previous poses.
         Cold frames (no history) with global initialisation run differential evolution on
         every bone first: the long bones alone (the rest of the scene is still at its wrong
         starting estimate), the patella, small and overlapped by the femoral condyles, against
@@ -348,6 +389,8 @@ class Tracker:
         s = self.settings
         result = FrameResult(frame)
         poses = dict(poses)
+        if s.kpm and len(history) >= 2:  # every bone at its constant-velocity prediction first
+            poses = {b: predict(history[-2][b], history[-1][b]) for b in TRACK_ORDER}
         spent = {name: (0.0, 0) for name in TRACK_ORDER}
         if not history and s.global_init:
             for name in TRACK_ORDER:
@@ -357,23 +400,57 @@ class Tracker:
                 spent[name] = (time.perf_counter() - start, n)
         for name in TRACK_ORDER:
             start = time.perf_counter()
-            evaluations = spent[name][1]
-            if s.kpm and len(history) >= 2:
-                poses[name], n = self._kpm(frame, name, poses, history)
-                evaluations += n
-            poses[name], n = self._refine(frame, name, poses)
-            evaluations += n
-            score, grad = self._score(frame, name, poses)
-            failed = score < s.fail_ncc
-            if failed and s.kpm and history:  # the prediction failed: widen the search
-                poses[name], n = self._global(frame, name, poses, scale=0.5)
-                poses[name], m = self._refine(frame, name, poses)
-                evaluations += n + m
-                score, grad = self._score(frame, name, poses)
-                failed = score < s.fail_ncc
-            seconds = spent[name][0] + time.perf_counter() - start
-            result.bones[name] = BoneResult(poses[name], score, grad, seconds, evaluations, failed)
+            try:
+                result.bones[name] = self._track_bone(frame, name, poses, history)
+            except OutOfView as err:
+                result.bones[name] = BoneResult(
+                    poses[name], math.nan, math.nan, 0.0, 0, True, str(err)
+                )
+            bone = result.bones[name]
+            bone.seconds += spent[name][0] + time.perf_counter() - start
+            bone.evaluations += spent[name][1]
+            poses[name] = bone.pose
+        for _ in range(s.passes - 1):  # again, each bone against the others' new estimates
+            for name, bone in result.bones.items():
+                if math.isnan(bone.ncc):
+                    continue
+                start = time.perf_counter()
+                pose, n = self._refine(frame, name, poses, scale=0.4)
+                score, grad = self._score(frame, name, {**poses, name: pose})
+                if score > bone.ncc:
+                    bone.pose, bone.ncc, bone.gradient_ncc = pose, score, grad
+                    bone.failed = score < s.fail_ncc
+                    bone.reason = f"NCC {score:.3f} below {s.fail_ncc}" if bone.failed else ""
+                    poses[name] = pose
+                bone.seconds += time.perf_counter() - start
+                bone.evaluations += n
         return result
+
+    def _track_bone(self, frame: int, name: str, poses: dict[str, np.ndarray], history):
+        """KPM prediction (warm frames), refinement, and a wider search if the score fails."""
+        s = self.settings
+        evaluations = 0
+        poses = dict(poses)
+        if s.kpm and len(history) >= 2:
+            poses[name], n = self._kpm(frame, name, poses, history)
+            evaluations += n
+        poses[name], n = self._refine(frame, name, poses)
+        evaluations += n
+        score, grad = self._score(frame, name, poses)
+        previous = self._last_ncc.get(name, score)
+        if s.kpm and history and (score < s.fail_ncc or score < previous - s.drop_ncc):
+            # the prediction failed: widen the search, keep the better of the two
+            wide = dict(poses)
+            wide[name], n = self._global(frame, name, poses, scale=0.5)
+            wide[name], m = self._refine(frame, name, wide)
+            evaluations += n + m
+            wide_score, wide_grad = self._score(frame, name, wide)
+            if wide_score > score:
+                poses, score, grad = wide, wide_score, wide_grad
+        self._last_ncc[name] = score
+        failed = score < s.fail_ncc
+        reason = f"NCC {score:.3f} below {s.fail_ncc}" if failed else ""
+        return BoneResult(poses[name], score, grad, 0.0, evaluations, failed, reason)
 
     def track(self, initial: dict[str, np.ndarray], progress=None) -> list[FrameResult]:
         """Register every frame in order; ``initial`` are the first frame's starting poses."""

@@ -90,7 +90,7 @@ def read_frames(path: str | Path, pixel_pitch_mm: float | None = None) -> Frames
         pixels = pixels.reshape(-1, *pixels.shape[-2:])
         arrays.append(pixels.max() - pixels if kind == "MONOCHROME1" else pixels)
         spacing = spacing or _spacing(reader)
-        times.extend(_times(reader, len(pixels)))
+        times.extend(_times(reader, len(pixels), len(times)))
     data = np.concatenate(arrays)
     if spacing is None:
         if pixel_pitch_mm is None:
@@ -114,12 +114,13 @@ def _spacing(reader) -> tuple[float, float] | None:
     return None
 
 
-def _times(reader, count: int) -> list[float | None]:
+def _times(reader, count: int, first: int) -> list[float | None]:
+    """Times of ``count`` frames, the first being frame ``first`` of the sequence."""
     vector = _tag(reader, "0018|1065")
     if vector:
         increments = np.array([float(x) for x in vector.split("\\")]) / 1000.0
         return list(np.cumsum(increments)[:count])
     frame_ms = _tag(reader, "0018|1063")
     if frame_ms:
-        return list(np.arange(count) * float(frame_ms) / 1000.0)
+        return list((first + np.arange(count)) * float(frame_ms) / 1000.0)
     return [None] * count

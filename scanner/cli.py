@@ -2,7 +2,8 @@
 
 Commands today: ``plan`` (checked, timed robot motion for a protocol), ``simulate-scan`` (scan
 the digital knee phantom with a protocol), ``recon`` (weighted FDK of RTK-format inputs),
-``assess`` (knee kinematics report from bone poses) and ``demo`` (the chain that exists, on the
+``register`` (track the bones through a fluoroscopy sequence), ``assess`` (knee kinematics
+report from bone poses) and ``demo`` (the chain that exists, on the
 simulated scanner). Every
 command checks its inputs before long work starts, never overwrites an existing output, and
 shows progress on long work.
@@ -10,6 +11,7 @@ shows progress on long work.
 
 from __future__ import annotations
 
+import json
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -21,6 +23,7 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
+from registration.sequence import register_files
 from scanner import demo as demo_job
 from scanner import jobs
 from sim.vibration import VibrationSpec
@@ -298,6 +301,61 @@ def assess(
         soft_wrap=True,
         highlight=False,
     )
+
+
+@app.command()
+def register(
+    volume: Annotated[Path, typer.Option(help="static scan, attenuation 1/mm (.nii.gz, .mha)")],
+    labels: Annotated[Path, typer.Option(help="its bone labels on the same grid")],
+    frames: Annotated[Path, typer.Option(help="fluoroscopy: .mha stack, DICOM file or folder")],
+    geometry: Annotated[Path, typer.Option(help="the fluoroscopy view, RTK geometry XML")],
+    out: Annotated[Path, typer.Option(help="new output folder")],
+    truth: Annotated[
+        Path | None, typer.Option(help="true poses.csv: also write metrics.json")
+    ] = None,
+    initial: Annotated[
+        Path | None, typer.Option(help="poses.csv whose first frame starts the search")
+    ] = None,
+    pixel_pitch_mm: Annotated[
+        float | None, typer.Option(help="panel pitch for DICOM frames without one, mm")
+    ] = None,
+) -> None:
+    """Track femur, tibia-fibula and patella through a fluoroscopy sequence (BoneAxis-Reg)."""
+    if out.exists():
+        fail(f"{out} exists: choose a new output folder (nothing is overwritten)")
+    try:
+        bar = Progress(
+            TextColumn("BoneAxis-Reg"),
+            BarColumn(),
+            TextColumn("{task.completed}/{task.total} frames"),
+            TimeElapsedColumn(),
+            TimeRemainingColumn(),
+            console=console,
+        )
+        with bar:
+            task = bar.add_task("frames", total=None)
+            results = register_files(
+                volume,
+                labels,
+                frames,
+                geometry,
+                out,
+                truth_path=truth,
+                initial_path=initial,
+                pixel_pitch_mm=pixel_pitch_mm,
+                progress=lambda done, total: bar.update(task, completed=done, total=total),
+            )
+    except (ValueError, OSError) as err:
+        fail(str(err))
+    failed = sum(b.failed for r in results for b in r.bones.values())
+    line = f"[green]wrote[/] {out / 'poses.csv'}: {len(results)} frames, {failed} flagged"
+    if truth is not None:
+        metrics = json.loads((out / "metrics.json").read_text(encoding="utf-8"))
+        line += (
+            f"; TRE mean {metrics['tre_mm']:.2f} mm (median {metrics['tre_mm_median']:.2f}), "
+            f"RSR {metrics['rsr_pct']:.1f} %"
+        )
+    console.print(line, soft_wrap=True, highlight=False)
 
 
 @app.command()

@@ -1,0 +1,149 @@
+"""Register a fluoroscopy sequence from files: what ``cbct register`` runs.
+
+Inputs are the static scan (attenuation volume and its bone labels), the frames (an RTK
+projection stack of line integrals, or DICOM) and their view (RTK geometry XML: one view, or
+one identical view per frame; the scanner holds still during fluoroscopy). Outputs go to a new
+folder: ``poses.csv`` (registration.poses), ``registration.json`` (per bone and frame: NCC,
+gradient NCC, seconds, evaluations, failure flag; the settings) and, given the true poses,
+``metrics.json`` (registration.metrics.summarize and per-frame errors).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from recon.geometry import DetectorSpec, View
+from recon.io import read_volume
+from recon.rtk_xml import read_rtk_geometry
+from recon.volume import Volume
+from registration.boneaxis import TRACK_ORDER, FrameResult, Settings, Tracker
+from registration.drr import bone_models, soft_tissue_parts
+from registration.frames import Frames, read_frames
+from registration.metrics import as_rows, pose_error, summarize
+from registration.poses import BonePose, poses_by_frame, read_poses, write_poses
+
+
+def fluoroscopy_view(geometry_path: Path, frames: Frames) -> View:
+    """The one view of a fluoroscopy sequence (ValueError if its views differ)."""
+    count, rows, cols = frames.data.shape
+    pitch_u, pitch_v = frames.pixel_pitch_mm
+    if abs(pitch_u - pitch_v) > 1e-6 * pitch_u:
+        raise ValueError(f"frames: pixels must be square, got {pitch_u} x {pitch_v} mm")
+    detector = DetectorSpec(rows=rows, cols=cols, pixel_pitch_mm=pitch_u)
+    geometry = read_rtk_geometry(geometry_path, detector)
+    if len(geometry) not in (1, count):
+        raise ValueError(
+            f"{geometry_path}: {len(geometry)} views for {count} frames; give one view or one "
+            "per frame"
+        )
+    view = geometry[0]
+    moved = [k for k, other in enumerate(geometry) if not other.isclose(view)]
+    if moved:
+        raise ValueError(
+            f"{geometry_path}: view {moved[0]} differs from view 0; the fluoroscopy view must "
+            "be static"
+        )
+    return view
+
+
+def _initial(path: Path | None) -> dict[str, np.ndarray]:
+    """Frame-0 starting poses: the reference (CBCT) pose, or frame 0 of ``path``."""
+    if path is None:
+        return {name: np.eye(4) for name in TRACK_ORDER}
+    _, stacks = poses_by_frame(read_poses(path), TRACK_ORDER)
+    return {name: stack[0] for name, stack in stacks.items()}
+
+
+def _truth(path: Path, count: int) -> list[dict[str, np.ndarray]]:
+    """True poses of frames 0..count-1 (ValueError if a frame is missing)."""
+    frames, stacks = poses_by_frame(read_poses(path), TRACK_ORDER)
+    lacking = sorted(set(range(count)) - set(frames.tolist()))
+    if lacking:
+        raise ValueError(f"{path}: no true poses for frame {lacking[0]}")
+    index = {int(f): i for i, f in enumerate(frames)}
+    return [{b: stacks[b][index[k]] for b in TRACK_ORDER} for k in range(count)]
+
+
+def register_files(
+    volume_path: Path,
+    labels_path: Path,
+    frames_path: Path,
+    geometry_path: Path,
+    out: Path,
+    *,
+    truth_path: Path | None = None,
+    initial_path: Path | None = None,
+    pixel_pitch_mm: float | None = None,
+    settings: Settings | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> list[FrameResult]:
+    """``cbct register``: track every bone through every frame and write the results.
+
+    Every input is read and checked before the (long) registration starts; ``out`` must not
+    exist and is written only at the end.
+    """
+    if out.exists():
+        raise FileExistsError(f"{out} exists: choose a new output folder")
+    volume, labels = load_inputs(volume_path, labels_path)
+    frames = read_frames(frames_path, pixel_pitch_mm)
+    view = fluoroscopy_view(geometry_path, frames)
+    truth = None if truth_path is None else _truth(truth_path, len(frames.data))
+    start = _initial(initial_path)
+    models = bone_models(volume, labels)
+    tracker = Tracker(view, frames.data, models, settings, soft_tissue_parts(volume, labels))
+    results = tracker.track(start, progress=progress)
+    _write(out, results, models, view, tracker.settings, truth)
+    return results
+
+
+def _write(out, results, models, view, settings: Settings, truth) -> None:
+    out.mkdir(parents=True)
+    centroids = {name: model.centroid_mm for name, model in models.items()}
+    poses = [
+        BonePose(r.frame, name, b.pose, b.ncc, b.seconds)
+        for r in results
+        for name, b in r.bones.items()
+    ]
+    write_poses(out / "poses.csv", poses, centroids)
+    per_frame = [
+        {
+            "frame": r.frame,
+            "bone": name,
+            "ncc": b.ncc,
+            "gradient_ncc": b.gradient_ncc,
+            "seconds": b.seconds,
+            "evaluations": b.evaluations,
+            "failed": b.failed,
+        }
+        for r in results
+        for name, b in r.bones.items()
+    ]
+    report = {"settings": dataclasses.asdict(settings), "frames": per_frame}
+    (out / "registration.json").write_text(json.dumps(report, indent=1), encoding="utf-8")
+    if truth is None:
+        return
+    errors = [
+        pose_error(name, r.frame, b.pose, truth[r.frame][name], models[name].points_mm, view)
+        for r in results
+        for name, b in r.bones.items()
+    ]
+    warm = [sum(b.seconds for b in r.bones.values()) for r in results[1:]]
+    first = sum(b.seconds for b in results[0].bones.values())
+    metrics = summarize(errors, warm, first) | {"per_frame": as_rows(errors)}
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=1), encoding="utf-8")
+
+
+def load_inputs(volume_path: Path, labels_path: Path) -> tuple[Volume, Volume]:
+    """The static scan's attenuation and labels, checked to share one grid."""
+    volume = read_volume(volume_path, unit="1/mm")
+    labels = read_volume(labels_path, unit="label")
+    if labels.grid != volume.grid:
+        raise ValueError(
+            f"{labels_path}: label grid {labels.grid} does not match the volume's {volume.grid}"
+        )
+    return volume, labels

@@ -1,0 +1,133 @@
+"""Tests of registration.drr and registration.boneaxis on the small matched knee case
+(conftest.py). Sub-voxel means TRE below the case's 1 mm voxel."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from recon.geometry import Geometry
+from recon.project import forward_project
+from recon.volume import Volume, VolumeGrid
+from registration.boneaxis import TRACK_ORDER, Settings, Tracker, compose, predict
+from registration.drr import bone_models, soft_tissue_level
+from registration.metrics import pose_error
+from registration.segment import BONE_UNITS
+from sim.motion import squat_motion
+from sim.phantoms.knee import KneePhantomSpec
+
+VOXEL_MM = 1.0
+SETTINGS = Settings(pyramid_mm=(3.84, 1.92), de_popsize=8, de_maxiter=15, powell_maxfev=250)
+
+
+def _start(truth: dict, models, shift: float, seed: int = 0) -> dict:
+    rng = np.random.default_rng(seed)
+    return {
+        b: compose(rng.uniform(-shift, shift, 6), T, models[b].centroid_mm)
+        for b, T in truth.items()
+    }
+
+
+def test_pooled_volume_keeps_the_line_integrals(knee_case) -> None:
+    c = knee_case
+    models, view, truth = c.models, c.view, c.truth
+    femur = models["femur"]
+    fine = femur.render(view, truth[0]["femur"])
+    coarse = femur.render(view, truth[0]["femur"], coarse=True)
+    # 2x2x2 means conserve attenuation: the projected total agrees to the resampling error
+    assert coarse.sum() == pytest.approx(fine.sum(), rel=0.01)
+    assert np.abs(coarse - fine).mean() < 0.05 * fine[fine > 0.02].mean()
+
+
+def test_rendering_a_moved_bone_equals_projecting_the_moved_volume(knee_case) -> None:
+    c = knee_case
+    volume, labels, models, view = c.volume, c.labels, c.models, c.view
+    T = compose(np.array([4.0, -3.0, 6.0, 0.0, 0.0, 0.0]), np.eye(4), np.zeros(3))
+    rendered = models["patella"].render(view, T)
+    # the patella's excess attenuation on the whole grid, the grid shifted by T
+    mask = np.isin(labels.data, BONE_UNITS["patella"])
+    excess = np.where(mask, volume.data - soft_tissue_level(volume, labels), 0.0)
+    moved = VolumeGrid(
+        labels.grid.shape,
+        labels.grid.spacing_mm,
+        tuple(np.asarray(labels.grid.origin_mm) + T[:3, 3]),
+    )
+    expected = forward_project(excess.astype(np.float32), moved, Geometry([view]))[0]
+    assert expected.max() > 1.0
+    # the fine level samples every other slice along the ray (each the mean of two): rays
+    # within 7 degrees of the axis move their samples by < 0.1 voxel across, < 1 % of the peak
+    assert np.abs(rendered - expected).max() < 0.01 * expected.max()
+    assert np.abs(rendered - expected).mean() < 1e-3 * expected.max()
+
+
+def test_known_pose_round_trip_reaches_sub_voxel_tre(knee_case) -> None:
+    c = knee_case
+    models, soft, view, truth, frames = c.models, c.soft, c.view, c.truth, c.frames
+    tracker = Tracker(view, frames[:1], models, SETTINGS, soft)
+    start = _start(truth[0], models, 3.0)
+    result = tracker.register(0, start, [])
+    for name, bone in result.bones.items():
+        error = pose_error(name, 0, bone.pose, truth[0][name], models[name].points_mm, view)
+        start_error = pose_error(name, 0, start[name], truth[0][name], models[name].points_mm, view)
+        assert start_error.tre_mm > 2.0
+        assert error.tre_mm < VOXEL_MM, (name, error)
+        assert not bone.failed and bone.ncc > 0.9
+
+
+def test_kpm_prediction_beats_the_previous_pose_on_smooth_motion(knee_case) -> None:
+    models, view = knee_case.models, knee_case.view
+    motion = squat_motion(KneePhantomSpec(), frames=30, seed=1)
+    for name in TRACK_ORDER:
+        poses = motion.poses[name]
+        points = models[name].points_mm
+        stay = [
+            pose_error(name, k, poses[k - 1], poses[k], points, view).tre_mm for k in range(2, 30)
+        ]
+        kpm = [
+            pose_error(name, k, predict(poses[k - 2], poses[k - 1]), poses[k], points, view).tre_mm
+            for k in range(2, 30)
+        ]
+        assert np.mean(kpm) < 0.25 * np.mean(stay), name
+
+
+def test_tracking_follows_a_sequence(knee_case) -> None:
+    c = knee_case
+    models, soft, view, truth, frames = c.models, c.soft, c.view, c.truth, c.frames
+    tracker = Tracker(view, frames[:4], models, SETTINGS, soft)
+    results = tracker.track(_start(truth[0], models, 2.0))
+    for r in results:
+        for name, bone in r.bones.items():
+            error = pose_error(
+                name, r.frame, bone.pose, truth[r.frame][name], models[name].points_mm, view
+            )
+            assert error.tre_mm < VOXEL_MM, (r.frame, name, error)
+
+
+def test_a_bone_leaving_the_field_is_flagged_not_guessed(knee_case) -> None:
+    c = knee_case
+    models, soft, view, truth, frames = c.models, c.soft, c.view, c.truth, c.frames
+    away = {b: T.copy() for b, T in truth[0].items()}
+    away["patella"][:3, 3] += np.array([0.0, 0.0, 400.0])  # far above the panel
+    tracker = Tracker(
+        view, frames[:1], models, Settings(pyramid_mm=(3.84, 1.92), global_init=False), soft
+    )
+    result = tracker.register(0, away, [])
+    patella = result.bones["patella"]
+    assert patella.failed and "field of view" in patella.reason
+    assert np.isnan(patella.ncc)
+
+
+def test_bad_models_are_refused(knee_case) -> None:
+    volume, labels = knee_case.volume, knee_case.labels
+    with pytest.raises(ValueError, match="does not match"):
+        bone_models(
+            volume,
+            Volume(
+                labels.data[:-1], VolumeGrid((219, 90, 90), 1.0, labels.grid.origin_mm), "label"
+            ),
+        )
+    no_bone = Volume(
+        np.where(labels.data > 1, 1, labels.data).astype(labels.data.dtype), labels.grid, "label"
+    )
+    with pytest.raises(ValueError, match="missing from the labels"):
+        bone_models(volume, no_bone)

@@ -1,0 +1,79 @@
+"""Tests of registration.frames: fluoroscopy frames from .mha stacks and clinical DICOM."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from recon.io import write_projections
+from registration.frames import read_frames
+
+data_store = pytest.importorskip("data_store", reason="pydicom-data (dev extra) ships RG3_UNCR")
+
+
+def _real_radiograph() -> Path:
+    path = Path(data_store.__file__).parent / "data" / "RG3_UNCR.dcm"
+    assert path.exists(), path
+    return path
+
+
+def test_a_real_monochrome1_radiograph_is_inverted_linearly() -> None:
+    path = _real_radiograph()
+    with pytest.raises(ValueError, match="no pixel spacing"):
+        read_frames(path)
+    frames = read_frames(path, pixel_pitch_mm=0.2)
+    raw = sitk.GetArrayFromImage(sitk.ReadImage(str(path))).astype(np.float64).reshape(-1)
+    assert frames.photometric == "MONOCHROME1"
+    assert frames.data.shape[0] == 1 and frames.data[0].size == raw.size
+    assert frames.pixel_pitch_mm == (0.2, 0.2)
+    assert frames.times_s is None
+    # MONOCHROME1 shows its minimum white: brightness (our attenuation stand-in) = max - value
+    assert np.corrcoef(frames.data.reshape(-1), raw)[0, 1] == pytest.approx(-1.0, abs=1e-9)
+    low, high = np.percentile(frames.data, (0.5, 99.5))
+    assert low == pytest.approx(0.0, abs=1e-6) and high == pytest.approx(1.0, abs=1e-6)
+
+
+def test_a_dicom_folder_keeps_order_spacing_and_timing(tmp_path) -> None:
+    rng = np.random.default_rng(0)
+    stack = rng.integers(100, 4000, size=(3, 24, 32)).astype(np.uint16)
+    for k, image in enumerate(stack):
+        item = sitk.GetImageFromArray(image)
+        item.SetSpacing((0.25, 0.3))  # (column, row) mm -> Pixel Spacing "0.3\\0.25"
+        writer = sitk.ImageFileWriter()
+        writer.KeepOriginalImageUIDOn()
+        for key, value in {
+            "0008|0060": "RF",
+            "0028|0004": "MONOCHROME2",
+            "0018|1063": "66.7",
+            "0020|0013": str(k + 1),
+            "0020|000e": "1.2.826.0.1.3680043.2.1125.1.1",
+            "0020|000d": "1.2.826.0.1.3680043.2.1125.1.2",
+            "0020|0032": f"0\\0\\{k}",
+        }.items():
+            item.SetMetaData(key, value)
+        writer.SetFileName(str(tmp_path / f"frame{k}.dcm"))
+        writer.Execute(item)
+    frames = read_frames(tmp_path)
+    assert frames.photometric == "MONOCHROME2"
+    assert frames.pixel_pitch_mm == (0.25, 0.3)  # (column, row) spacing
+    assert frames.times_s == pytest.approx([0.0, 0.0667, 0.1334])
+    assert np.corrcoef(frames.data.ravel(), stack.astype(float).ravel())[0, 1] == pytest.approx(
+        1.0, abs=1e-9
+    )
+
+
+def test_an_mha_stack_is_taken_as_line_integrals(tmp_path) -> None:
+    data = np.random.default_rng(1).random((4, 16, 20)).astype(np.float32)
+    write_projections(tmp_path / "frames.mha", data, 0.6)
+    frames = read_frames(tmp_path / "frames.mha")
+    assert frames.photometric == "line integrals"
+    assert np.array_equal(frames.data, data)
+    assert frames.pixel_pitch_mm == pytest.approx((0.6, 0.6))
+
+
+def test_missing_frames_are_named(tmp_path) -> None:
+    with pytest.raises(FileNotFoundError, match=r"nope\.mha"):
+        read_frames(tmp_path / "nope.mha")

@@ -1,0 +1,56 @@
+"""Tests of registration.similarity: NCC, gradient NCC, the high-pass filter."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from registration.similarity import gradient_ncc, highpass, ncc
+
+
+@pytest.fixture
+def image() -> np.ndarray:
+    rng = np.random.default_rng(0)
+    y, x = np.mgrid[:64, :80]
+    return (np.sin(x / 5.0) * np.cos(y / 7.0) + 0.1 * rng.standard_normal((64, 80))).astype(
+        np.float32
+    )
+
+
+def test_ncc_is_one_for_identical_images_and_minus_one_for_inverted(image) -> None:
+    mask = np.ones(image.shape, bool)
+    assert ncc(image, image, mask) == pytest.approx(1.0, abs=1e-6)
+    assert ncc(image, -image, mask) == pytest.approx(-1.0, abs=1e-6)
+    assert gradient_ncc(image, image, mask) == pytest.approx(1.0, abs=1e-6)
+
+
+@pytest.mark.parametrize(("gain", "offset"), [(3.0, 0.0), (0.01, 5.0), (250.0, -40.0)])
+def test_ncc_is_invariant_to_affine_intensity_changes(image, gain, offset) -> None:
+    rng = np.random.default_rng(1)
+    other = image + 0.3 * rng.standard_normal(image.shape).astype(np.float32)
+    mask = np.zeros(image.shape, bool)
+    mask[10:50, 5:70] = True
+    reference = ncc(image, other, mask)
+    assert 0.2 < reference < 0.99
+    assert ncc(gain * image + offset, other, mask) == pytest.approx(reference, abs=1e-5)
+    assert gradient_ncc(gain * image + offset, other, mask) == pytest.approx(
+        gradient_ncc(image, other, mask), abs=1e-5
+    )
+
+
+def test_ncc_only_sees_the_mask(image) -> None:
+    mask = np.zeros(image.shape, bool)
+    mask[:, :40] = True
+    scrambled = image.copy()
+    scrambled[:, 40:] = np.random.default_rng(2).standard_normal((64, 40))
+    assert ncc(image, scrambled, mask) == pytest.approx(1.0, abs=1e-6)
+
+
+def test_highpass_removes_smooth_backgrounds_and_keeps_edges() -> None:
+    y, x = np.mgrid[:128, :128].astype(np.float32)
+    ramp = 0.02 * x + 0.01 * y + 3.0
+    assert np.abs(highpass(ramp, 4.0)[20:-20, 20:-20]).max() < 1e-3
+    step = (x > 64).astype(np.float32)
+    out = highpass(step, 4.0)
+    assert out[64, 60:69].max() > 0.3  # the edge survives
+    assert np.abs(out[64, :40]).max() < 1e-3  # far from it, nothing
