@@ -232,10 +232,7 @@ def main() -> None:
             if floor:
                 entry["floor_start_at_truth"] = floor
             entries.append(entry)
-            log(
-                f"{regime} {method}: TRE {entry['tre_mm']:.3f} mm (median "
-                f"{entry['tre_mm_median']:.3f}), RSR {entry['rsr_pct']:.1f} %"
-            )
+            log(f"{regime} {method}: {json.dumps(entry)}")
     print(json.dumps({"benchmark": "registration", "regimes": entries}, indent=1))
 
 

@@ -171,20 +171,26 @@ def principal_axes(points_mm: np.ndarray) -> np.ndarray:
     return vt.T
 
 
-def kinematic_twist(T_before: np.ndarray, T_last: np.ndarray) -> np.ndarray | None:
+def kinematic_twist(
+    T_before: np.ndarray, T_last: np.ndarray, center_mm: np.ndarray
+) -> np.ndarray | None:
     """The last frame-to-frame motion as a 4x4 twist in the bone's frame (``T_last =
-    T_before expm(S)``), or None when it is too large to be motion (MAX_KPM_STEP)."""
+    T_before expm(S)``), or None when it is too large to be motion (MAX_KPM_STEP, measured
+    at the bone's reference centroid ``center_mm``)."""
     twist = np.real(logm(np.linalg.inv(T_before) @ T_last))
-    step_mm = np.linalg.norm(twist[:3, 3])
+    c = np.append(center_mm, 1.0)
+    step_mm = np.linalg.norm((T_last @ c - T_before @ c)[:3])
     step_deg = math.degrees(np.linalg.norm([twist[2, 1], twist[0, 2], twist[1, 0]]))
     if step_mm > MAX_KPM_STEP[0] or step_deg > MAX_KPM_STEP[1]:
         return None
     return twist
 
 
-def predict(T_before: np.ndarray, T_last: np.ndarray, lam: float = 1.0) -> np.ndarray:
+def predict(
+    T_before: np.ndarray, T_last: np.ndarray, center_mm: np.ndarray, lam: float = 1.0
+) -> np.ndarray:
     """The KPM prediction ``T_last expm(lam S)``: constant velocity for ``lam = 1``."""
-    twist = kinematic_twist(T_before, T_last)
+    twist = kinematic_twist(T_before, T_last, center_mm)
     return T_last if twist is None else T_last @ expm(lam * twist)
 
 
@@ -360,7 +366,7 @@ class Tracker:
     def _kpm(self, frame: int, name: str, poses, history) -> tuple[np.ndarray, int]:
         """Line search along the last frame-to-frame motion (the kinematic direction)."""
         T1, T2 = history[-2][name], history[-1][name]
-        twist = kinematic_twist(T1, T2)
+        twist = kinematic_twist(T1, T2, self.bones[name].centroid_mm)
         if twist is None:
             return poses[name], 0
         objective = self._objective(frame, self.levels[0], name, poses)  # mask: the prediction
@@ -390,7 +396,10 @@ class Tracker:
         result = FrameResult(frame)
         poses = dict(poses)
         if s.kpm and len(history) >= 2:  # every bone at its constant-velocity prediction first
-            poses = {b: predict(history[-2][b], history[-1][b]) for b in TRACK_ORDER}
+            poses = {
+                b: predict(history[-2][b], history[-1][b], self.bones[b].centroid_mm)
+                for b in TRACK_ORDER
+            }
         spent = {name: (0.0, 0) for name in TRACK_ORDER}
         if not history and s.global_init:
             for name in TRACK_ORDER:

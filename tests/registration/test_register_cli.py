@@ -74,7 +74,7 @@ def test_register_refuses_bad_inputs_before_work(inputs, knee_case) -> None:
     out = folder / "bad"
     labels = knee_case.labels
     shorter = VolumeGrid(
-        (labels.grid.shape[0] - 1, *labels.grid.shape[1:]), 1.0, labels.grid.origin_mm
+        (labels.grid.shape[0] - 1, *labels.grid.shape[1:]), (1.0, 1.0, 1.0), labels.grid.origin_mm
     )
     cropped = write_volume(folder / "cropped.nii.gz", Volume(labels.data[:-1], shorter, "label"))
     two_views = write_rtk_geometry(folder / "two.xml", Geometry([knee_case.view] * 2))
