@@ -22,6 +22,7 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, PositiveInt
 from scipy.linalg import expm, logm
 from scipy.ndimage import binary_dilation
 from scipy.optimize import differential_evolution, minimize, minimize_scalar
@@ -48,35 +49,45 @@ class OutOfView(ValueError):
     """The bone's projection (nearly) misses the detector: its frame is flagged, not guessed."""
 
 
-@dataclass(frozen=True)
-class Settings:
-    """Registration settings (mm and degrees)."""
+class Settings(BaseModel):
+    """Registration settings (mm and degrees); YAML files load with recon.config.load_config
+    (``configs/registration.yaml`` holds the defaults)."""
 
-    pyramid_mm: tuple[float, ...] = (2.4, 1.2)
-    """Pixel sizes of the resolution pyramid, coarse to fine, mm at the panel; each level bins
-    the panel by the nearest whole factor (at least 1)."""
-    highpass_mm: float = 3.0
-    mask_dilation_mm: float = 4.0
-    de_translation_mm: float = 12.0
-    de_long_axis_deg: float = 15.0
-    de_other_axes_deg: float = 8.0
-    de_popsize: int = 10
-    de_maxiter: int = 30
-    powell_maxfev: int = 400
-    nelder_mead_maxfev: int = 120
-    passes: int = 2
-    """Passes over the bones per frame; later passes refine each against the others' newest
-    estimates (Powell in a box of 0.4 x refine_range, then Nelder-Mead)."""
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    pyramid_mm: tuple[PositiveFloat, ...] = Field(
+        (2.4, 1.2),
+        min_length=1,
+        description="pixel sizes of the resolution pyramid at the panel, coarse to fine, mm; "
+        "each level bins the panel by the nearest whole factor (at least 1)",
+    )
+    highpass_mm: PositiveFloat = Field(3.0, description="high-pass Gaussian sigma, mm")
+    mask_dilation_mm: PositiveFloat = Field(4.0, description="2D mask dilation, mm")
+    de_translation_mm: PositiveFloat = Field(12.0, description="DE box half-width, mm")
+    de_long_axis_deg: PositiveFloat = Field(15.0, description="DE box about the long axis, deg")
+    de_other_axes_deg: PositiveFloat = Field(8.0, description="DE box about the others, deg")
+    de_popsize: PositiveInt = 10
+    de_maxiter: PositiveInt = 30
+    powell_maxfev: PositiveInt = 400
+    nelder_mead_maxfev: PositiveInt = 120
+    passes: PositiveInt = Field(
+        2,
+        description="passes over the bones per frame; later passes refine each against the "
+        "others' newest estimates (Powell in a box of 0.4 x refine_range, then Nelder-Mead)",
+    )
     kpm: bool = True
     global_init: bool = True
     powell: bool = True
-    fail_ncc: float = 0.5
-    """A bone whose final NCC is below this is flagged failed."""
-    drop_ncc: float = 0.02
-    """A warm frame whose NCC falls this far below the bone's previous frame widens the search
-    (a differential evolution box of half the first frame's) and keeps the better pose."""
-    refine_range: tuple[float, float] = (5.0, 5.0)
-    """Powell's search box about the start, mm and degrees (line searches stay inside)."""
+    fail_ncc: float = Field(0.5, ge=-1.0, le=1.0, description="flag a bone below this NCC")
+    drop_ncc: float = Field(
+        0.02,
+        ge=0.0,
+        description="a warm frame whose NCC falls this far below the bone's previous frame "
+        "widens the search (DE in half the first frame's box) and keeps the better pose",
+    )
+    refine_range: tuple[PositiveFloat, PositiveFloat] = Field(
+        (5.0, 5.0), description="Powell's box about the start, (mm, deg)"
+    )
     seed: int = 0
 
 

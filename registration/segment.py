@@ -46,7 +46,6 @@ from typing import Literal
 import numpy as np
 import trimesh
 from scipy import ndimage
-from skimage.filters import threshold_otsu
 from skimage.measure import marching_cubes
 from skimage.segmentation import watershed
 
@@ -80,6 +79,7 @@ MIN_BONE_MM3 = 500.0
 
 _BODY_LEVEL = 0.5  # soft tissue: above this fraction of the soft-tissue level
 _MIN_SLICE_TISSUE = 0.01  # share of a slice that must be tissue to estimate its level
+_TISSUE_FRACTION = 0.25  # tissue: above this share of the 99th percentile (bone)
 _LEVEL_SMOOTHING_SLICES = 5  # median filter of the per-slice levels along z
 _HISTOGRAM_BINS = 256
 _ANTERIOR_MARGIN_MM = 10.0  # patella centroid at least this far anterior of femur and tibia
@@ -207,11 +207,13 @@ def bone_points(labels: Volume, volume: Volume) -> dict[str, tuple[np.ndarray, n
 
 
 def _soft_tissue_level(data: np.ndarray) -> float:
-    """Mode of the histogram of the tissue voxels (above the air/tissue Otsu threshold), 1/mm."""
+    """Mode of the histogram of the tissue voxels, 1/mm: those above a quarter of the 99th
+    percentile (bone), which separates air from tissue whether or not the grid holds much
+    air (an Otsu split of a grid inside the leg would fall between soft tissue and bone)."""
     sample = data[::2, ::2, ::2]
     if not np.ptp(sample) > 0.0:
         raise ValueError("a constant volume has no tissue to segment")
-    tissue = sample[sample > threshold_otsu(sample)]
+    tissue = sample[sample > _TISSUE_FRACTION * np.percentile(sample, 99)]
     counts, edges = np.histogram(
         tissue, bins=_HISTOGRAM_BINS, range=(float(tissue.min()), float(np.percentile(tissue, 99)))
     )

@@ -23,7 +23,9 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
-from registration.sequence import register_files
+from recon.config import load_config
+from registration.boneaxis import Settings
+from registration.track import register_files
 from scanner import demo as demo_job
 from scanner import jobs
 from sim.vibration import VibrationSpec
@@ -319,11 +321,14 @@ def register(
     pixel_pitch_mm: Annotated[
         float | None, typer.Option(help="panel pitch for DICOM frames without one, mm")
     ] = None,
+    settings: Annotated[Path, typer.Option(help="registration settings YAML")] = CONFIGS
+    / "registration.yaml",
 ) -> None:
     """Track femur, tibia-fibula and patella through a fluoroscopy sequence (BoneAxis-Reg)."""
     if out.exists():
         fail(f"{out} exists: choose a new output folder (nothing is overwritten)")
     try:
+        chosen = load_config(settings, Settings)
         bar = Progress(
             TextColumn("BoneAxis-Reg"),
             BarColumn(),
@@ -343,6 +348,7 @@ def register(
                 truth_path=truth,
                 initial_path=initial,
                 pixel_pitch_mm=pixel_pitch_mm,
+                settings=chosen,
                 progress=lambda done, total: bar.update(task, completed=done, total=total),
             )
     except (ValueError, OSError) as err:

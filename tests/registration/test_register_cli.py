@@ -3,16 +3,18 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from recon.config import ConfigError, load_config
 from recon.geometry import Geometry
 from recon.io import write_projections, write_volume
 from recon.rtk_xml import write_rtk_geometry
 from recon.volume import Volume, VolumeGrid
-from registration.boneaxis import TRACK_ORDER, compose
+from registration.boneaxis import TRACK_ORDER, Settings, compose
 from registration.poses import BonePose, read_poses, write_poses
 from scanner.cli import app
 
@@ -91,3 +93,16 @@ def test_register_refuses_bad_inputs_before_work(inputs, knee_case) -> None:
     result = runner.invoke(app, _args(paths, out, geometry=two_views))
     assert result.exit_code == 2 and "2 views for 3 frames" in result.output
     assert not out.exists()
+
+
+def test_the_settings_file_holds_the_defaults_and_bad_fields_are_named(tmp_path) -> None:
+    configs = Path(__file__).resolve().parents[2] / "configs"
+    assert load_config(configs / "registration.yaml", Settings) == Settings()
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("powell_maxfev: -3\n", encoding="utf-8")
+    with pytest.raises(ConfigError, match="powell_maxfev"):
+        load_config(bad, Settings)
+    unknown = tmp_path / "unknown.yaml"
+    unknown.write_text("kpm_strength: 2\n", encoding="utf-8")
+    with pytest.raises(ConfigError, match="kpm_strength"):
+        load_config(unknown, Settings)

@@ -10,7 +10,6 @@ gradient NCC, seconds, evaluations, failure flag; the settings) and, given the t
 
 from __future__ import annotations
 
-import dataclasses
 import json
 from collections.abc import Callable
 from pathlib import Path
@@ -123,7 +122,7 @@ def _write(out, results, models, view, settings: Settings, truth) -> None:
         for r in results
         for name, b in r.bones.items()
     ]
-    report = {"settings": dataclasses.asdict(settings), "frames": per_frame}
+    report = {"settings": settings.model_dump(), "frames": per_frame}
     (out / "registration.json").write_text(json.dumps(report, indent=1), encoding="utf-8")
     if truth is None:
         return
