@@ -15,11 +15,13 @@ same start perturbation of the first frame: ``boneaxis_kpm`` (PCA + differential
 the first frame, KPM prediction and line search, Powell + Nelder-Mead coarse to fine),
 ``boneaxis`` (the same without KPM: each frame starts from the previous pose),
 ``powell_nelder_mead`` (no global initialisation, no KPM) and ``nelder_mead`` (Nelder-Mead
-alone). Prints one JSON object ``{"regimes": [...]}``.
+alone). The matched entries also carry ``floor_start_at_truth``: frame 0 refined from the
+TRUE poses on three noise realisations, without and with the distortion, i.e. the error that
+noise and uncorrected distortion alone leave. Prints one JSON object ``{"regimes": [...]}``.
 
 Usage: ``python bench/registration.py [--sequences 3] [--frames 30] [--panel 512]
-[--max-flexion 90] [--methods ...] [--regimes ...]``; ``--quick`` runs 1 sequence of 12
-frames of a 40 degree squat per regime.
+[--max-flexion 90] [--methods ...] [--regimes ...] [--ablation-sequences N]``;
+``--quick`` runs 1 sequence of 12 frames of a 40 degree squat per regime.
 """
 
 from __future__ import annotations

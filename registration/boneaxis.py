@@ -435,8 +435,11 @@ class Tracker:
                 if math.isnan(bone.ncc):
                     continue
                 start = time.perf_counter()
-                pose, n = self._refine(frame, name, poses, scale=0.4)
-                score, grad = self._score(frame, name, {**poses, name: pose})
+                try:
+                    pose, n = self._refine(frame, name, poses, scale=0.4)
+                    score, grad = self._score(frame, name, {**poses, name: pose})
+                except OutOfView:  # the refinement walked off the panel: keep the first pass
+                    pose, n, score, grad = bone.pose, 0, -math.inf, math.nan
                 if score > bone.ncc:
                     bone.pose, bone.ncc, bone.gradient_ncc = pose, score, grad
                     bone.failed = score < s.fail_ncc
