@@ -1,6 +1,6 @@
 """Assess a knee motion: label volume + per-frame bone poses -> :class:`KneeKinematics`.
 
-Labels follow the phantom's and the segmentation's convention (sim.phantoms.knee.KNEE_LABELS:
+Labels follow registration.labels (the phantom's and the segmentation's convention:
 femur 2, tibia 3, fibula 4, patella 5) plus :data:`INSERT_LABEL` for a TKA polyethylene insert.
 The tibia's pose may be given as "tibia" or "tibia_fibula" (the unit registration tracks).
 """
@@ -22,19 +22,12 @@ from assessment.anatomy import (
 from assessment.kinematics import knee_kinematics
 from assessment.results import MLD_FLAG_MM, KneeKinematics
 from recon.volume import Volume
+from registration.labels import BONE_LABELS
 from registration.poses import BonePose, poses_by_frame
 from sim.phantoms.knee import KNEE_LABELS
 
 INSERT_LABEL = 6
 """Label of a TKA polyethylene insert; with ``tka`` the TP plane is fitted to its top."""
-
-BONE_LABELS = {
-    "femur": (KNEE_LABELS["femur"],),
-    "tibia": (KNEE_LABELS["tibia"],),
-    "tibia_fibula": (KNEE_LABELS["tibia"], KNEE_LABELS["fibula"]),
-    "fibula": (KNEE_LABELS["fibula"],),
-    "patella": (KNEE_LABELS["patella"],),
-}
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,7 @@ import numpy as np
 from recon.geometry import Geometry, View
 from recon.project import JosephProjector
 from recon.volume import Volume, VolumeGrid
-from registration.segment import BONE_UNITS, LABELS
+from registration.labels import BONE_UNITS, LABELS
 
 SOFT_TISSUE_LABEL = LABELS["soft_tissue"]
 CROP_MARGIN_MM = 3.0

@@ -33,7 +33,7 @@ Classical 3D segmentation of a reconstruction in linear attenuation (1/mm), in f
 5. **Soft tissue** is the largest connected region above half the soft-tissue level, filled
    per axial slice; the rest is air.
 
-Label values follow the phantom (:data:`LABELS`, the same as ``sim.phantoms.KNEE_LABELS``).
+Label values follow registration.labels (:data:`LABELS`, also the phantom's).
 Registration tracks three units (:data:`BONE_UNITS`): femur, tibia with fibula, patella;
 :func:`bone_surfaces` meshes them and :func:`bone_points` returns their voxel clouds.
 """
@@ -50,23 +50,7 @@ from skimage.measure import marching_cubes
 from skimage.segmentation import watershed
 
 from recon.volume import Volume
-
-LABELS: dict[str, int] = {
-    "air": 0,
-    "soft_tissue": 1,
-    "femur": 2,
-    "tibia": 3,
-    "fibula": 4,
-    "patella": 5,
-}
-"""Label values of :func:`segment_bones`."""
-
-BONE_UNITS: dict[str, tuple[int, ...]] = {
-    "femur": (LABELS["femur"],),
-    "tibia_fibula": (LABELS["tibia"], LABELS["fibula"]),
-    "patella": (LABELS["patella"],),
-}
-"""The rigid units registration tracks and the labels each is made of."""
+from registration.labels import BONE_UNITS, LABELS
 
 EDGE_CANDIDATES = np.arange(1.30, 1.96, 0.05)
 """Bone edge thresholds tried, in multiples of the soft-tissue level."""

@@ -55,6 +55,7 @@ from recon.io import write_projections
 from recon.project import forward_project
 from recon.rtk_xml import write_rtk_geometry
 from recon.volume import Volume, VolumeGrid
+from registration.labels import BONE_LABELS
 from registration.poses import BonePose, check_rigid, write_poses
 from sim.motion import BONES, KneeMotion
 from sim.phantoms.knee import (
@@ -105,13 +106,6 @@ SOFT_TISSUE_MM = 1.0
 _COARSE_MM = 5.0  # spacing of the points that find which part of the leg the frames see
 _MARGIN_MM = 10.0  # around that part, and around the deformed soft tissue in the field
 _FIELD_MARGIN_PX = 4.0  # a point counts as in the field this far outside the panel
-_BONE_LABELS = {
-    "femur": (KNEE_LABELS["femur"],),
-    "tibia": (KNEE_LABELS["tibia"],),
-    "fibula": (KNEE_LABELS["fibula"],),
-    "patella": (KNEE_LABELS["patella"],),
-    "tibia_fibula": (KNEE_LABELS["tibia"], KNEE_LABELS["fibula"]),
-}
 
 
 @dataclass(frozen=True)
@@ -641,9 +635,9 @@ def bone_centroids(labels: Volume, bones: tuple[str, ...]) -> dict[str, np.ndarr
     axes = labels.grid.axes_mm()
     out = {}
     for bone in bones:
-        if bone not in _BONE_LABELS:
-            raise ValueError(f"unknown bone {bone!r}; known: {', '.join(_BONE_LABELS)}")
-        kz, ky, kx = np.nonzero(np.isin(labels.data, _BONE_LABELS[bone]))
+        if bone not in BONE_LABELS:
+            raise ValueError(f"unknown bone {bone!r}; known: {', '.join(BONE_LABELS)}")
+        kz, ky, kx = np.nonzero(np.isin(labels.data, BONE_LABELS[bone]))
         if kz.size == 0:
             raise ValueError(f"bone {bone!r} has no voxels in the label volume")
         out[bone] = np.array([axes[0][kx].mean(), axes[1][ky].mean(), axes[2][kz].mean()])

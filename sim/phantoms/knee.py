@@ -51,18 +51,12 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from scipy.spatial.transform import Rotation
 
 from recon.volume import VolumeGrid
+from registration.labels import LABELS
 from sim.phantoms import sdf
 from sim.phantoms.sdf import box_slices, layer_fractions
 
-KNEE_LABELS: dict[str, int] = {
-    "air": 0,
-    "soft_tissue": 1,
-    "femur": 2,
-    "tibia": 3,
-    "fibula": 4,
-    "patella": 5,
-}
-"""Label values of :func:`rasterize_knee` (cortical and cancellous bone share a bone's label)."""
+KNEE_LABELS = LABELS
+"""Label values of :func:`rasterize_knee` (registration.labels.LABELS)."""
 
 BONES: tuple[str, ...] = ("femur", "tibia", "fibula", "patella")
 
