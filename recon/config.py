@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import TypeVar
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from recon.geometry import DetectorSpec, OrbitSpec
 
@@ -77,6 +77,19 @@ class ScanProtocol(BaseModel):
     detector: DetectorSpec
     orbit: OrbitSpec
     exposure: ExposureSpec
+    dose_limit_mas: float = Field(
+        250.0, gt=0.0, le=5000.0, description="limit on the whole scan's tube load, mAs"
+    )
+
+    @model_validator(mode="after")
+    def _dose_within_limit(self) -> ScanProtocol:
+        dose = self.orbit.views * self.exposure.mas
+        if dose > self.dose_limit_mas:
+            raise ValueError(
+                f"scan dose {dose:.1f} mAs ({self.orbit.views} views x {self.exposure.mas:.3f} "
+                f"mAs) exceeds dose_limit_mas {self.dose_limit_mas:.1f} mAs"
+            )
+        return self
 
 
 def load_protocol(path: str | Path) -> ScanProtocol:

@@ -199,15 +199,17 @@ def tool_targets(view: View) -> tuple[pin.SE3, pin.SE3]:
     return source, detector
 
 
-def _achieved_view(model: ScannerModel, q: np.ndarray, template: View) -> View:
+def view_at(model: ScannerModel, q_units: np.ndarray, panel: DetectorSpec) -> View:
+    """The view a joint configuration realises: ``q_units`` in the plan's joint units (rotary
+    deg, lift mm, arm joints deg), the panel read out as ``panel``."""
+    return _view(model, model.from_units(q_units), panel)
+
+
+def _view(model: ScannerModel, q: np.ndarray, panel: DetectorSpec) -> View:
     source, detector = model.tool_poses(q)
     rot = detector.rotation
     return View.from_center(
-        source.translation * 1000.0,
-        detector.translation * 1000.0,
-        rot[:, 0],
-        rot[:, 1],
-        _panel(template),
+        source.translation * 1000.0, detector.translation * 1000.0, rot[:, 0], rot[:, 1], panel
     )
 
 
@@ -387,7 +389,7 @@ def plan_scan(
     qdd = np.concatenate([p.qdd if k == 0 else p.qdd[1:] for k, p in enumerate(paths)])
 
     achieved = Geometry(
-        [_achieved_view(model, qv, view) for qv, view in zip(view_q, desired, strict=True)]
+        [_view(model, qv, _panel(view)) for qv, view in zip(view_q, desired, strict=True)]
     )
     pose_mm, pose_deg = _pose_errors(model, view_q, desired)
     closest, phase, phase_start = min(clearances, key=lambda c: c[0].distance_m)

@@ -1,0 +1,380 @@
+"""The scan state machine: PREFLIGHT -> APPROACH -> ACQUIRE -> RETREAT -> DONE, or SAFE.
+
+PREFLIGHT checks everything before anything moves: the plan (joint limits, clearance), the dose
+of the views still to acquire against the protocol's limit, the devices (connected, generator
+technique accepted, interlocks closed), the arms at the plan's start, and asks the operator.
+APPROACH streams the planned approach and warms the tube up, then asks again before exposure.
+ACQUIRE streams the planned scan; at each view's time it reads both arms and the stage, checks
+that the realised view is the planned one within tolerance and that the interlocks are closed,
+and only then fires one pulse, reads the frame and stores it with the joint state it was taken
+at (:class:`scanner.storage.ScanStore`). RETREAT streams the planned retreat; DONE assembles the
+stack. Any failure (a device error, a protective stop, an off-pose view, an open interlock,
+Ctrl-C) goes to SAFE: X-ray off first, then every joint group stops, then what was acquired is
+flushed and the scan marked incomplete with the reason; ``cbct scan --resume`` continues with
+the views not yet stored.
+"""
+
+from __future__ import annotations
+
+import enum
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from recon.config import ScanProtocol
+from recon.geometry import DetectorSpec, View
+from scanner.hardware import Backend, DeviceError, Technique
+from scanner.storage import ScanStore, ViewRecord
+from trajectories.model import ScannerModel
+from trajectories.plan import Plan, view_at
+
+GROUP_SLICES = (slice(0, 2), slice(2, 8), slice(8, 14))
+"""Plan joint indices of the backend's groups: stage (rotary, lift), source arm, detector arm."""
+
+
+class State(enum.Enum):
+    PREFLIGHT = "preflight"
+    APPROACH = "approach"
+    ACQUIRE = "acquire"
+    RETREAT = "retreat"
+    DONE = "done"
+    SAFE = "safe"
+
+
+class ScanFault(RuntimeError):
+    """The scan stopped in SAFE; ``state`` is where it failed, ``reason`` why."""
+
+    def __init__(self, state: State, reason: str, views_stored: int, views: int) -> None:
+        super().__init__(
+            f"scan stopped in {state.value.upper()}: {reason} "
+            f"({views_stored}/{views} views stored; X-ray off, arms stopped)"
+        )
+        self.state, self.reason = state, reason
+        self.views_stored, self.views = views_stored, views
+
+
+class PreflightError(ValueError):
+    """A preflight check failed: nothing moved, nothing was exposed."""
+
+
+class OperatorDeclined(RuntimeError):
+    """The operator answered no."""
+
+
+@dataclass(frozen=True)
+class ScanSettings:
+    """Acquisition tolerances and timeouts.
+
+    Attributes:
+        pose_tolerance_mm: largest focal-spot / panel-centre distance between the realised and
+            the planned view at exposure, mm.
+        pose_tolerance_deg: largest angle between realised and planned panel normals, deg.
+        start_tolerance: largest joint distance from the plan's start, deg (mm for the lift).
+        device_timeout_s: timeout of every device call, s.
+        warmup_timeout_s: timeout of the generator's warm-up, s.
+    """
+
+    pose_tolerance_mm: float = 2.0
+    pose_tolerance_deg: float = 0.5
+    start_tolerance: float = 0.5
+    device_timeout_s: float = 2.0
+    warmup_timeout_s: float = 30.0
+
+
+@dataclass
+class Progress:
+    """What the console shows while acquiring."""
+
+    views_done: int
+    views: int
+    dose_mas: float
+    elapsed_s: float
+    state: State
+
+
+@dataclass
+class Preflight:
+    """The preflight summary the operator confirms."""
+
+    views: int
+    views_to_acquire: int
+    duration_s: float
+    dose_mas: float
+    dose_limit_mas: float
+    min_clearance_mm: float
+    clearance_margin_mm: float
+    technique: Technique
+
+    def text(self) -> str:
+        return (
+            f"{self.views_to_acquire} of {self.views} views to acquire, motion "
+            f"{self.duration_s:.1f} s, dose {self.dose_mas:.1f} mAs (limit "
+            f"{self.dose_limit_mas:.1f}), technique {self.technique.kv:g} kV "
+            f"{self.technique.ma:g} mA {self.technique.ms:g} ms, minimum clearance "
+            f"{self.min_clearance_mm:.1f} mm (margin {self.clearance_margin_mm:.1f})"
+        )
+
+
+@dataclass
+class ScanRun:
+    """One execution of a plan on a backend into a study's scan store.
+
+    Args:
+        backend: the devices (connected by :meth:`run`).
+        model: the scanner model the plan was made on.
+        plan: the checked, timed plan.
+        protocol: its protocol (technique, panel).
+        store: where views go.
+        settings: tolerances and timeouts.
+        confirm: asks the operator a yes/no question; False stops before motion / exposure.
+        progress: called after every stored view.
+        on_view: called with each stored view (e.g. the rerun recording).
+        truth: the true view matrix of the last pulse, where a simulator knows it.
+    """
+
+    backend: Backend
+    model: ScannerModel
+    plan: Plan
+    protocol: ScanProtocol
+    store: ScanStore
+    settings: ScanSettings = field(default_factory=ScanSettings)
+    confirm: Callable[[str], bool] = lambda _question: True
+    progress: Callable[[Progress], None] = lambda _p: None
+    on_view: Callable[[ViewRecord, np.ndarray], None] = lambda _r, _img: None
+    truth: Callable[[], np.ndarray | None] = lambda: None
+    state: State = State.PREFLIGHT
+    transitions: list[tuple[float, State]] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        e = self.protocol.exposure
+        self.technique = Technique(e.tube_kv, e.tube_ma, e.pulse_ms)
+        self.panel = DetectorSpec(
+            rows=self.protocol.detector.rows,
+            cols=self.protocol.detector.cols,
+            pixel_pitch_mm=self.protocol.detector.pixel_pitch_mm,
+        )
+        self._started = time.perf_counter()
+
+    # -- the machine --------------------------------------------------------------------
+
+    def run(self) -> None:
+        """Run the scan to DONE; raises PreflightError / OperatorDeclined before anything moves,
+        ScanFault after SAFE."""
+        self._enter(State.PREFLIGHT)
+        try:
+            summary = self.preflight()
+            if not self.confirm(f"Start motion? {summary.text()}"):
+                raise OperatorDeclined("operator declined motion: nothing moved, nothing exposed")
+        except BaseException:
+            self._shutdown()
+            raise
+        try:
+            self._enter(State.APPROACH)
+            self.backend.generator.prepare(self.settings.warmup_timeout_s)
+            self._stream("approach")
+            question = f"Arms at the scan start. Expose {summary.views_to_acquire} views?"
+            if not self.confirm(question):
+                raise OperatorDeclined("operator declined exposure")
+            self._enter(State.ACQUIRE)
+            self._stream("scan", acquire=True)
+            self._enter(State.RETREAT)
+            self._stream("retreat")
+        except BaseException as err:  # Ctrl-C included: X-ray off, arms stop, data flushed
+            self._safe(err)
+        self.store.finish()
+        self._enter(State.DONE)
+        self._shutdown()
+
+    def preflight(self) -> Preflight:
+        """Check plan, dose, devices and start pose; raises PreflightError naming the problem."""
+        plan, model = self.plan, self.model
+        n = len(plan.view_times_s)
+        if n != self.protocol.orbit.views:
+            raise PreflightError(f"plan has {n} views, protocol {self.protocol.orbit.views}")
+        if plan.min_clearance_mm < plan.clearance_margin_mm:
+            raise PreflightError(
+                f"plan clearance {plan.min_clearance_mm:.1f} mm < margin "
+                f"{plan.clearance_margin_mm:.1f} mm at {plan.min_clearance_at}"
+            )
+        lower = model.to_units(model.limits.lower)
+        upper = model.to_units(model.limits.upper)
+        for k, name in enumerate(plan.joint_names):
+            lo, hi = plan.q[:, k].min(), plan.q[:, k].max()
+            if lo < lower[k] - 1e-6 or hi > upper[k] + 1e-6:
+                raise PreflightError(
+                    f"joint {name} spans [{lo:.2f}, {hi:.2f}], outside its limits "
+                    f"[{lower[k]:.2f}, {upper[k]:.2f}]"
+                )
+        todo = [k for k in range(n) if k not in self.store.stored]
+        dose = n * self.technique.mas
+        if dose > self.protocol.dose_limit_mas + 1e-9:
+            raise PreflightError(
+                f"scan dose {dose:.1f} mAs ({n} views x {self.technique.mas:.3f} mAs) exceeds "
+                f"the protocol limit of {self.protocol.dose_limit_mas:.1f} mAs"
+            )
+        timeout = self.settings.device_timeout_s
+        b = self.backend
+        for device in (*b.groups, b.generator, b.detector):
+            device.connect(timeout)
+        if (b.detector.rows, b.detector.cols) != (self.panel.rows, self.panel.cols):
+            raise PreflightError(
+                f"detector reads {b.detector.rows}x{b.detector.cols} pixels, protocol asks "
+                f"{self.panel.rows}x{self.panel.cols}"
+            )
+        b.generator.set_technique(self.technique, timeout)
+        status = b.generator.status(timeout)
+        if not status.interlocks_closed:
+            opened = [k for k, closed in status.interlocks.items() if not closed]
+            raise PreflightError(f"interlocks open: {opened or 'none reported'}")
+        if status.fault:
+            raise PreflightError(f"generator fault: {status.fault}")
+        q_now = self._read_q()
+        error = np.abs(q_now - plan.q[0])
+        worst = int(np.argmax(error))
+        if error[worst] > self.settings.start_tolerance:
+            raise PreflightError(
+                f"joint {plan.joint_names[worst]} is at {q_now[worst]:.2f}, the plan starts at "
+                f"{plan.q[0, worst]:.2f} (tolerance {self.settings.start_tolerance}): move the "
+                "scanner to the plan's start first"
+            )
+        return Preflight(
+            views=n,
+            views_to_acquire=len(todo),
+            duration_s=float(plan.duration_s),
+            dose_mas=len(todo) * self.technique.mas,
+            dose_limit_mas=self.protocol.dose_limit_mas,
+            min_clearance_mm=plan.min_clearance_mm,
+            clearance_margin_mm=plan.clearance_margin_mm,
+            technique=self.technique,
+        )
+
+    # -- motion -------------------------------------------------------------------------
+
+    def _read_q(self) -> np.ndarray:
+        q = np.empty(14)
+        for group, idx in zip(self.backend.groups, GROUP_SLICES, strict=True):
+            reading = group.state(self.settings.device_timeout_s)
+            if reading.protective_stop:
+                raise DeviceError(f"{group.name}: protective stop")
+            q[idx] = reading.q
+        return q
+
+    def _stream(self, phase: str, acquire: bool = False) -> None:
+        """Stream the plan's ``phase`` to the groups in time; acquire the views in it."""
+        plan = self.plan
+        t0, t1 = plan.phases[phase]
+        inside = (plan.t_s >= t0 - 1e-9) & (plan.t_s <= t1 + 1e-9)
+        times, qs = list(plan.t_s[inside]), list(plan.q[inside])
+        events: list[tuple[float, np.ndarray, int | None]] = [
+            (t, q, None) for t, q in zip(times, qs, strict=True)
+        ]
+        if acquire:
+            events += [(float(t), plan.view_q[k], k) for k, t in enumerate(plan.view_times_s)]
+            events.sort(key=lambda e: (e[0], e[2] is not None))
+        clock = self.backend.clock
+        origin = clock.now() - events[0][0]
+        previous = events[0][0]
+        for t, q, view in events:
+            dt = max(t - previous, 0.0)
+            if dt > 0:
+                for group, idx in zip(self.backend.groups, GROUP_SLICES, strict=True):
+                    group.servo(q[idx], dt)
+                clock.sleep_until(origin + t)
+            previous = t
+            if view is not None and view not in self.store.stored:
+                self._acquire(view)
+
+    def _acquire(self, k: int) -> None:
+        """One view: pose check, interlock check, expose, read, store."""
+        b, timeout = self.backend, self.settings.device_timeout_s
+        q = self._read_q()
+        t_reading = b.clock.now()
+        realised = view_at(self.model, q, self.panel)
+        planned = view_at(self.model, self.plan.view_q[k], self.panel)
+        self._check_pose(k, realised, planned)
+        status = b.generator.status(timeout)
+        if not status.interlocks_closed:
+            opened = [name for name, closed in status.interlocks.items() if not closed]
+            raise DeviceError(f"view {k}: interlock open ({', '.join(opened)}): not exposing")
+        if not status.ready or status.fault:
+            raise DeviceError(f"view {k}: generator not ready ({status.fault or 'not prepared'})")
+        b.detector.arm(timeout)
+        exposure = b.generator.expose(timeout)
+        frame = b.detector.read_frame(timeout)
+        flood = b.detector.flood_counts(exposure.technique)
+        line_integrals = -np.log(np.maximum(frame.counts, 1.0) / flood).astype(np.float32)
+        record = ViewRecord(
+            view=k,
+            planned_time_s=float(self.plan.view_times_s[k]),
+            clock_s=t_reading,
+            frame_clock_s=float(frame.t_s),
+            q=q,
+            matrix=realised.matrix,
+            source_mm=realised.source_mm,
+            kv=exposure.technique.kv,
+            ma=exposure.technique.ma,
+            ms=exposure.technique.ms,
+            exposure_sequence=exposure.sequence,
+            true_matrix=self.truth(),
+        )
+        self.store.put(record, line_integrals, frame.counts)
+        self.on_view(record, line_integrals)
+        self.progress(
+            Progress(
+                len(self.store.stored),
+                len(self.plan.view_times_s),
+                self.store.dose_mas,
+                time.perf_counter() - self._started,
+                self.state,
+            )
+        )
+
+    def _check_pose(self, k: int, realised: View, planned: View) -> None:
+        ds = float(np.linalg.norm(realised.source_mm - planned.source_mm))
+        dd = float(np.linalg.norm(realised.detector_center_mm - planned.detector_center_mm))
+        angle = float(np.degrees(np.arccos(np.clip(realised.normal @ planned.normal, -1, 1))))
+        tol_mm, tol_deg = self.settings.pose_tolerance_mm, self.settings.pose_tolerance_deg
+        if ds > tol_mm or dd > tol_mm or angle > tol_deg:
+            raise DeviceError(
+                f"view {k}: arms off pose (source {ds:.2f} mm, detector {dd:.2f} mm, panel "
+                f"{angle:.2f} deg; tolerance {tol_mm} mm, {tol_deg} deg): not exposing"
+            )
+
+    # -- transitions and SAFE -----------------------------------------------------------
+
+    def _enter(self, state: State) -> None:
+        self.state = state
+        self.transitions.append((time.perf_counter() - self._started, state))
+
+    def _safe(self, err: BaseException) -> None:
+        failed_in = self.state
+        self._enter(State.SAFE)
+        b, timeout = self.backend, self.settings.device_timeout_s
+        problems = []
+        try:
+            b.generator.abort(timeout)
+        except Exception as abort_err:  # still stop the arms; report loudly
+            problems.append(f"X-RAY OFF NOT CONFIRMED: {abort_err}")
+        for group in b.groups:
+            try:
+                group.stop()
+            except Exception as stop_err:
+                problems.append(f"{group.name} stop failed: {stop_err}")
+        if isinstance(err, KeyboardInterrupt):
+            reason = "interrupted by the operator (Ctrl-C)"
+        else:
+            reason = f"{type(err).__name__}: {err}"
+        if problems:
+            reason += "; " + "; ".join(problems)
+        self.store.mark_incomplete(reason, failed_in.value)
+        self._shutdown()
+        stored, views = len(self.store.stored), len(self.plan.view_times_s)
+        raise ScanFault(failed_in, reason, stored, views) from err
+
+    def _shutdown(self) -> None:
+        try:
+            self.backend.close()
+        except Exception:  # closing after SAFE must not mask the fault
+            pass

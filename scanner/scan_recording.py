@@ -1,0 +1,86 @@
+"""A rerun recording of an acquisition, written while it runs (``scan/recording.rrd``).
+
+Entities (world frame, mm), on the ``scan_time`` timeline (the plan's seconds) and the
+``view`` sequence:
+
+- ``scan/joints/<name>``: measured joints at each exposure (deg; lift mm).
+- ``world/scan/source``, ``world/scan/detector``: the recorded focal spot and panel centre;
+  ``world/scan/frustum``: the rays to the panel corners of the recorded view.
+- ``scan/projection``: each stored projection (line integrals).
+- ``scan/events``: exposures (technique, generator sequence) and state changes.
+
+The file streams to ``<name>.partial`` and is renamed when the acquisition ends (also after a
+fault: what was recorded is kept). A resumed scan writes ``recording-2.rrd`` and so on.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import rerun as rr
+
+from recon.geometry import View
+from scanner.storage import ViewRecord
+from scanner.study import Study
+
+TIMELINE = "scan_time"
+VIEW_TIMELINE = "view"
+
+
+def _frustum(view: View) -> list[np.ndarray]:
+    r, c = view.rows - 1, view.cols - 1
+    corners = view.pixel_to_world(np.array([0, c, c, 0]), np.array([0, 0, r, r]))
+    rays = [np.array([view.source_mm, corner]) for corner in corners]
+    return [*rays, np.vstack([corners, corners[:1]])]
+
+
+class ScanRecorder:
+    """Streams an acquisition into the study's scan folder."""
+
+    def __init__(self, study: Study, joint_names: tuple[str, ...], pitch_mm: float) -> None:
+        folder = study.path / "scan"
+        folder.mkdir(parents=True, exist_ok=True)
+        k = 1
+        while (folder / ("recording.rrd" if k == 1 else f"recording-{k}.rrd")).exists():
+            k += 1
+        self.path = folder / ("recording.rrd" if k == 1 else f"recording-{k}.rrd")
+        self.partial = self.path.with_name(self.path.name + ".partial")
+        self.study, self.joint_names, self.pitch_mm = study, joint_names, pitch_mm
+        self.rec = rr.RecordingStream("dualarm-cbct")
+        self.rec.save(self.partial)
+        self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+
+    def view(self, record: ViewRecord, image: np.ndarray) -> None:
+        rec = self.rec
+        rec.set_time(TIMELINE, duration=record.planned_time_s)
+        rec.set_time(VIEW_TIMELINE, sequence=record.view)
+        for name, value in zip(self.joint_names, record.q, strict=True):
+            rec.log(f"scan/joints/{name}", rr.Scalars(float(value)))
+        rows, cols = image.shape
+        view = View.from_matrix(record.matrix, self.pitch_mm, rows, cols)
+        rec.log("world/scan/source", rr.Points3D([view.source_mm], colors=[(230, 120, 40)]))
+        rec.log(
+            "world/scan/detector", rr.Points3D([view.detector_center_mm], colors=[(60, 130, 220)])
+        )
+        rec.log("world/scan/frustum", rr.LineStrips3D(_frustum(view)))
+        rec.log("scan/projection", rr.Image(image.astype(np.float32)))
+        rec.log(
+            "scan/events",
+            rr.TextLog(
+                f"view {record.view}: {record.kv:g} kV {record.ma:g} mA {record.ms:g} ms "
+                f"(pulse {record.exposure_sequence})"
+            ),
+        )
+
+    def event(self, text: str, level: str = "INFO") -> None:
+        self.rec.log("scan/events", rr.TextLog(text, level=level))
+
+    def close(self) -> Path:
+        """Finish the file and record its checksum in the study."""
+        self.rec.flush()
+        self.rec.disconnect()
+        self.partial.rename(self.path)
+        self.study.adopt(self.path.relative_to(self.study.path).as_posix())
+        self.study.save()
+        return self.path

@@ -1,0 +1,200 @@
+"""A scan session into a study folder: what ``cbct scan`` runs.
+
+New study: every input is read and validated first (protocol, scanner, backend, phantom), the
+study folder is created with the config snapshot, the scan is planned into ``plan/``, the
+backend opened and the state machine run, streaming views into ``scan/`` and a recording.
+Resume (``--resume``): the study's own snapshot is used, the plan is made again and must equal
+the stored one, stored views are verified against their checksums, and only the views not yet
+stored are acquired.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from recon.config import ScanProtocol, load_config, load_protocol
+from recon.geometry import DetectorSpec
+from recon.volume import Volume
+from scanner.backends import BACKEND_SPECS, load_backend_spec, open_backend
+from scanner.scan import Progress as ScanProgress
+from scanner.scan import ScanRun, ScanSettings
+from scanner.scan_recording import ScanRecorder
+from scanner.storage import ScanStore
+from scanner.study import Study, StudyError
+from sim.backend import volume_subject
+from sim.phantoms.knee import KneePhantomSpec, knee_grid, rasterize_knee
+from trajectories.config import ScannerConfig
+from trajectories.model import ScannerModel
+from trajectories.plan import Plan, plan_scan
+
+Say = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class SessionInputs:
+    """Validated inputs of a session (also the study's config snapshot)."""
+
+    protocol: ScanProtocol
+    scanner: ScannerConfig
+    backend_kind: str
+    backend: object
+    phantom: KneePhantomSpec
+    phantom_voxel_mm: float
+
+    def snapshot(self) -> dict:
+        return {
+            "protocol": self.protocol.model_dump(mode="json"),
+            "scanner": self.scanner.model_dump(mode="json"),
+            "backend": {"kind": self.backend_kind, **self.backend.model_dump(mode="json")},
+            "phantom": self.phantom.model_dump(mode="json"),
+            "phantom_voxel_mm": self.phantom_voxel_mm,
+        }
+
+    @classmethod
+    def from_snapshot(cls, config: dict) -> SessionInputs:
+        backend = dict(config["backend"])
+        kind = backend.pop("kind")
+        return cls(
+            protocol=ScanProtocol.model_validate(config["protocol"]),
+            scanner=ScannerConfig.model_validate(config["scanner"]),
+            backend_kind=kind,
+            backend=BACKEND_SPECS[kind].model_validate(backend),
+            phantom=KneePhantomSpec.model_validate(config["phantom"]),
+            phantom_voxel_mm=float(config["phantom_voxel_mm"]),
+        )
+
+
+def read_inputs(
+    protocol: Path | ScanProtocol,
+    scanner: Path,
+    backend_kind: str,
+    backend_config: Path,
+    phantom: Path,
+    *,
+    phantom_voxel_mm: float = 1.0,
+) -> SessionInputs:
+    """Read and validate every input before anything is written or moved."""
+    if not 0.25 <= phantom_voxel_mm <= 4.0:
+        raise ValueError(f"phantom_voxel_mm must be in [0.25, 4] mm, got {phantom_voxel_mm}")
+    if not isinstance(protocol, ScanProtocol):
+        protocol = load_protocol(protocol)
+    protocol = ScanProtocol.model_validate(protocol.model_dump())  # checks edits, dose included
+    return SessionInputs(
+        protocol=protocol,
+        scanner=load_config(scanner, ScannerConfig),
+        backend_kind=backend_kind,
+        backend=load_backend_spec(backend_kind, backend_config),
+        phantom=load_config(phantom, KneePhantomSpec),
+        phantom_voxel_mm=phantom_voxel_mm,
+    )
+
+
+def _plan(study: Study, model: ScannerModel, protocol: ScanProtocol, say: Say) -> Plan:
+    say("planning the scan (IK, clearance, timing)")
+    plan = plan_scan(model, protocol)
+    folder = study.path / "plan"
+    if study.stage("plan").get("status") == "complete":
+        stored = np.load(folder / "trajectory.npz")
+        if stored["q"].shape != plan.q.shape or not np.allclose(stored["q"], plan.q, atol=1e-9):
+            raise StudyError(
+                f"{folder}: the plan made again differs from the stored one (software or "
+                "config changed since): refusing to resume on a different motion"
+            )
+        if study.verify("plan/"):
+            raise StudyError(f"{folder}: files altered: {study.verify('plan/')}")
+        return plan
+    plan.save(folder)
+    study.adopt("plan")
+    study.mark("plan", "complete", **plan.summary())
+    return plan
+
+
+def knee_subject(inputs: SessionInputs, say: Say):
+    """The knee phantom as the simulated panel sees it."""
+    grid = knee_grid(inputs.phantom, spacing_mm=inputs.phantom_voxel_mm)
+    say(f"rasterising the knee phantom ({grid.size_xyz} voxels of {inputs.phantom_voxel_mm} mm)")
+    _, mu = rasterize_knee(inputs.phantom, grid)
+    return volume_subject(Volume(mu, grid, "1/mm"))
+
+
+def run_session(
+    study_path: Path,
+    inputs: SessionInputs | None,
+    *,
+    resume: bool = False,
+    backend_override: object | None = None,
+    confirm: Callable[[str], bool] = lambda _q: True,
+    progress: Callable[[ScanProgress], None] = lambda _p: None,
+    say: Say = lambda _m: None,
+    settings: ScanSettings | None = None,
+) -> Study:
+    """Plan and scan into ``study_path`` (new), or continue it (``resume``; the backend's
+    config may be given again, e.g. new addresses, or a simulation without the fault)."""
+    if resume:
+        study = Study.open(study_path)
+        if study.stage("scan").get("status") == "complete":
+            raise StudyError(f"{study_path}: the scan is complete; nothing to resume")
+        inputs = SessionInputs.from_snapshot(study.manifest["config"])
+        if backend_override is not None:
+            if type(backend_override) is not type(inputs.backend):
+                raise StudyError(
+                    f"{study_path} was scanned on the {inputs.backend_kind} backend; the resume "
+                    f"config is a {type(backend_override).__name__}"
+                )
+            inputs = replace(inputs, backend=backend_override)
+    else:
+        if inputs is None:
+            raise ValueError("a new study needs its inputs")
+        study = Study.create(study_path, inputs.snapshot())
+    model = ScannerModel(inputs.scanner)
+    plan = _plan(study, model, inputs.protocol, say)
+    d = inputs.protocol.detector
+    panel = DetectorSpec(rows=d.rows, cols=d.cols, pixel_pitch_mm=d.pixel_pitch_mm)
+    store = ScanStore(study, panel, plan.joint_names, len(plan.view_times_s), plan.achieved)
+    if store.stored:
+        say(f"{len(store.stored)} views already stored and verified")
+    subject = knee_subject(inputs, say)
+    backend, simulated = open_backend(
+        inputs.backend, model, plan.q[0], panel, inputs.protocol.orbit.sdd_mm, subject
+    )
+    truth = (lambda: simulated.detector.true_views[-1].matrix) if simulated else (lambda: None)
+    recorder = ScanRecorder(study, plan.joint_names, panel.pixel_pitch_mm)
+    base = settings or ScanSettings()
+    run = ScanRun(
+        backend=backend,
+        model=model,
+        plan=plan,
+        protocol=inputs.protocol,
+        store=store,
+        settings=base,
+        confirm=confirm,
+        progress=progress,
+        on_view=recorder.view,
+        truth=truth,
+    )
+    sessions = study.manifest.setdefault("sessions", [])
+    sessions.append({"backend": inputs.backend.model_dump(mode="json"), "resume": resume})
+    study.save()
+    say(f"scanning on the {inputs.backend_kind} backend")
+    try:
+        run.run()
+    finally:
+        recorder.close()
+        if simulated is not None:
+            _write_device_events(study, simulated.world.events, len(sessions))
+    return study
+
+
+def _write_device_events(study: Study, events: list, session: int) -> None:
+    """The simulator's ordered device log of this session (sequence, virtual time, device,
+    event): ``scan/device_events-<session>.csv``."""
+    lines = ["sequence,time_s,device,event"] + [
+        f"{seq},{t:.6f},{who},{what}" for seq, t, who, what in events
+    ]
+    text = "\n".join(lines) + "\n"
+    study.write(f"scan/device_events-{session}.csv", lambda p: p.write_text(text, encoding="utf-8"))
+    study.save()

@@ -1,0 +1,198 @@
+"""A scan's views in the study folder, stored one by one as they are acquired.
+
+Layout under ``scan/``::
+
+    views/view_0007.mha          line integrals -ln(I/I0) of view 7, float32 (1, rows, cols)
+    views/view_0007_counts.mha   its raw counts
+    views/view_0007.json         the record: joints at exposure, the realised 3x4 matrix,
+                                 technique, clock times, sha256 of both images
+    projections.mha, counts.mha  the stacks, assembled when every view is in (RTK-readable)
+    geometry.xml                 the views as recorded (the arms' measured joints), RTK XML
+    planned_geometry.xml         the plan's views
+    true_geometry.xml            simulation only: the views the structure really realised
+    joint_states.csv             joints at every exposure (plan joint units)
+    exposure_log.csv             view, clock time, kV, mA, ms, generator sequence
+
+A view counts as stored once its .json exists (written last, atomically, after both images);
+on reopening, every stored view is checked against its checksums, and an altered or missing
+file is an error, never skipped silently.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from recon.geometry import DetectorSpec, Geometry, View
+from recon.io import read_projections, write_projections
+from recon.rtk_xml import write_rtk_geometry
+from scanner.study import Study, StudyError, sha256
+
+
+@dataclass(frozen=True)
+class ViewRecord:
+    """What is known about one acquired view (units in the names; q in plan joint units)."""
+
+    view: int
+    planned_time_s: float
+    clock_s: float
+    frame_clock_s: float
+    q: np.ndarray
+    matrix: np.ndarray
+    source_mm: np.ndarray
+    kv: float
+    ma: float
+    ms: float
+    exposure_sequence: int
+    true_matrix: np.ndarray | None = None
+
+    @property
+    def mas(self) -> float:
+        return self.ma * self.ms * 1e-3
+
+    def to_json(self) -> dict:
+        out = asdict(self)
+        for key in ("q", "matrix", "source_mm", "true_matrix"):
+            if out[key] is not None:
+                out[key] = np.asarray(out[key]).tolist()
+        return out
+
+    @classmethod
+    def from_json(cls, data: dict) -> ViewRecord:
+        data = dict(data)
+        for key in ("q", "matrix", "source_mm", "true_matrix"):
+            if data.get(key) is not None:
+                data[key] = np.asarray(data[key], dtype=np.float64)
+        data.pop("files", None)
+        return cls(**data)
+
+
+class ScanStore:
+    """The ``scan/`` stage of a study for a plan of ``n_views`` views on ``panel``."""
+
+    def __init__(
+        self,
+        study: Study,
+        panel: DetectorSpec,
+        joint_names: tuple[str, ...],
+        n_views: int,
+        planned: Geometry,
+    ) -> None:
+        self.study, self.panel, self.joint_names = study, panel, joint_names
+        self.n_views, self.planned = n_views, planned
+        self.records: dict[int, ViewRecord] = {}
+        self._load()
+
+    @property
+    def stored(self) -> set[int]:
+        return set(self.records)
+
+    @property
+    def dose_mas(self) -> float:
+        return sum(r.mas for r in self.records.values())
+
+    def _name(self, k: int) -> str:
+        return f"scan/views/view_{k:04d}"
+
+    def _load(self) -> None:
+        folder = self.study.path / "scan" / "views"
+        if not folder.is_dir():
+            return
+        for path in sorted(folder.glob("view_*.json")):
+            data = json.loads(path.read_text(encoding="utf-8"))
+            k = int(data["view"])
+            base = self._name(k)
+            for suffix in (".json", ".mha", "_counts.mha"):
+                relpath = base + suffix
+                recorded = self.study.manifest["files"].get(relpath)
+                if recorded is None and suffix == ".json":
+                    continue  # manifest saved just before the crash: the view's files decide
+                target = self.study.path / relpath
+                if not target.is_file():
+                    raise StudyError(f"view {k}: {relpath} is missing")
+                digest = sha256(target)
+                expected = recorded or data["files"][relpath]
+                if digest != expected:
+                    raise StudyError(f"view {k}: {relpath} was altered (sha256 mismatch)")
+                self.study.manifest["files"][relpath] = digest
+            self.records[k] = ViewRecord.from_json(data)
+
+    def put(self, record: ViewRecord, line_integrals: np.ndarray, counts: np.ndarray) -> None:
+        """Store one view (both images, then its record) and save the manifest."""
+        k = record.view
+        if k in self.records:
+            raise StudyError(f"view {k} is already stored: acquired views are never replaced")
+        pitch = self.panel.pixel_pitch_mm
+        base = self._name(k)
+        files = {}
+        for suffix, image in ((".mha", line_integrals), ("_counts.mha", counts)):
+            self.study.write(base + suffix, lambda p, a=image: write_projections(p, a[None], pitch))
+            files[base + suffix] = self.study.manifest["files"][base + suffix]
+        self.study.write_json(base + ".json", {**record.to_json(), "files": files})
+        self.study.save()
+        self.records[k] = record
+
+    def mark_incomplete(self, reason: str, failed_in: str) -> None:
+        self.study.mark(
+            "scan",
+            "incomplete",
+            reason=reason,
+            failed_in=failed_in,
+            views_stored=len(self.records),
+            views=self.n_views,
+            resume=f"cbct scan --resume --study {self.study.path}",
+        )
+
+    def finish(self) -> None:
+        """Assemble stacks, geometry and logs once every view is in; mark the scan complete."""
+        missing = sorted(set(range(self.n_views)) - self.stored)
+        if missing:
+            raise StudyError(f"cannot finish the scan: views {missing[:10]} are not stored")
+        order = range(self.n_views)
+        pitch = self.panel.pixel_pitch_mm
+        stacks = {"projections": [], "counts": []}
+        for k in order:
+            base = self.study.path / self._name(k)
+            stacks["projections"].append(read_projections(base.with_suffix(".mha")).data[0])
+            stacks["counts"].append(read_projections(f"{base}_counts.mha").data[0])
+        for name, images in stacks.items():
+            stack = np.stack(images)
+            self.study.write(f"scan/{name}.mha", lambda p, a=stack: write_projections(p, a, pitch))
+        recorded = Geometry(
+            [
+                View.from_matrix(self.records[k].matrix, pitch, self.panel.rows, self.panel.cols)
+                for k in order
+            ]
+        )
+        self.study.write("scan/geometry.xml", lambda p: write_rtk_geometry(p, recorded))
+        self.study.write("scan/planned_geometry.xml", lambda p: write_rtk_geometry(p, self.planned))
+        if all(self.records[k].true_matrix is not None for k in order):
+            truth = Geometry(
+                [
+                    View.from_matrix(
+                        self.records[k].true_matrix, pitch, self.panel.rows, self.panel.cols
+                    )
+                    for k in order
+                ]
+            )
+            self.study.write("scan/true_geometry.xml", lambda p: write_rtk_geometry(p, truth))
+        header = "view,clock_s," + ",".join(self.joint_names)
+        rows = [
+            f"{k},{self.records[k].clock_s:.6f}," + ",".join(f"{v:.6f}" for v in self.records[k].q)
+            for k in order
+        ]
+        self.study.write(
+            "scan/joint_states.csv",
+            lambda p: p.write_text(header + "\n" + "\n".join(rows) + "\n", encoding="utf-8"),
+        )
+        log = ["view,clock_s,kv,ma,ms,sequence"] + [
+            f"{k},{r.clock_s:.6f},{r.kv:g},{r.ma:g},{r.ms:g},{r.exposure_sequence}"
+            for k, r in ((k, self.records[k]) for k in order)
+        ]
+        self.study.write(
+            "scan/exposure_log.csv",
+            lambda p: p.write_text("\n".join(log) + "\n", encoding="utf-8"),
+        )
+        self.study.mark("scan", "complete", views=self.n_views, dose_mas=round(self.dose_mas, 4))

@@ -1,0 +1,167 @@
+"""The study folder (DESIGN.md): one scan session, written stage by stage, never rewritten.
+
+``study.json`` is the manifest: software version, the config snapshot the study was made with,
+each stage's status (``complete`` or ``incomplete`` with the reason), and the sha256 of every
+file written. Every file goes through :meth:`Study.write`: written to a temporary name in its
+folder, flushed to disk, then renamed into place, so a file either exists whole or not at all;
+an existing file is never replaced. The manifest itself is replaced atomically the same way.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import hashlib
+import json
+import os
+from collections.abc import Callable
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+
+MANIFEST = "study.json"
+STAGES = (
+    "plan",
+    "calibration",
+    "scan",
+    "recon",
+    "segmentation",
+    "fluoro",
+    "registration",
+    "assessment",
+)
+
+
+class StudyError(RuntimeError):
+    """A study folder that cannot be created, opened or trusted; the message says why."""
+
+
+def sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _software_version() -> str:
+    try:
+        return version("dualarm-cbct")
+    except PackageNotFoundError:  # pragma: no cover - running from a bare checkout
+        return "unknown"
+
+
+def _now() -> str:
+    return dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
+
+
+def _replace_atomically(path: Path, data: bytes) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "wb") as fh:
+        fh.write(data)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+class Study:
+    """An open study folder. Create with :meth:`create`, reopen with :meth:`open`."""
+
+    def __init__(self, path: Path, manifest: dict) -> None:
+        self.path = path
+        self.manifest = manifest
+
+    @classmethod
+    def create(cls, path: str | Path, config: dict) -> Study:
+        """A new study at ``path`` (which must not exist, or be an empty folder)."""
+        path = Path(path)
+        if path.exists() and (not path.is_dir() or any(path.iterdir())):
+            raise StudyError(
+                f"{path} exists and is not empty: a study is never overwritten "
+                "(choose a new folder, or continue it with --resume)"
+            )
+        path.mkdir(parents=True, exist_ok=True)
+        manifest = {
+            "software_version": _software_version(),
+            "created": _now(),
+            "config": config,
+            "stages": {},
+            "files": {},
+        }
+        study = cls(path, manifest)
+        study.save()
+        return study
+
+    @classmethod
+    def open(cls, path: str | Path) -> Study:
+        """An existing study; raises StudyError when ``path`` is not one."""
+        path = Path(path)
+        manifest_path = path / MANIFEST
+        if not manifest_path.is_file():
+            raise StudyError(f"{path} is not a study folder: no {MANIFEST}")
+        try:
+            manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
+        except (OSError, json.JSONDecodeError) as err:
+            raise StudyError(f"{manifest_path} is unreadable: {err}") from err
+        missing = {"config", "stages", "files"} - set(manifest)
+        if missing:
+            raise StudyError(f"{manifest_path} lacks {sorted(missing)}")
+        return cls(path, manifest)
+
+    def save(self) -> None:
+        """Write the manifest (atomically)."""
+        data = json.dumps(self.manifest, indent=2).encode("utf-8")
+        _replace_atomically(self.path / MANIFEST, data)
+
+    def write(self, relpath: str, writer: Callable[[Path], object]) -> Path:
+        """Write one file of the study: ``writer(tmp_path)`` writes it, then it is renamed to
+        ``relpath`` and its sha256 recorded. Refuses a file that exists."""
+        target = self.path / relpath
+        if target.exists():
+            raise StudyError(f"{target} exists: files of a study are never rewritten")
+        target.parent.mkdir(parents=True, exist_ok=True)
+        tmp = target.with_name(f".{target.stem}.tmp{target.name[len(target.stem) :]}")
+        tmp.unlink(missing_ok=True)
+        try:
+            writer(tmp)
+            with open(tmp, "rb+") as fh:
+                os.fsync(fh.fileno())
+            os.replace(tmp, target)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+        self.manifest["files"][relpath] = sha256(target)
+        return target
+
+    def write_json(self, relpath: str, payload: dict) -> Path:
+        text = json.dumps(payload, indent=2)
+        return self.write(relpath, lambda p: p.write_text(text, encoding="utf-8"))
+
+    def adopt(self, relpath: str) -> None:
+        """Record the sha256 of a file (or every file under a folder) written by another
+        component with its own atomic write (e.g. a plan saved via a temporary folder)."""
+        target = self.path / relpath
+        paths = sorted(p for p in target.rglob("*") if p.is_file()) if target.is_dir() else [target]
+        for p in paths:
+            self.manifest["files"][p.relative_to(self.path).as_posix()] = sha256(p)
+
+    def stage(self, name: str) -> dict:
+        """The stage's status record ({} when not started)."""
+        return self.manifest["stages"].get(name, {})
+
+    def mark(self, name: str, status: str, **details: object) -> None:
+        """Set a stage's status (``complete`` / ``incomplete``) with details, and save."""
+        if name not in STAGES:
+            raise StudyError(f"unknown stage {name!r}; stages are {STAGES}")
+        if status not in ("complete", "incomplete"):
+            raise StudyError(f"stage status must be complete or incomplete, got {status!r}")
+        self.manifest["stages"][name] = {"status": status, "updated": _now(), **details}
+        self.save()
+
+    def verify(self, prefix: str = "") -> list[str]:
+        """Files under ``prefix`` whose content no longer matches the manifest (or are gone)."""
+        bad = []
+        for relpath, digest in self.manifest["files"].items():
+            if relpath.startswith(prefix):
+                path = self.path / relpath
+                if not path.is_file() or sha256(path) != digest:
+                    bad.append(relpath)
+        return bad

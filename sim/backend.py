@@ -1,0 +1,148 @@
+"""The simulated scanner, assembled: world, mock arms and stage, mock generator, rendering panel.
+
+:func:`simulated_scanner` builds every simulated device of one scan session from a
+:class:`SimBackendSpec` (``configs/backends/sim.yaml``): the arms start at the plan's first
+configuration, the generator is served over a pty (the scanner drives it with its real serial
+driver), and the panel renders the subject through the view the arms truly realise at each
+pulse, vibration included. Faults are injected from the spec: a protective stop, a generator
+that stops answering, a dropped frame, an interlock that opens, each at a given view (the
+number of views acquired before it happens, counted in this session).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from recon.geometry import DetectorSpec, Geometry, View
+from recon.project import forward_project
+from recon.volume import Volume
+from sim.arms import GROUPS, MockArm, SimWorld, VirtualClock
+from sim.detector import SimDetector
+from sim.generator import MockGenerator
+from sim.vibration import VibrationSpec, vibrate_at
+from trajectories.model import ScannerModel
+from trajectories.plan import view_at
+
+ARM_JOINTS = ("base", "shoulder", "elbow", "wrist1", "wrist2", "wrist3")
+
+
+class SimFaults(BaseModel):
+    """Faults to inject, each at a view index (views acquired in this session before it)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    protective_stop_at_view: int | None = Field(None, ge=0)
+    generator_timeout_at_view: int | None = Field(None, ge=0)
+    dropped_frame_at_view: int | None = Field(None, ge=0)
+    interlock_open_at_view: int | None = Field(None, ge=0)
+
+
+class SimBackendSpec(BaseModel):
+    """The simulated backend's behaviour (configs/backends/sim.yaml)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    lag_s: float = Field(0.004, ge=0.0, le=0.1, description="set-point tracking lag, s")
+    tracking_noise_deg: float = Field(
+        0.002, ge=0.0, le=0.5, description="true joint scatter about the lagged set-point, deg"
+    )
+    vibration: VibrationSpec = VibrationSpec(source_mm=0.3, detector_mm=0.3, detector_deg=0.05)
+    warmup_s: float = Field(0.05, ge=0.0, le=60.0, description="generator warm-up, s")
+    seed: int = 0
+    faults: SimFaults = SimFaults()
+
+
+def volume_subject(volume: Volume) -> Callable[[View], np.ndarray]:
+    """Line integrals of an attenuation volume (1/mm) through one view (recon projector)."""
+
+    def render(view: View) -> np.ndarray:
+        return forward_project(volume.data, volume.grid, Geometry([view]))[0]
+
+    return render
+
+
+@dataclass
+class SimulatedScanner:
+    """Every simulated device of one session; ``world`` holds the truth and the event log."""
+
+    world: SimWorld
+    clock: VirtualClock
+    stage: MockArm
+    source_arm: MockArm
+    detector_arm: MockArm
+    generator: MockGenerator
+    detector: SimDetector
+
+    def close(self) -> None:
+        self.generator.close()
+
+
+def simulated_scanner(
+    model: ScannerModel,
+    start_q: np.ndarray,
+    panel: DetectorSpec,
+    sdd_mm: float,
+    subject: Callable[[View], np.ndarray],
+    spec: SimBackendSpec,
+) -> SimulatedScanner:
+    """Build the simulated devices; the generator's pty is served from now until close()."""
+    world = SimWorld(
+        model, start_q, lag_s=spec.lag_s, tracking_noise=spec.tracking_noise_deg, seed=spec.seed
+    )
+    faults = spec.faults
+    arms = {
+        group: MockArm(
+            world,
+            group,
+            ("rotary", "lift") if group == "stage" else ARM_JOINTS,
+            protective_stop_after=faults.protective_stop_at_view if group == "source_arm" else None,
+        )
+        for group in GROUPS
+    }
+
+    def true_view() -> View:
+        with world.lock:
+            q = world.q_true.copy()
+        return vibrate_at(view_at(model, q, panel), spec.vibration, rotary_deg=float(q[0]))
+
+    detector = SimDetector(
+        panel,
+        true_view,
+        subject,
+        lambda: world.t,
+        sdd_mm=sdd_mm,
+        seed=spec.seed,
+        drop_frame_at=faults.dropped_frame_at_view,
+        log=world.log,
+    )
+
+    def exposed(kv: float, ma: float, ms: float, seq: int) -> None:
+        with world.lock:
+            world.exposures += 1
+        detector.exposed(kv, ma, ms, seq)
+
+    def one_based(view: int | None) -> int | None:
+        return None if view is None else view + 1
+
+    generator = MockGenerator(
+        warmup_s=spec.warmup_s,
+        time_scale=0.0,
+        timeout_at_exposure=one_based(faults.generator_timeout_at_view),
+        interlock_open_at_exposure=one_based(faults.interlock_open_at_view),
+        on_event=lambda name, info: world.log("generator", name),
+        on_exposure=exposed,
+    )
+    generator.start()
+    return SimulatedScanner(
+        world,
+        VirtualClock(world),
+        arms["stage"],
+        arms["source_arm"],
+        arms["detector_arm"],
+        generator,
+        detector,
+    )

@@ -1,0 +1,76 @@
+"""``cbct scan`` from the console: confirmations, a fault and its resume, refusals."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import yaml
+from typer.testing import CliRunner
+
+from scanner.cli import CONFIGS, app
+from scanner.study import Study
+
+runner = CliRunner()
+
+
+def tiny_protocol(tmp: Path) -> Path:
+    """The demo protocol read out 8x8 binned with 60 views: a scan in seconds."""
+    data = yaml.safe_load((CONFIGS / "protocols" / "demo_knee.yaml").read_text(encoding="utf-8"))
+    data["detector"] = {"rows": 64, "cols": 64, "pixel_pitch_mm": 9.6}
+    data["orbit"]["views"] = 60
+    path = tmp / "tiny.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def sim_config(tmp: Path, **faults) -> Path:
+    path = tmp / f"sim-{len(faults)}.yaml"
+    path.write_text(yaml.safe_dump({"faults": faults}))
+    return path
+
+
+def scan(*args: str, answers: str | None = None):
+    return runner.invoke(app, ["scan", "--phantom-voxel-mm", "2", *args], input=answers)
+
+
+def test_scan_fault_then_resume(tmp_path):
+    study = tmp_path / "study"
+    common = ["--study", str(study), "--yes"]
+    faulty = sim_config(tmp_path, protective_stop_at_view=20)
+    result = scan(
+        *common, "--protocol", str(tiny_protocol(tmp_path)), "--backend-config", str(faulty)
+    )
+    assert result.exit_code == 2
+    assert "protective stop" in result.output and "cbct scan --resume" in result.output
+    assert Study.open(study).stage("scan")["views_stored"] == 20
+
+    result = scan(*common, "--resume", "--backend-config", str(sim_config(tmp_path)))
+    assert result.exit_code == 0, result.output
+    assert "scan complete: 60 views" in result.output
+    assert Study.open(study).verify() == []
+
+
+def test_declining_at_the_prompt_moves_nothing(tmp_path):
+    study = tmp_path / "study"
+    result = scan("--study", str(study), "--protocol", str(tiny_protocol(tmp_path)), answers="n\n")
+    assert result.exit_code == 2 and "Start motion?" in result.output
+    assert "declined motion" in result.output
+    assert not (study / "scan" / "views").exists()
+
+
+def test_refusals(tmp_path):
+    result = scan("--study", str(tmp_path / "s"), "--yes")
+    assert result.exit_code == 2 and "needs --protocol" in result.output
+    result = scan(
+        "--study",
+        str(tmp_path / "s"),
+        "--yes",
+        "--protocol",
+        str(tiny_protocol(tmp_path)),
+        "--backend",
+        "gantry",
+    )
+    assert result.exit_code == 2 and "backend must be one of ['sim', 'ur']" in result.output
+    assert not (tmp_path / "s").exists()
+    result = scan("--study", str(tmp_path / "nothing"), "--yes", "--resume")
+    assert result.exit_code == 2 and "not a study folder" in result.output
