@@ -1,7 +1,8 @@
 """A rerun recording of an acquisition, written while it runs (``scan/recording.rrd``).
 
-Entities (world frame, mm), on the ``scan_time`` timeline (the plan's seconds) and the
-``view`` sequence:
+Entities (world frame, mm; ``scan`` is the stage's name, ``calibration_scan`` for the
+steel-ball phantom), on the ``scan_time`` timeline (the plan's seconds) and the ``view``
+sequence:
 
 - ``scan/joints/<name>``: measured joints at each exposure (deg; lift mm).
 - ``world/scan/source``, ``world/scan/detector``: the recorded focal spot and panel centre;
@@ -21,7 +22,7 @@ import numpy as np
 import rerun as rr
 
 from recon.geometry import View
-from scanner.storage import ViewRecord
+from scanner.storage import SCAN_FOLDERS, ViewRecord
 from scanner.study import Study
 
 TIMELINE = "scan_time"
@@ -38,8 +39,11 @@ def _frustum(view: View) -> list[np.ndarray]:
 class ScanRecorder:
     """Streams an acquisition into the study's scan folder."""
 
-    def __init__(self, study: Study, joint_names: tuple[str, ...], pitch_mm: float) -> None:
-        folder = study.path / "scan"
+    def __init__(
+        self, study: Study, joint_names: tuple[str, ...], pitch_mm: float, stage: str = "scan"
+    ) -> None:
+        folder = study.path / SCAN_FOLDERS[stage]
+        self.stage = stage
         folder.mkdir(parents=True, exist_ok=True)
         k = 1
         while (folder / ("recording.rrd" if k == 1 else f"recording-{k}.rrd")).exists():
@@ -56,17 +60,20 @@ class ScanRecorder:
         rec.set_time(TIMELINE, duration=record.planned_time_s)
         rec.set_time(VIEW_TIMELINE, sequence=record.view)
         for name, value in zip(self.joint_names, record.q, strict=True):
-            rec.log(f"scan/joints/{name}", rr.Scalars(float(value)))
+            rec.log(f"{self.stage}/joints/{name}", rr.Scalars(float(value)))
         rows, cols = image.shape
         view = View.from_matrix(record.matrix, self.pitch_mm, rows, cols)
-        rec.log("world/scan/source", rr.Points3D([view.source_mm], colors=[(230, 120, 40)]))
         rec.log(
-            "world/scan/detector", rr.Points3D([view.detector_center_mm], colors=[(60, 130, 220)])
+            f"world/{self.stage}/source", rr.Points3D([view.source_mm], colors=[(230, 120, 40)])
         )
-        rec.log("world/scan/frustum", rr.LineStrips3D(_frustum(view)))
-        rec.log("scan/projection", rr.Image(image.astype(np.float32)))
         rec.log(
-            "scan/events",
+            f"world/{self.stage}/detector",
+            rr.Points3D([view.detector_center_mm], colors=[(60, 130, 220)]),
+        )
+        rec.log(f"world/{self.stage}/frustum", rr.LineStrips3D(_frustum(view)))
+        rec.log(f"{self.stage}/projection", rr.Image(image.astype(np.float32)))
+        rec.log(
+            f"{self.stage}/events",
             rr.TextLog(
                 f"view {record.view}: {record.kv:g} kV {record.ma:g} mA {record.ms:g} ms "
                 f"(pulse {record.exposure_sequence})"
@@ -74,7 +81,7 @@ class ScanRecorder:
         )
 
     def event(self, text: str, level: str = "INFO") -> None:
-        self.rec.log("scan/events", rr.TextLog(text, level=level))
+        self.rec.log(f"{self.stage}/events", rr.TextLog(text, level=level))
 
     def close(self) -> Path:
         """Finish the file and record its checksum in the study."""

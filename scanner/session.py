@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from recon.config import ScanProtocol, load_config, load_protocol
-from recon.geometry import DetectorSpec
+from recon.geometry import DetectorSpec, Geometry, View
 from recon.volume import Volume
 from scanner.backends import BACKEND_SPECS, load_backend_spec, open_backend
 from scanner.scan import Progress as ScanProgress
@@ -26,12 +26,14 @@ from scanner.scan_recording import ScanRecorder
 from scanner.storage import ScanStore
 from scanner.study import Study, StudyError
 from sim.backend import volume_subject
+from sim.phantoms.bb import BBPhantomSpec, project_bb
 from sim.phantoms.knee import KneePhantomSpec, knee_grid, rasterize_knee
 from trajectories.config import ScannerConfig
 from trajectories.model import ScannerModel
 from trajectories.plan import Plan, plan_scan
 
 Say = Callable[[str], None]
+PHANTOMS = {"knee": KneePhantomSpec, "bb": BBPhantomSpec}
 
 
 @dataclass(frozen=True)
@@ -42,7 +44,7 @@ class SessionInputs:
     scanner: ScannerConfig
     backend_kind: str
     backend: object
-    phantom: KneePhantomSpec
+    phantom: KneePhantomSpec | BBPhantomSpec
     phantom_voxel_mm: float
 
     def snapshot(self) -> dict:
@@ -50,7 +52,10 @@ class SessionInputs:
             "protocol": self.protocol.model_dump(mode="json"),
             "scanner": self.scanner.model_dump(mode="json"),
             "backend": {"kind": self.backend_kind, **self.backend.model_dump(mode="json")},
-            "phantom": self.phantom.model_dump(mode="json"),
+            "phantom": {
+                "kind": "bb" if isinstance(self.phantom, BBPhantomSpec) else "knee",
+                **self.phantom.model_dump(mode="json"),
+            },
             "phantom_voxel_mm": self.phantom_voxel_mm,
         }
 
@@ -58,12 +63,14 @@ class SessionInputs:
     def from_snapshot(cls, config: dict) -> SessionInputs:
         backend = dict(config["backend"])
         kind = backend.pop("kind")
+        phantom = dict(config["phantom"])
+        phantom_spec = PHANTOMS[phantom.pop("kind")]
         return cls(
             protocol=ScanProtocol.model_validate(config["protocol"]),
             scanner=ScannerConfig.model_validate(config["scanner"]),
             backend_kind=kind,
             backend=BACKEND_SPECS[kind].model_validate(backend),
-            phantom=KneePhantomSpec.model_validate(config["phantom"]),
+            phantom=phantom_spec.model_validate(phantom),
             phantom_voxel_mm=float(config["phantom_voxel_mm"]),
         )
 
@@ -76,8 +83,11 @@ def read_inputs(
     phantom: Path,
     *,
     phantom_voxel_mm: float = 1.0,
+    phantom_kind: str = "knee",
 ) -> SessionInputs:
     """Read and validate every input before anything is written or moved."""
+    if phantom_kind not in PHANTOMS:
+        raise ValueError(f"phantom kind must be one of {sorted(PHANTOMS)}, got {phantom_kind!r}")
     if not 0.25 <= phantom_voxel_mm <= 4.0:
         raise ValueError(f"phantom_voxel_mm must be in [0.25, 4] mm, got {phantom_voxel_mm}")
     if not isinstance(protocol, ScanProtocol):
@@ -88,7 +98,7 @@ def read_inputs(
         scanner=load_config(scanner, ScannerConfig),
         backend_kind=backend_kind,
         backend=load_backend_spec(backend_kind, backend_config),
-        phantom=load_config(phantom, KneePhantomSpec),
+        phantom=load_config(phantom, PHANTOMS[phantom_kind]),
         phantom_voxel_mm=phantom_voxel_mm,
     )
 
@@ -113,8 +123,11 @@ def _plan(study: Study, model: ScannerModel, protocol: ScanProtocol, say: Say) -
     return plan
 
 
-def knee_subject(inputs: SessionInputs, say: Say):
-    """The knee phantom as the simulated panel sees it."""
+def subject(inputs: SessionInputs, say: Say) -> Callable[[View], np.ndarray]:
+    """The phantom as the simulated panel sees it: the steel balls exactly, the knee
+    rasterised and projected."""
+    if isinstance(inputs.phantom, BBPhantomSpec):
+        return lambda view: project_bb(inputs.phantom, Geometry([view]))[0]
     grid = knee_grid(inputs.phantom, spacing_mm=inputs.phantom_voxel_mm)
     say(f"rasterising the knee phantom ({grid.size_xyz} voxels of {inputs.phantom_voxel_mm} mm)")
     _, mu = rasterize_knee(inputs.phantom, grid)
@@ -136,65 +149,104 @@ def run_session(
     config may be given again, e.g. new addresses, or a simulation without the fault)."""
     if resume:
         study = Study.open(study_path)
-        if study.stage("scan").get("status") == "complete":
-            raise StudyError(f"{study_path}: the scan is complete; nothing to resume")
-        inputs = SessionInputs.from_snapshot(study.manifest["config"])
-        if backend_override is not None:
-            if type(backend_override) is not type(inputs.backend):
-                raise StudyError(
-                    f"{study_path} was scanned on the {inputs.backend_kind} backend; the resume "
-                    f"config is a {type(backend_override).__name__}"
-                )
-            inputs = replace(inputs, backend=backend_override)
     else:
         if inputs is None:
             raise ValueError("a new study needs its inputs")
-        study = Study.create(study_path, inputs.snapshot())
+        study = Study.create(study_path, {})
+    scan_stage(
+        study,
+        None if resume else inputs,
+        backend_override=backend_override,
+        confirm=confirm,
+        progress=progress,
+        say=say,
+        settings=settings,
+    )
+    return study
+
+
+def scan_stage(
+    study: Study,
+    inputs: SessionInputs | None,
+    stage: str = "scan",
+    *,
+    backend_override: object | None = None,
+    confirm: Callable[[str], bool] = lambda _q: True,
+    progress: Callable[[ScanProgress], None] = lambda _p: None,
+    say: Say = lambda _m: None,
+    settings: ScanSettings | None = None,
+) -> None:
+    """Scan ``stage`` (``scan`` or ``calibration_scan``) of an open study: with new
+    ``inputs`` (recorded as the stage's config snapshot), or, when ``inputs`` is None,
+    continue it with its snapshot (and ``backend_override`` if given)."""
+    if study.stage(stage).get("status") == "complete":
+        raise StudyError(f"{study.path}: {stage} is complete; nothing to resume")
+    configs = study.manifest["config"]
+    if inputs is None:
+        if stage not in configs:
+            raise StudyError(f"{study.path}: no {stage} was started; nothing to resume")
+        inputs = SessionInputs.from_snapshot(configs[stage])
+        if backend_override is not None:
+            if type(backend_override) is not type(inputs.backend):
+                raise StudyError(
+                    f"{study.path} was scanned on the {inputs.backend_kind} backend; the resume "
+                    f"config is a {type(backend_override).__name__}"
+                )
+            inputs = replace(inputs, backend=backend_override)
+    elif stage in configs:
+        raise StudyError(f"{study.path}: {stage} was started already; continue it with --resume")
+    else:
+        configs[stage] = inputs.snapshot()
+        study.save()
     model = ScannerModel(inputs.scanner)
     plan = _plan(study, model, inputs.protocol, say)
     d = inputs.protocol.detector
     panel = DetectorSpec(rows=d.rows, cols=d.cols, pixel_pitch_mm=d.pixel_pitch_mm)
-    store = ScanStore(study, panel, plan.joint_names, len(plan.view_times_s), plan.achieved)
+    store = ScanStore(study, panel, plan.joint_names, len(plan.view_times_s), plan.achieved, stage)
     if store.stored:
         say(f"{len(store.stored)} views already stored and verified")
-    subject = knee_subject(inputs, say)
     backend, simulated = open_backend(
-        inputs.backend, model, plan.q[0], panel, inputs.protocol.orbit.sdd_mm, subject
+        inputs.backend,
+        model,
+        plan.q[0],
+        panel,
+        inputs.protocol.orbit.sdd_mm,
+        subject(inputs, say),
     )
     truth = (lambda: simulated.detector.true_views[-1].matrix) if simulated else (lambda: None)
-    recorder = ScanRecorder(study, plan.joint_names, panel.pixel_pitch_mm)
-    base = settings or ScanSettings()
+    recorder = ScanRecorder(study, plan.joint_names, panel.pixel_pitch_mm, stage)
     run = ScanRun(
         backend=backend,
         model=model,
         plan=plan,
         protocol=inputs.protocol,
         store=store,
-        settings=base,
+        settings=settings or ScanSettings(),
         confirm=confirm,
         progress=progress,
         on_view=recorder.view,
         truth=truth,
     )
     sessions = study.manifest.setdefault("sessions", [])
-    sessions.append({"backend": inputs.backend.model_dump(mode="json"), "resume": resume})
+    sessions.append({"stage": stage, "backend": inputs.backend.model_dump(mode="json")})
     study.save()
-    say(f"scanning on the {inputs.backend_kind} backend")
+    say(f"{stage}: acquiring on the {inputs.backend_kind} backend")
     try:
         run.run()
     finally:
         recorder.close()
         if simulated is not None:
-            _write_device_events(study, simulated.world.events, len(sessions))
-    return study
+            _write_device_events(study, store.folder, simulated.world.events, len(sessions))
 
 
-def _write_device_events(study: Study, events: list, session: int) -> None:
+def _write_device_events(study: Study, folder: str, events: list, session: int) -> None:
     """The simulator's ordered device log of this session (sequence, virtual time, device,
-    event): ``scan/device_events-<session>.csv``."""
+    event): ``<scan folder>/device_events-<session>.csv``."""
     lines = ["sequence,time_s,device,event"] + [
         f"{seq},{t:.6f},{who},{what}" for seq, t, who, what in events
     ]
     text = "\n".join(lines) + "\n"
-    study.write(f"scan/device_events-{session}.csv", lambda p: p.write_text(text, encoding="utf-8"))
+    study.write(
+        f"{folder}/device_events-{session}.csv", lambda p: p.write_text(text, encoding="utf-8")
+    )
     study.save()

@@ -1,6 +1,6 @@
 """A scan's views in the study folder, stored one by one as they are acquired.
 
-Layout under ``scan/``::
+Layout under ``scan/`` (``calibration/scan/`` for the steel-ball phantom's scan)::
 
     views/view_0007.mha          line integrals -ln(I/I0) of view 7, float32 (1, rows, cols)
     views/view_0007_counts.mha   its raw counts
@@ -29,6 +29,9 @@ from recon.geometry import DetectorSpec, Geometry, View
 from recon.io import read_projections, write_projections
 from recon.rtk_xml import write_rtk_geometry
 from scanner.study import Study, StudyError, sha256
+
+SCAN_FOLDERS = {"scan": "scan", "calibration_scan": "calibration/scan"}
+"""Folder of each scan stage in the study."""
 
 
 @dataclass(frozen=True)
@@ -70,7 +73,8 @@ class ViewRecord:
 
 
 class ScanStore:
-    """The ``scan/`` stage of a study for a plan of ``n_views`` views on ``panel``."""
+    """A scan stage of a study (``scan``, or ``calibration_scan`` of the steel-ball phantom)
+    for a plan of ``n_views`` views on ``panel``."""
 
     def __init__(
         self,
@@ -79,8 +83,10 @@ class ScanStore:
         joint_names: tuple[str, ...],
         n_views: int,
         planned: Geometry,
+        stage: str = "scan",
     ) -> None:
         self.study, self.panel, self.joint_names = study, panel, joint_names
+        self.stage, self.folder = stage, SCAN_FOLDERS[stage]
         self.n_views, self.planned = n_views, planned
         self.records: dict[int, ViewRecord] = {}
         self._load()
@@ -94,10 +100,10 @@ class ScanStore:
         return sum(r.mas for r in self.records.values())
 
     def _name(self, k: int) -> str:
-        return f"scan/views/view_{k:04d}"
+        return f"{self.folder}/views/view_{k:04d}"
 
     def _load(self) -> None:
-        folder = self.study.path / "scan" / "views"
+        folder = self.study.path / self.folder / "views"
         if not folder.is_dir():
             return
         for path in sorted(folder.glob("view_*.json")):
@@ -136,7 +142,7 @@ class ScanStore:
 
     def mark_incomplete(self, reason: str, failed_in: str) -> None:
         self.study.mark(
-            "scan",
+            self.stage,
             "incomplete",
             reason=reason,
             failed_in=failed_in,
@@ -159,15 +165,19 @@ class ScanStore:
             stacks["counts"].append(read_projections(f"{base}_counts.mha").data[0])
         for name, images in stacks.items():
             stack = np.stack(images)
-            self.study.write(f"scan/{name}.mha", lambda p, a=stack: write_projections(p, a, pitch))
+            self.study.write(
+                f"{self.folder}/{name}.mha", lambda p, a=stack: write_projections(p, a, pitch)
+            )
         recorded = Geometry(
             [
                 View.from_matrix(self.records[k].matrix, pitch, self.panel.rows, self.panel.cols)
                 for k in order
             ]
         )
-        self.study.write("scan/geometry.xml", lambda p: write_rtk_geometry(p, recorded))
-        self.study.write("scan/planned_geometry.xml", lambda p: write_rtk_geometry(p, self.planned))
+        self.study.write(f"{self.folder}/geometry.xml", lambda p: write_rtk_geometry(p, recorded))
+        self.study.write(
+            f"{self.folder}/planned_geometry.xml", lambda p: write_rtk_geometry(p, self.planned)
+        )
         if all(self.records[k].true_matrix is not None for k in order):
             truth = Geometry(
                 [
@@ -177,14 +187,16 @@ class ScanStore:
                     for k in order
                 ]
             )
-            self.study.write("scan/true_geometry.xml", lambda p: write_rtk_geometry(p, truth))
+            self.study.write(
+                f"{self.folder}/true_geometry.xml", lambda p: write_rtk_geometry(p, truth)
+            )
         header = "view,clock_s," + ",".join(self.joint_names)
         rows = [
             f"{k},{self.records[k].clock_s:.6f}," + ",".join(f"{v:.6f}" for v in self.records[k].q)
             for k in order
         ]
         self.study.write(
-            "scan/joint_states.csv",
+            f"{self.folder}/joint_states.csv",
             lambda p: p.write_text(header + "\n" + "\n".join(rows) + "\n", encoding="utf-8"),
         )
         log = ["view,clock_s,kv,ma,ms,sequence"] + [
@@ -192,7 +204,9 @@ class ScanStore:
             for k, r in ((k, self.records[k]) for k in order)
         ]
         self.study.write(
-            "scan/exposure_log.csv",
+            f"{self.folder}/exposure_log.csv",
             lambda p: p.write_text("\n".join(log) + "\n", encoding="utf-8"),
         )
-        self.study.mark("scan", "complete", views=self.n_views, dose_mas=round(self.dose_mas, 4))
+        self.study.mark(
+            self.stage, "complete", views=self.n_views, dose_mas=round(self.dose_mas, 4)
+        )

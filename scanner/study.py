@@ -20,6 +20,7 @@ from pathlib import Path
 MANIFEST = "study.json"
 STAGES = (
     "plan",
+    "calibration_scan",
     "calibration",
     "scan",
     "recon",
