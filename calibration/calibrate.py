@@ -64,11 +64,13 @@ class ViewReport:
 
 
 def plan_hash(protocol: ScanProtocol) -> str:
-    """SHA-256 of the protocol's views (orbit and panel, canonical JSON): which plan a
-    calibration is for."""
+    """SHA-256 of the protocol's views (orbit and the panel's physical size, canonical JSON):
+    which plan a calibration is for. The panel's read-out (binning) is left out: the views are
+    physical, so a calibration made with fine pixels corrects a binned scan of the same plan."""
+    d = protocol.detector
     plan = {
         "orbit": protocol.orbit.model_dump(mode="json"),
-        "detector": protocol.detector.model_dump(mode="json"),
+        "panel_mm": [round(d.width_mm, 6), round(d.height_mm, 6)],
     }
     return hashlib.sha256(json.dumps(plan, sort_keys=True).encode()).hexdigest()
 

@@ -285,6 +285,9 @@ class ScanRun:
             previous = t
             if view is not None and view not in self.store.stored:
                 self._acquire(view)
+            # work that overran its sample (a view's exposure, read-out and storage on a wall
+            # clock) pauses the plan where it is instead of bursting set-points to catch up
+            origin = max(origin, clock.now() - t)
 
     def _acquire(self, k: int) -> None:
         """One view: pose check, interlock check, expose, read, store."""
