@@ -466,24 +466,29 @@ def demo(
     out: Annotated[Path, typer.Option(help="output folder; must not exist or be empty")] = Path(
         "demo-output"
     ),
-    quick: Annotated[bool, typer.Option(help="smaller grids and fewer views")] = False,
+    quick: Annotated[bool, typer.Option(help="smaller grids, fewer views and frames")] = False,
+    resume: Annotated[
+        bool, typer.Option("--resume", help="continue OUT: redo only the incomplete stages")
+    ] = False,
 ) -> None:
-    """Run the main job on the simulated scanner: scan the knee phantom, reconstruct, preview.
-
-    Planning, calibration, registration and the clinical report join this chain as their
-    packages land; today it runs simulate-scan and recon end to end.
-    """
+    """Run the main job on the simulated scanner, into one study folder: plan, calibrate,
+    scan, reconstruct, segment, simulate fluoroscopy, track the bones, assess, record."""
     try:
         with _progress() as bar:
             summary = demo_job.run(
                 out,
                 CONFIGS,
                 quick=quick,
-                status=lambda msg: console.print(f"  {msg}"),
-                progress=_views_done(bar, "weighted FDK"),
+                resume=resume,
+                status=lambda msg: console.print(f"  {msg}", highlight=False),
+                progress=_views_done(bar, "calibration / weighted FDK"),
             )
-    except (ValueError, OSError) as err:
-        fail(str(err))
+    except ScanFault as err:
+        fail(f"{err}\n  continue with: cbct demo --resume --out {out}")
+    except (ValueError, OSError, RuntimeError) as err:
+        fail(f"{err}\n  what was written is kept; continue with: cbct demo --resume --out {out}")
+    except KeyboardInterrupt:
+        fail(f"interrupted; continue with: cbct demo --resume --out {out}")
     console.print(summary, soft_wrap=True, highlight=False)
 
 

@@ -10,6 +10,7 @@ stored are acquired.
 
 from __future__ import annotations
 
+import shutil
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -31,9 +32,12 @@ from sim.phantoms.knee import KneePhantomSpec, knee_grid, rasterize_knee
 from trajectories.config import ScannerConfig
 from trajectories.model import ScannerModel
 from trajectories.plan import Plan, plan_scan
+from trajectories.recording import record_plan
 
 Say = Callable[[str], None]
 PHANTOMS = {"knee": KneePhantomSpec, "bb": BBPhantomSpec}
+LEG_HEIGHT_MM = 320.0
+"""Length of leg the simulated panel images, mm (more than the cone covers at the knee)."""
 
 
 @dataclass(frozen=True)
@@ -103,7 +107,9 @@ def read_inputs(
     )
 
 
-def _plan(study: Study, model: ScannerModel, protocol: ScanProtocol, say: Say) -> Plan:
+def plan_stage(study: Study, model: ScannerModel, protocol: ScanProtocol, say: Say) -> Plan:
+    """The study's plan: made and saved (with its rerun recording) the first time; made again
+    and checked against the stored one afterwards."""
     say("planning the scan (IK, clearance, timing)")
     plan = plan_scan(model, protocol)
     folder = study.path / "plan"
@@ -112,12 +118,15 @@ def _plan(study: Study, model: ScannerModel, protocol: ScanProtocol, say: Say) -
         if stored["q"].shape != plan.q.shape or not np.allclose(stored["q"], plan.q, atol=1e-9):
             raise StudyError(
                 f"{folder}: the plan made again differs from the stored one (software or "
-                "config changed since): refusing to resume on a different motion"
+                "config changed since): refusing to continue on a different motion"
             )
         if study.verify("plan/"):
             raise StudyError(f"{folder}: files altered: {study.verify('plan/')}")
         return plan
+    if folder.exists():  # an interrupted earlier attempt: derived data, made again
+        shutil.rmtree(folder)
     plan.save(folder)
+    record_plan(plan, model, folder / "recording.rrd")
     study.adopt("plan")
     study.mark("plan", "complete", **plan.summary())
     return plan
@@ -128,7 +137,7 @@ def subject(inputs: SessionInputs, say: Say) -> Callable[[View], np.ndarray]:
     rasterised and projected."""
     if isinstance(inputs.phantom, BBPhantomSpec):
         return lambda view: project_bb(inputs.phantom, Geometry([view]))[0]
-    grid = knee_grid(inputs.phantom, spacing_mm=inputs.phantom_voxel_mm)
+    grid = knee_grid(inputs.phantom, spacing_mm=inputs.phantom_voxel_mm, height_mm=LEG_HEIGHT_MM)
     say(f"rasterising the knee phantom ({grid.size_xyz} voxels of {inputs.phantom_voxel_mm} mm)")
     _, mu = rasterize_knee(inputs.phantom, grid)
     return volume_subject(Volume(mu, grid, "1/mm"))
@@ -199,7 +208,7 @@ def scan_stage(
         configs[stage] = inputs.snapshot()
         study.save()
     model = ScannerModel(inputs.scanner)
-    plan = _plan(study, model, inputs.protocol, say)
+    plan = plan_stage(study, model, inputs.protocol, say)
     d = inputs.protocol.detector
     panel = DetectorSpec(rows=d.rows, cols=d.cols, pixel_pitch_mm=d.pixel_pitch_mm)
     store = ScanStore(study, panel, plan.joint_names, len(plan.view_times_s), plan.achieved, stage)

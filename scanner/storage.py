@@ -1,6 +1,6 @@
 """A scan's views in the study folder, stored one by one as they are acquired.
 
-Layout under ``scan/`` (``calibration/scan/`` for the steel-ball phantom's scan)::
+Layout under ``scan/`` (``calibration_scan/`` for the steel-ball phantom's scan)::
 
     views/view_0007.mha          line integrals -ln(I/I0) of view 7, float32 (1, rows, cols)
     views/view_0007_counts.mha   its raw counts
@@ -30,7 +30,7 @@ from recon.io import read_projections, write_projections
 from recon.rtk_xml import write_rtk_geometry
 from scanner.study import Study, StudyError, sha256
 
-SCAN_FOLDERS = {"scan": "scan", "calibration_scan": "calibration/scan"}
+SCAN_FOLDERS = {"scan": "scan", "calibration_scan": "calibration_scan"}
 """Folder of each scan stage in the study."""
 
 

@@ -1,0 +1,123 @@
+"""``cbct demo --quick`` end to end: every stage in one study folder, checked."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rerun as rr
+from scipy.ndimage import binary_erosion
+from typer.testing import CliRunner
+
+from recon.io import read_volume
+from scanner.cli import app
+from scanner.demo import STAGES
+from scanner.study import Study
+from sim.phantoms.knee import KNEE_LABELS, KneePhantomSpec, attenuation_per_mm, rasterize_knee
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("demo") / "study"
+    result = runner.invoke(app, ["demo", "--out", str(out), "--quick"])
+    assert result.exit_code == 0, result.output
+    assert "demo finished" in result.output and f"rerun {out}/recording.rrd" in result.output
+    return out
+
+
+def test_every_stage_is_complete_and_every_file_checked(demo: Path):
+    study = Study.open(demo)
+    for stage in STAGES:
+        assert study.stage(stage)["status"] == "complete", stage
+    assert study.verify() == []
+    files = study.manifest["files"]
+    for name in (
+        "calibration/geometry.xml",
+        "scan/projections.mha",
+        "scan/geometry.xml",
+        "recon/volume.nii.gz",
+        "segmentation/labels.nii.gz",
+        "segmentation/femur.stl",
+        "fluoro/frames.mha",
+        "registration/poses.csv",
+        "registration/metrics.json",
+        "assessment/report.html",
+        "recording.rrd",
+    ):
+        assert name in files, name
+
+
+def test_report_has_its_plots(demo: Path):
+    html = (demo / "assessment" / "report.html").read_text(encoding="utf-8")
+    assert html.count("data:image/png;base64,") >= 4
+    assert len(list((demo / "assessment").glob("*.png"))) >= 4
+
+
+def test_the_calibration_recovers_the_vibration(demo: Path):
+    """The arms vibrate 0.3 mm in a way no encoder sees: the calibrated geometry reconstructs
+    as well as the true one (RMSE within 1 %)."""
+    recon = Study.open(demo).stage("recon")
+    assert recon["rmse_calibrated_per_mm"] < 1.01 * recon["rmse_true_per_mm"]
+
+
+def test_the_volume_has_the_phantom_attenuation(demo: Path):
+    """Soft tissue away from edges (eroded by 3 voxels) within 3 % of muscle: quantum noise at
+    ~1e6 photons per 2.4 mm pixel and the cone-beam error stay below that."""
+    volume = read_volume(demo / "recon" / "volume.nii.gz")
+    spec = KneePhantomSpec()
+    labels, _ = rasterize_knee(spec, volume.grid, supersample=1)
+    soft = binary_erosion(labels == KNEE_LABELS["soft_tissue"], iterations=3) & (volume.data > 0)
+    mu = attenuation_per_mm(spec.effective_energy_kev)
+    assert np.median(volume.data[soft]) == pytest.approx(mu["muscle"], rel=0.03)
+    assert len(list((demo / "recon" / "dicom").glob("*.dcm"))) == volume.grid.shape[0]
+
+
+def test_the_recording_holds_every_stage_on_its_timeline(demo: Path):
+    timelines = defaultdict(set)
+    for chunk in rr.chunk.RrdReader(demo / "recording.rrd").stream():
+        if not chunk.is_static:
+            timelines[chunk.entity_path.lstrip("/")].update(chunk.timeline_names)
+    assert "plan_time" in timelines["joints/rotary"]  # arms through the plan
+    assert "view" in timelines["world/views/frustum"]  # source/detector frustums
+    assert "view" in timelines["scan/projection"]
+    assert "view" in timelines["calibration_scan/projection"]
+    assert "slice" in timelines["recon/axial"]  # the volume's slices
+    for bone in ("femur", "tibia_fibula", "patella"):
+        assert "frame" in timelines[f"world/bones/{bone}"]
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="issue 9: in the independent regime BoneAxis-Reg's depth (out-of-plane) error is "
+    "2-3.5 mm median; issue 7 asks for TRE < 1.5 mm on every frame",
+)
+def test_registration_is_below_1_5_mm_on_every_frame(demo: Path):
+    metrics = json.loads((demo / "registration" / "metrics.json").read_text(encoding="utf-8"))
+    assert max(row["tre_mm"] for row in metrics["per_frame"]) < 1.5
+
+
+def test_an_existing_folder_is_refused_and_resume_redoes_only_what_is_missing(demo, tmp_path):
+    again = runner.invoke(app, ["demo", "--out", str(demo), "--quick"])
+    assert again.exit_code == 2 and "not empty" in again.output
+    copy = tmp_path / "copy"
+    shutil.copytree(demo, copy)
+    shutil.rmtree(copy / "assessment")
+    (copy / "recording.rrd").unlink()
+    study = Study.open(copy)
+    study.mark("assessment", "incomplete", reason="interrupted (test)")
+    for name in [n for n in study.manifest["files"] if n.startswith("assessment/")]:
+        del study.manifest["files"][name]
+    del study.manifest["files"]["recording.rrd"]
+    study.save()
+    result = runner.invoke(app, ["demo", "--out", str(copy), "--quick", "--resume"])
+    assert result.exit_code == 0, result.output
+    for stage in STAGES[1:-1]:
+        assert f"{stage}: complete, skipped" in result.output
+    done = Study.open(copy)
+    assert done.stage("assessment")["status"] == "complete" and done.verify() == []
