@@ -16,6 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.ndimage import distance_transform_edt
 
 from recon.geometry import Geometry, View
 from recon.project import JosephProjector
@@ -24,6 +25,8 @@ from registration.labels import BONE_UNITS, LABELS
 
 SOFT_TISSUE_LABEL = LABELS["soft_tissue"]
 CROP_MARGIN_MM = 3.0
+BONE_EDGE_MM = 1.5
+"""Soft-tissue rim moved with each bone (the blurred outside of its edge), mm."""
 SOFT_TISSUE_BLEND_MM = 40.0
 """Width of the smooth hand-over of the soft tissue from the tibia to the femur, mm."""
 
@@ -126,23 +129,55 @@ def soft_tissue_level(volume: Volume, labels: Volume) -> float:
     return float(np.median(soft))
 
 
+def bone_regions(labels: Volume, edge_mm: float = BONE_EDGE_MM) -> np.ndarray:
+    """Which tracked unit (1-based, in :data:`BONE_UNITS` order; 0 none) each voxel moves
+    with: the unit's labels plus the soft-tissue voxels within ``edge_mm`` of it (to the
+    nearest unit). The rim carries the blurred outer half of the bone's edge, which a mask at
+    the segmentation's threshold would leave behind in the soft tissue as a ghost and cut off
+    the moving bone: a bone model too small by a tenth of a millimetre already reads as a
+    millimetre of depth in a lateral view (1 mm along the ray scales the image by ~0.1 %)."""
+    units = np.zeros(labels.data.shape, dtype=np.int8)
+    for k, values in enumerate(BONE_UNITS.values(), start=1):
+        units[np.isin(labels.data, values)] = k
+    if edge_mm <= 0:
+        return units
+    outside = units == 0
+    distance, nearest = distance_transform_edt(
+        outside, sampling=labels.grid.spacing_mm[::-1], return_indices=True
+    )
+    rim = outside & (distance <= edge_mm) & (labels.data == SOFT_TISSUE_LABEL)
+    units[rim] = units[tuple(index[rim] for index in nearest)]
+    return units
+
+
 def bone_models(
-    volume: Volume, labels: Volume, margin_mm: float = CROP_MARGIN_MM
+    volume: Volume,
+    labels: Volume,
+    margin_mm: float = CROP_MARGIN_MM,
+    edge_mm: float = BONE_EDGE_MM,
 ) -> dict[str, BoneModel]:
-    """The tracked bones of a segmented CBCT volume (attenuation 1/mm, labels on its grid)."""
+    """The tracked bones of a segmented CBCT volume (attenuation 1/mm, labels on its grid):
+    each the attenuation above the soft tissue's over its labels, plus the part above it in
+    its :func:`bone_regions` rim (the blurred edge; a darker rim, e.g. fat, stays behind with
+    the soft tissue); its points and centroid from its labels alone."""
     if volume.grid != labels.grid:
         raise ValueError(
             f"the label volume's grid {labels.grid} does not match the volume's {volume.grid}"
         )
     soft = soft_tissue_level(volume, labels)
+    regions = bone_regions(labels, edge_mm)
     models = {}
     axes = volume.grid.axes_mm()
-    for name, values in BONE_UNITS.items():
+    for k, (name, values) in enumerate(BONE_UNITS.items(), start=1):
         mask = np.isin(labels.data, values)
         if mask.sum() < 27:
             raise ValueError(f"bone {name} (labels {list(values)}) is missing from the labels")
-        box, sub = _crop(mask, volume.grid, margin_mm)
-        excess = np.where(mask[box], volume.data[box] - soft, 0.0).astype(np.float32)
+        region = regions == k
+        box, sub = _crop(mask, volume.grid, max(margin_mm, edge_mm))
+        above = volume.data[box] - soft
+        rim = region[box] & ~mask[box]
+        excess = np.where(rim, np.maximum(above, 0.0), np.where(region[box], above, 0.0))
+        excess = excess.astype(np.float32)
         kz, ky, kx = np.nonzero(mask)
         points = np.column_stack((axes[0][kx], axes[1][ky], axes[2][kz]))
         models[name] = BoneModel(name, RigidVolume.of(excess, sub), points, points.mean(axis=0))
@@ -150,16 +185,22 @@ def bone_models(
 
 
 def soft_tissue_parts(
-    volume: Volume, labels: Volume, blend_mm: float = SOFT_TISSUE_BLEND_MM
+    volume: Volume,
+    labels: Volume,
+    blend_mm: float = SOFT_TISSUE_BLEND_MM,
+    edge_mm: float = BONE_EDGE_MM,
 ) -> dict[str, RigidVolume]:
-    """The soft tissue (every bone voxel filled with the soft tissue's attenuation) in two
+    """The soft tissue (every bone voxel filled with the soft tissue's attenuation, every rim
+    voxel of :func:`bone_regions` capped at it: the complement of :func:`bone_models`) in two
     parts that sum to it: one moves with the femur, one with the tibia and fibula. The share
     of the femur's part rises smoothly (a smoothstep over ``blend_mm``) across the joint line,
     midway between the femur's lowest and the tibia's highest voxel, so that bending the knee
     leaves no cut edge in the images. Kept at half resolution only."""
     soft = soft_tissue_level(volume, labels)
     bone = labels.data > SOFT_TISSUE_LABEL
-    filled = np.where(bone, soft, volume.data).astype(np.float32)
+    rim = ~bone & (bone_regions(labels, edge_mm) > 0)
+    filled = np.where(bone, soft, np.where(rim, np.minimum(volume.data, soft), volume.data))
+    filled = filled.astype(np.float32)
     z = volume.grid.axes_mm()[2]
     femur_z = z[np.flatnonzero(np.isin(labels.data, BONE_UNITS["femur"]).any(axis=(1, 2)))]
     tibia_z = z[np.flatnonzero(np.isin(labels.data, BONE_UNITS["tibia_fibula"]).any(axis=(1, 2)))]

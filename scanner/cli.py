@@ -4,8 +4,9 @@ Commands today: ``plan`` (checked, timed robot motion for a protocol), ``scan`` 
 simulated or the UR backend into a study folder, resumable), ``simulate-scan`` (scan
 the digital knee phantom with a protocol), ``recon`` (weighted FDK of RTK-format inputs),
 ``register`` (track the bones through a fluoroscopy sequence), ``assess`` (knee kinematics
-report from bone poses) and ``demo`` (the chain that exists, on the
-simulated scanner). Every
+report from bone poses), ``demo`` (the chain that exists, on the
+simulated scanner) and ``batch`` (the derived stages of many studies on dask.distributed, and a
+cohort summary). Every
 command checks its inputs before long work starts, never overwrites an existing output, and
 shows progress on long work.
 """
@@ -13,6 +14,7 @@ shows progress on long work.
 from __future__ import annotations
 
 import json
+import os
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -27,12 +29,14 @@ from rich.table import Table
 from recon.config import load_config
 from registration.boneaxis import Settings
 from registration.track import register_files
+from scanner import batch as batch_job
 from scanner import demo as demo_job
 from scanner import jobs
 from scanner.backends import load_backend_spec
 from scanner.scan import Progress as ScanProgress
 from scanner.scan import ScanFault
 from scanner.session import read_inputs, run_session
+from scanner.study import StudyError
 from sim.vibration import VibrationSpec
 
 app = typer.Typer(
@@ -490,6 +494,127 @@ def demo(
     except KeyboardInterrupt:
         fail(f"interrupted; continue with: cbct demo --resume --out {out}")
     console.print(summary, soft_wrap=True, highlight=False)
+
+
+@app.command()
+def batch(
+    action: Annotated[str, typer.Argument(help="recon, register, assess or all")],
+    studies: Annotated[
+        list[str], typer.Argument(help="study folders or globs (quoted globs; ** recurses)")
+    ],
+    scheduler: Annotated[
+        str | None,
+        typer.Option(help="address of a running dask scheduler (default: a local cluster)"),
+    ] = None,
+    workers: Annotated[
+        int | None,
+        typer.Option(help="worker processes of the local cluster, one thread each [cores]"),
+    ] = None,
+    out: Annotated[Path | None, typer.Option(help="new cohort folder [cohort-<UTC time>]")] = None,
+    settings: Annotated[Path, typer.Option(help="registration settings YAML")] = CONFIGS
+    / "registration.yaml",
+    voxel_mm: Annotated[
+        float | None, typer.Option(help="recon voxel, mm [the study's own, else 1.0]")
+    ] = None,
+    timeout_s: Annotated[
+        float, typer.Option("--timeout", help="seconds to reach --scheduler and a worker on it")
+    ] = batch_job.CONNECT_TIMEOUT_S,
+) -> None:
+    """Run ACTION on many studies as dask.distributed tasks, then write the cohort summary.
+
+    recon = reconstruction + segmentation, register = registration, assess = assessment,
+    all = the three in order per study (studies in parallel). Complete stages whose files
+    still match their sha256 are skipped; a failed study is reported and the others go on;
+    rerun the same command to finish what is missing. Writes OUT/cohort.csv, cohort.parquet
+    and cohort.html (one row per study and bone). Exit status 1 when a study failed.
+    """
+    if action not in batch_job.ACTIONS:
+        fail(f"unknown action {action!r}: choose one of {', '.join(batch_job.ACTIONS)}")
+    if scheduler is not None and workers is not None:
+        fail("--workers sizes the local cluster: with --scheduler the scheduler's workers run")
+    try:
+        paths = batch_job.find_studies(studies)
+        cohort = batch_job.new_output_folder(out)
+        options = batch_job.TaskOptions(voxel_mm, load_config(settings, Settings))
+        n = workers if workers is not None else os.cpu_count() or 1
+        if scheduler is None:
+            console.print(f"starting a local cluster of {n} worker process(es)", highlight=False)
+        client, cluster = batch_job.open_client(scheduler, n, timeout_s)
+    except (StudyError, ValueError, OSError) as err:
+        fail(str(err))
+    tasks = batch_job.ACTIONS[action]
+    bar = Progress(
+        TextColumn("{task.description:>9}"),
+        BarColumn(),
+        TextColumn("{task.completed}/{task.total} studies"),
+        TextColumn("[red]{task.fields[failed]} failed[/]"),
+        TimeElapsedColumn(),
+        console=console,
+    )
+    bars = {t: bar.add_task(t, total=len(paths), failed=0) for t in tasks}
+
+    def heard(outcome: batch_job.Outcome) -> None:
+        failed = bar.tasks[bars[outcome.task]].fields["failed"]
+        if outcome.status in ("failed", "blocked"):
+            failed += 1
+        bar.update(bars[outcome.task], advance=1, failed=failed)
+        if outcome.status == "failed":
+            bar.console.print(
+                f"[bold red]failed[/] {outcome.study} ({outcome.task}): {outcome.error}",
+                soft_wrap=True,
+                highlight=False,
+            )
+
+    try:
+        console.print(
+            f"{len(paths)} studies, action {action}, scheduler {client.scheduler.address}",
+            highlight=False,
+        )
+        link = batch_job.dashboard(client)
+        console.print(
+            f"dask dashboard: {link}" if link else "dask dashboard: none (needs bokeh)",
+            highlight=False,
+        )
+        with bar:
+            report = batch_job.run(client, paths, action, options, on_outcome=heard)
+    except KeyboardInterrupt:
+        fail("interrupted: finished stages are kept; rerun the same command to continue")
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+    files = batch_job.write_cohort(cohort, paths, report, action)
+    console.print(_batch_table(report, len(paths)), soft_wrap=True)
+    console.print(
+        f"[green]wrote[/] {files.csv}, {files.parquet.name}, {files.html.name} "
+        f"in {files.html.parent}",
+        soft_wrap=True,
+        highlight=False,
+    )
+    failures = report.failures()
+    if failures:
+        lines = "\n".join(f"  {s}: {o.task}: {o.error}" for s, o in failures.items())
+        console.print(
+            f"[bold red]{len(failures)} of {len(paths)} studies failed[/] (the others are "
+            f"done; fix these and rerun):\n{lines}",
+            soft_wrap=True,
+            highlight=False,
+        )
+        raise typer.Exit(1)
+
+
+def _batch_table(report: batch_job.BatchReport, studies: int) -> Table:
+    table = Table(title=f"batch: {studies} studies in {report.seconds:.1f} s")
+    tasks = list(dict.fromkeys(o.task for o in report.outcomes))
+    for column in ("study", *tasks):
+        table.add_column(column)
+    by_study: dict[str, dict[str, str]] = {}
+    for o in report.outcomes:
+        cell = f"{o.status} {o.seconds:.1f} s" if o.status in ("ran", "skipped") else o.status
+        by_study.setdefault(o.study, {})[o.task] = cell
+    for study, cells in by_study.items():
+        table.add_row(Path(study).name, *(cells.get(t, "") for t in tasks))
+    return table
 
 
 if __name__ == "__main__":  # pragma: no cover

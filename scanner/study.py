@@ -28,6 +28,7 @@ STAGES = (
     "fluoro",
     "registration",
     "assessment",
+    "recording",
 )
 
 

@@ -1,0 +1,259 @@
+"""The derived stages of a study (DESIGN.md): reconstruction, segmentation, registration,
+assessment. ``cbct demo`` and ``cbct batch`` run the same functions.
+
+Each stage reads what it needs from the study folder and its config snapshot, writes into
+``<stage>.partial/`` and renames it when done, records every file's sha256 and marks itself
+complete in ``study.json`` (:func:`run_stage`); a failure marks it incomplete with the reason
+and leaves the stages before it untouched, so running again redoes only what is missing.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from calibration.calibrate import corrected_geometry
+from recon.config import ScanProtocol
+from recon.dicom import write_dicom_series
+from recon.fdk import Progress, fdk_reconstruct
+from recon.io import read_projections, read_volume, write_volume
+from recon.preview import save_orthogonal_slices
+from recon.rtk_xml import read_rtk_geometry
+from recon.volume import VolumeGrid
+from registration.boneaxis import Settings
+from registration.labels import BONE_UNITS, LABELS
+from registration.poses import read_poses
+from registration.segment import bone_surfaces, segment_bones
+from registration.track import register_files
+from scanner.jobs import write_assessment
+from scanner.recording import record_volume
+from scanner.study import Study, StudyError
+from sim.phantoms.knee import KneePhantomSpec, attenuation_per_mm, rasterize_knee
+
+Say = Callable[[str], None]
+
+RECON_EXTENT_MM = (100.0, 100.0, 240.0)
+"""Reconstructed field: x, y, z extent, mm (what a lateral fluoroscopy field sees of a knee)."""
+RECON_OFFSET_MM = (0.0, -10.0, 10.0)
+"""Its centre relative to the orbit's isocentre, mm (the patella lies anterior, -y)."""
+MU_WATER_70KEV = 0.0193
+"""Water at 70 keV, 1/mm: the HU scale of DICOM series of real scans."""
+
+
+def run_stage(study: Study, name: str, work: Callable[[], dict | None], say: Say) -> bool:
+    """Run ``work`` unless the stage is complete; mark it. Returns whether it ran."""
+    if study.stage(name).get("status") == "complete":
+        say(f"{name}: complete, skipped")
+        return False
+    started = time.perf_counter()
+    try:
+        details = work() or {}
+    except BaseException as err:
+        if study.stage(name).get("status") != "incomplete":  # scans mark their own
+            study.mark(name, "incomplete", reason=f"{type(err).__name__}: {err}")
+        raise
+    if study.stage(name).get("status") != "complete":
+        seconds = round(time.perf_counter() - started, 2)
+        study.mark(name, "complete", **{**details, "seconds": seconds})
+    return True
+
+
+def derived_folder(study: Study, name: str, fill: Callable[[Path], dict | None]) -> dict | None:
+    """Write a stage into ``<name>.partial/`` (a stale one from an interrupted run is
+    discarded), then rename it to ``<name>/`` and record its files."""
+    final = study.path / name
+    partial = study.path / f"{name}.partial"
+    if final.exists():
+        raise StudyError(f"{final} exists but {name} is not complete: remove it to redo")
+    if partial.exists():
+        shutil.rmtree(partial)
+    partial.mkdir()
+    details = fill(partial)
+    partial.rename(final)
+    study.adopt(name)
+    study.save()
+    return details
+
+
+def _require(study: Study, *stages: str) -> None:
+    missing = [s for s in stages if study.stage(s).get("status") != "complete"]
+    if missing:
+        raise StudyError(f"{study.path}: needs the stage(s) {missing} complete first")
+
+
+def scan_protocol(study: Study) -> ScanProtocol:
+    return ScanProtocol.model_validate(study.manifest["config"]["scan"]["protocol"])
+
+
+def simulated_knee(study: Study) -> KneePhantomSpec | None:
+    """The knee phantom a simulated scan imaged (its ground truth), None for a real one."""
+    config = study.manifest["config"]["scan"]
+    phantom = dict(config.get("phantom", {}))
+    if config["backend"]["kind"] != "sim" or phantom.pop("kind", None) != "knee":
+        return None
+    return KneePhantomSpec.model_validate(phantom)
+
+
+def recon_grid(protocol: ScanProtocol, voxel_mm: float) -> VolumeGrid:
+    size = tuple(round(e / voxel_mm) for e in RECON_EXTENT_MM)
+    center = np.asarray(protocol.orbit.isocenter_mm) + np.asarray(RECON_OFFSET_MM)
+    return VolumeGrid.centered(size, voxel_mm, tuple(center))
+
+
+def recon_stage(
+    study: Study, voxel_mm: float = 1.0, progress: Progress | None = None, say: Say = print
+) -> bool:
+    """Weighted FDK of ``scan/`` with the calibrated geometry when the study has a calibration,
+    else the recorded one -> ``recon/`` (NIfTI, MetaImage, DICOM series, preview, recording;
+    against the phantom when simulated)."""
+
+    def fill(folder: Path) -> dict:
+        protocol = scan_protocol(study)
+        stack = read_projections(study.path / "scan" / "projections.mha")
+        recorded = read_rtk_geometry(study.path / "scan" / "geometry.xml", protocol.detector)
+        calibrated = study.stage("calibration").get("status") == "complete"
+        geometry = (
+            corrected_geometry(study.path / "calibration", protocol) if calibrated else recorded
+        )
+        grid = recon_grid(protocol, voxel_mm)
+        result = fdk_reconstruct(stack.data, geometry, grid, progress=progress)
+        volume = result.volume
+        write_volume(folder / "volume.nii.gz", volume)
+        write_volume(folder / "volume.mha", volume)
+        knee = simulated_knee(study)
+        water = (
+            MU_WATER_70KEV
+            if knee is None
+            else attenuation_per_mm(knee.effective_energy_kev)["water"]
+        )
+        write_dicom_series(folder / "dicom", volume, mu_water_per_mm=water)
+        save_orthogonal_slices(volume, folder / "slices.png", title="weighted FDK")
+        record_volume(volume, folder / "recording.rrd")
+        details = {"geometry": "calibrated" if calibrated else "recorded", "voxel_mm": voxel_mm}
+        if knee is not None:  # simulation: against the phantom, and the other geometries
+            labels, truth = rasterize_knee(knee, grid, supersample=2)
+            inside = (labels > 0) & result.mask
+            rmse = {details["geometry"]: _rmse(volume.data, truth, inside)}
+            others = {"recorded": recorded}
+            true_path = study.path / "scan" / "true_geometry.xml"
+            if true_path.exists():
+                others["true"] = read_rtk_geometry(true_path, protocol.detector)
+            for name, other in others.items():
+                if name not in rmse:
+                    data = fdk_reconstruct(stack.data, other, grid).volume.data
+                    rmse[name] = _rmse(data, truth, inside)
+            details |= {f"rmse_{name}_per_mm": value for name, value in rmse.items()}
+        (folder / "metrics.json").write_text(json.dumps(details, indent=2), encoding="utf-8")
+        return details
+
+    _require(study, "scan")
+    return run_stage(study, "recon", lambda: derived_folder(study, "recon", fill), say)
+
+
+def segmentation_stage(study: Study, say: Say = print) -> bool:
+    """Bones of ``recon/`` -> ``segmentation/`` (labels, one mesh per bone; Dice against the
+    phantom when simulated)."""
+
+    def fill(folder: Path) -> dict:
+        volume = read_volume(study.path / "recon" / "volume.nii.gz", unit="1/mm")
+        knee = simulated_knee(study)
+        labels = segment_bones(volume, side=None if knee is None else knee.side)
+        write_volume(folder / "labels.nii.gz", labels)
+        for name, mesh in bone_surfaces(labels).items():
+            mesh.export(folder / f"{name}.stl")
+        details = {"side": _side(labels)}
+        if knee is not None:
+            truth = rasterize_knee(knee, labels.grid, supersample=1)[0]
+            dice = {name: _dice(labels.data, truth, v) for name, v in BONE_UNITS.items()}
+            (folder / "dice.json").write_text(json.dumps(dice, indent=2), encoding="utf-8")
+            details["dice"] = dice
+        return details
+
+    _require(study, "recon")
+    return run_stage(
+        study, "segmentation", lambda: derived_folder(study, "segmentation", fill), say
+    )
+
+
+def registration_stage(study: Study, settings: Settings | None = None, say: Say = print) -> bool:
+    """BoneAxis-Reg of ``fluoro/`` against the segmented volume -> ``registration/``
+    (metrics.json when the sequence has ground truth)."""
+
+    def work() -> dict:
+        target = study.path / "registration"
+        if target.exists():
+            shutil.rmtree(target)  # an interrupted earlier attempt: derived data, made again
+        truth = study.path / "fluoro" / "poses.csv"
+        register_files(
+            study.path / "recon" / "volume.nii.gz",
+            study.path / "segmentation" / "labels.nii.gz",
+            study.path / "fluoro" / "frames.mha",
+            study.path / "fluoro" / "view.xml",
+            target,
+            truth_path=truth if truth.exists() else None,
+            settings=settings,
+            progress=lambda done, total: say(f"registered frame {done}/{total}"),
+        )
+        study.adopt("registration")
+        study.save()
+        if not (target / "metrics.json").exists():
+            return {}
+        metrics = json.loads((target / "metrics.json").read_text(encoding="utf-8"))
+        keep = (
+            "tre_mm",
+            "tre_mm_median",
+            "rsr_pct",
+            "in_plane_mm_median",
+            "out_of_plane_mm_median",
+        )
+        details = {k: metrics[k] for k in keep}
+        details["tre_mm_max"] = max(row["tre_mm"] for row in metrics["per_frame"])
+        return details
+
+    _require(study, "segmentation", "fluoro")
+    return run_stage(study, "registration", work, say)
+
+
+def assessment_stage(study: Study, title: str = "Knee kinematics", say: Say = print) -> bool:
+    """Knee kinematics of the registered poses -> ``assessment/`` (report, plots, metrics,
+    4D series)."""
+
+    def fill(folder: Path) -> dict:
+        labels = read_volume(study.path / "segmentation" / "labels.nii.gz", unit="label")
+        poses = read_poses(study.path / "registration" / "poses.csv")
+        side = study.stage("segmentation")["side"]
+        folder.rmdir()  # write_assessment makes its own new folder
+        kin = write_assessment(labels, poses, folder, side, title=title).kinematics
+        return {
+            "frames": len(kin.frames),
+            "max_abs_mld_mm": float(np.abs(kin.mld_mm).max()),
+            "flexion_range_deg": float(np.ptp(kin.flexion_deg)),
+            "flagged_frames": [int(f) for f in kin.frames[kin.flagged]],
+            "ddv_mm2": kin.ddv_mm2,
+        }
+
+    _require(study, "registration", "segmentation")
+    return run_stage(study, "assessment", lambda: derived_folder(study, "assessment", fill), say)
+
+
+def _side(labels) -> str:
+    """ "right" when the fibula lies at -x of the tibia (lateral of a right knee), else "left"."""
+    x = labels.grid.axes_mm()[0]
+    centre = {
+        bone: x[np.nonzero(labels.data == LABELS[bone])[2]].mean() for bone in ("tibia", "fibula")
+    }
+    return "right" if centre["fibula"] < centre["tibia"] else "left"
+
+
+def _rmse(volume: np.ndarray, truth: np.ndarray, inside: np.ndarray) -> float:
+    return float(np.sqrt(np.mean((volume - truth)[inside] ** 2)))
+
+
+def _dice(labels: np.ndarray, truth: np.ndarray, values: tuple[int, ...]) -> float:
+    a, b = np.isin(labels, values), np.isin(truth, values)
+    return float(2 * np.sum(a & b) / max(np.sum(a) + np.sum(b), 1))
