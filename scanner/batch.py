@@ -34,6 +34,7 @@ import html
 import importlib.util
 import io
 import json
+import logging
 import math
 import os
 import time
@@ -49,7 +50,9 @@ import pyarrow.csv as pa_csv
 import pyarrow.parquet as pq
 from distributed import Client, Future, LocalCluster, as_completed, get_worker
 from matplotlib.figure import Figure
+from matplotlib.ticker import MaxNLocator
 
+from recon.config import load_config
 from registration.boneaxis import Settings
 from registration.labels import BONE_UNITS
 from scanner.stages import (
@@ -184,6 +187,7 @@ def local_cluster(workers: int, dashboard_address: str = ":0") -> LocalCluster:
             threads_per_worker=1,
             processes=True,
             dashboard_address=dashboard_address,
+            silence_logs=logging.CRITICAL,  # failures are reported per study by run()
         )
 
 
@@ -234,6 +238,11 @@ def dashboard(client: Client) -> str | None:
 # -- the task ------------------------------------------------------------------------------------
 
 
+def load_settings(path: Path) -> Settings:
+    """Registration settings from a YAML file (``configs/registration.yaml``)."""
+    return load_config(path, Settings)
+
+
 def recon_voxel_mm(study: Study) -> float:
     """The recon voxel a simulated study was made for (its demo/cohort size), mm."""
     for kind in ("cohort", "demo"):
@@ -273,10 +282,12 @@ def run_task(
             if study.stage(stage).get("status") == "complete":
                 bad = _changed(study, stage)
                 if bad:
-                    raise StudyError(
+                    reason = (
                         f"input {stage}/ is damaged: {', '.join(bad[:3])} missing or no longer "
                         "matching its sha256 in study.json"
                     )
+                    study.mark(todo[0], "incomplete", reason=f"StudyError: {reason}")
+                    raise StudyError(reason)
 
     def quiet(_message: str) -> None:
         pass
@@ -366,9 +377,8 @@ def run(
                 # the error of an earlier task of the study, passed on by dask
                 outcome = Outcome(study, task, "blocked", "an earlier task failed")
             else:
-                err = future.exception()
                 failed.add(study)
-                outcome = Outcome(study, task, "failed", f"{type(err).__name__}: {err}")
+                outcome = Outcome(study, task, "failed", _error(future))
             report.outcomes.append(outcome)
             if on_outcome is not None:
                 on_outcome(outcome)
@@ -379,6 +389,14 @@ def run(
     report.outcomes.sort(key=lambda o: (rank[o.study], ACTIONS[action].index(o.task)))
     report.seconds = round(time.perf_counter() - started, 3)
     return report
+
+
+def _error(future: Future) -> str:
+    """A failed (or cancelled) future's error in words."""
+    if future.status == "cancelled":
+        return "cancelled: the scheduler dropped the task (was it restarted?)"
+    err = future.exception()
+    return f"{type(err).__name__}: {err}"
 
 
 # -- the cohort ----------------------------------------------------------------------------------
@@ -512,6 +530,7 @@ def _plots(studies: list[dict], out: Path) -> tuple[Path, ...]:
     ax = fig.add_subplot()
     if done:
         ax.hist(mld, bins=max(3, min(20, len(done))), color="tab:blue", edgecolor="white")
+        ax.yaxis.set_major_locator(MaxNLocator(integer=True))
         median = float(np.median(mld))
         ax.axvline(median, color="k", ls="--", label=f"median {median:.2f} mm")
         ax.legend()
@@ -610,6 +629,22 @@ def _page(
 
 
 # -- making cohorts (simulation) ---------------------------------------------------------------
+
+TINY: dict[str, float | int] = {
+    "views": 60,
+    "panel": 256,
+    "calibration_panel": 512,
+    "phantom_voxel_mm": 1.0,
+    "recon_voxel_mm": 1.0,
+    "fluoro_panel": 128,
+    "fluoro_voxel_mm": 1.5,
+    "frames": 3,
+    "max_flexion_deg": 20.0,
+}
+"""A study size (keys of ``scanner.demo.QUICK``) for tests and benchmarks: about 17 s of
+acquisition and 10-30 s of derived stages per study on one core. Smaller breaks a stage: the
+calibration needs 1.2 mm pixels (panel 512) to find the steel balls, and segmentation loses
+the patella with a 128 panel or 1.5 mm voxels."""
 
 
 def simulate_study(

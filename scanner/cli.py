@@ -508,13 +508,17 @@ def batch(
     ] = None,
     workers: Annotated[
         int | None,
-        typer.Option(help="worker processes of the local cluster, one thread each [cores]"),
+        typer.Option(
+            help="worker processes of the local cluster, one thread each (default: one per core)"
+        ),
     ] = None,
-    out: Annotated[Path | None, typer.Option(help="new cohort folder [cohort-<UTC time>]")] = None,
+    out: Annotated[
+        Path | None, typer.Option(help="new cohort folder (default: cohort-<UTC time>)")
+    ] = None,
     settings: Annotated[Path, typer.Option(help="registration settings YAML")] = CONFIGS
     / "registration.yaml",
     voxel_mm: Annotated[
-        float | None, typer.Option(help="recon voxel, mm [the study's own, else 1.0]")
+        float | None, typer.Option(help="recon voxel, mm (default: the study's own, else 1.0)")
     ] = None,
     timeout_s: Annotated[
         float, typer.Option("--timeout", help="seconds to reach --scheduler and a worker on it")
@@ -535,7 +539,7 @@ def batch(
     try:
         paths = batch_job.find_studies(studies)
         cohort = batch_job.new_output_folder(out)
-        options = batch_job.TaskOptions(voxel_mm, load_config(settings, Settings))
+        options = batch_job.TaskOptions(voxel_mm, batch_job.load_settings(settings))
         n = workers if workers is not None else os.cpu_count() or 1
         if scheduler is None:
             console.print(f"starting a local cluster of {n} worker process(es)", highlight=False)

@@ -64,14 +64,14 @@ def run_stage(study: Study, name: str, work: Callable[[], dict | None], say: Say
 
 
 def derived_folder(study: Study, name: str, fill: Callable[[Path], dict | None]) -> dict | None:
-    """Write a stage into ``<name>.partial/`` (a stale one from an interrupted run is
-    discarded), then rename it to ``<name>/`` and record its files."""
+    """Write a stage into ``<name>.partial/``, then rename it to ``<name>/`` and record its
+    files. The stage is not complete yet, so what an interrupted earlier attempt left (either
+    folder) is derived data and is made again."""
     final = study.path / name
     partial = study.path / f"{name}.partial"
-    if final.exists():
-        raise StudyError(f"{final} exists but {name} is not complete: remove it to redo")
-    if partial.exists():
-        shutil.rmtree(partial)
+    for stale in (final, partial):  # an interrupted earlier attempt: derived data, made again
+        if stale.exists():
+            shutil.rmtree(stale)
     partial.mkdir()
     details = fill(partial)
     partial.rename(final)

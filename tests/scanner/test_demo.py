@@ -94,8 +94,8 @@ def test_the_recording_holds_every_stage_on_its_timeline(demo: Path):
 
 @pytest.mark.xfail(
     strict=True,
-    reason="issue 9: in the independent regime BoneAxis-Reg's depth (out-of-plane) error is "
-    "2-3.5 mm median; issue 7 asks for TRE < 1.5 mm on every frame",
+    reason="issue 9: femur and tibia-fibula track (median TRE ~0.5 mm) but the patella does "
+    "not yet (up to ~7 mm); issue 7 asks for TRE < 1.5 mm on every frame"
 )
 def test_registration_is_below_1_5_mm_on_every_frame(demo: Path):
     metrics = json.loads((demo / "registration" / "metrics.json").read_text(encoding="utf-8"))

@@ -1,0 +1,208 @@
+"""``cbct batch`` on loopback: LocalClusters of 2 worker processes over tiny simulated studies.
+
+The cohort (4 seeds; the last one's fluoroscopy frames corrupted after acquisition) is made once
+per module on a LocalCluster; each test works on a hard-linked copy of it (study files are
+never rewritten in place, only replaced by rename, so the copies stay independent).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import threading
+import time
+from pathlib import Path
+
+import pyarrow.csv as pa_csv
+import pyarrow.parquet as pq
+import pytest
+from distributed import Client
+from typer.testing import CliRunner
+
+from scanner import batch
+from scanner.cli import CONFIGS, app
+from scanner.study import Study
+
+runner = CliRunner()
+
+TINY = batch.TINY
+LIGHT_REGISTRATION = """\
+pyramid_mm: [2.4]
+de_popsize: 5
+de_maxiter: 5
+powell_maxfev: 60
+nelder_mead_maxfev: 20
+passes: 1
+drop_ncc: 1.0
+"""
+SEEDS = (1, 2, 3, 4)
+FAULTY = "knee-4"
+DERIVED = ("recon", "segmentation", "registration", "assessment")
+
+
+@pytest.fixture(scope="module")
+def cohort(tmp_path_factory) -> Path:
+    """Four acquired studies (seeds 1-4), made in parallel; knee-4's frames corrupted."""
+    root = tmp_path_factory.mktemp("cohort")
+    paths = [root / f"knee-{seed}" for seed in SEEDS]
+    cluster = batch.local_cluster(2)
+    try:
+        with Client(cluster) as client:
+            futures = client.map(
+                batch.simulate_study,
+                paths,
+                [CONFIGS] * len(SEEDS),
+                [TINY] * len(SEEDS),
+                SEEDS,
+                pure=False,
+            )
+            client.gather(futures)
+    finally:
+        cluster.close()
+    frames = root / FAULTY / "fluoro" / "frames.mha"
+    damaged = frames.with_name("damaged.tmp")
+    damaged.write_bytes(frames.read_bytes()[: frames.stat().st_size // 2])
+    os.replace(damaged, frames)  # a new inode: a truncated copy, as a failing disk leaves it
+    (root / "settings.yaml").write_text(LIGHT_REGISTRATION, encoding="utf-8")
+    return root
+
+
+def copy_cohort(cohort: Path, dst: Path, names: tuple[str, ...] | None = None) -> list[Path]:
+    """Hard-linked copies of the cohort's studies under ``dst``."""
+    names = names or tuple(f"knee-{seed}" for seed in SEEDS)
+    for name in names:
+        shutil.copytree(cohort / name, dst / name, copy_function=os.link)
+    return [dst / name for name in names]
+
+
+def stage_times(path: Path) -> dict[str, str]:
+    return {s: Study.open(path).stage(s).get("updated", "") for s in DERIVED}
+
+
+def test_batch_all_makes_the_cohort_reports_the_fault_and_skips_finished_work(cohort, tmp_path):
+    studies = copy_cohort(cohort, tmp_path / "studies")
+    settings = str(cohort / "settings.yaml")
+    args = ["batch", "all", str(tmp_path / "studies" / "knee-*"), "--workers", "2"]
+    first = runner.invoke(app, [*args, "--out", str(tmp_path / "first"), "--settings", settings])
+    assert first.exit_code == 1, first.output
+    assert "local cluster of 2 worker process(es)" in first.output
+    assert "1 of 4 studies failed" in first.output
+    assert f"{FAULTY}: register: StudyError: input fluoro/ is damaged" in first.output
+    assert "fluoro/frames.mha" in first.output
+
+    for path in studies:
+        study = Study.open(path)
+        assert study.verify() == [] or path.name == FAULTY
+        done = [s for s in DERIVED if study.stage(s).get("status") == "complete"]
+        if path.name == FAULTY:  # reconstructed and segmented; never registered
+            assert done == ["recon", "segmentation"]
+            assert "fluoro/ is damaged" in study.stage("registration")["reason"]
+            assert study.verify() == ["fluoro/frames.mha"]
+        else:
+            assert done == list(DERIVED)
+        assert not list(path.glob("*.partial"))
+
+    table = pq.read_table(tmp_path / "first" / "cohort.parquet").to_pylist()
+    assert len(table) == 4 * len(batch.BONES)
+    assert pa_csv.read_csv(tmp_path / "first" / "cohort.csv").num_rows == len(table)
+    for row in table:
+        if row["study"] == FAULTY:
+            assert row["status"] == "failed" and row["failed_task"] == "register"
+            assert "frames.mha" in row["error"] and row["max_abs_mld_mm"] is None
+            assert row["recon_s"] > 0 and row["tre_mm_mean"] is None
+        else:
+            assert row["status"] == "ok" and row["error"] is None
+            for key in ("tre_mm_mean", "ncc_mean", "registration_s", "max_abs_mld_mm"):
+                assert row[key] is not None and row[key] >= 0, key
+            assert row["flexion_range_deg"] is not None and row["frames"] == TINY["frames"]
+    page = (tmp_path / "first" / "cohort.html").read_text(encoding="utf-8")
+    assert page.count("data:image/png;base64,") == 2 and FAULTY in page
+    assert (tmp_path / "first" / "flexion_vs_mld.png").is_file()
+
+    before = {p.name: stage_times(p) for p in studies}
+    second = runner.invoke(app, [*args, "--out", str(tmp_path / "second"), "--settings", settings])
+    assert second.exit_code == 1, second.output
+    assert "1 of 4 studies failed" in second.output and "skipped" in second.output
+    after = {p.name: stage_times(p) for p in studies}
+    faulty_before, faulty_after = before.pop(FAULTY), after.pop(FAULTY)
+    assert after == before  # nothing redone
+    assert faulty_after["recon"] == faulty_before["recon"]  # only its registration tried again
+    assert Study.open(tmp_path / "studies" / FAULTY).stage("registration")["status"] == "incomplete"
+    again = pq.read_table(tmp_path / "second" / "cohort.parquet").to_pylist()
+    assert [r["max_abs_mld_mm"] for r in again] == [r["max_abs_mld_mm"] for r in table]
+
+    taken = runner.invoke(app, [*args, "--out", str(tmp_path / "second")])
+    assert taken.exit_code == 2 and "exists and is not empty" in taken.output
+
+
+def test_a_worker_killed_mid_task_loses_nothing(cohort, tmp_path):
+    studies = copy_cohort(cohort, tmp_path / "studies", ("knee-1", "knee-2"))
+    killed: dict[str, object] = {}
+
+    def kill_a_worker_in_recon(client: Client) -> None:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and "pid" not in killed:
+            if any((p / "recon.partial").is_dir() for p in studies):
+                for address, stacks in client.call_stack().items():
+                    keys = [k for k in stacks if str(k).startswith("recon-")]
+                    if keys:
+                        pid = client.run(os.getpid, workers=[address])[address]
+                        os.kill(pid, signal.SIGKILL)
+                        killed.update(address=address, pid=pid, key=str(keys[0]))
+                        return
+            time.sleep(0.05)
+
+    options = batch.TaskOptions(settings=batch.load_settings(cohort / "settings.yaml"))
+    cluster = batch.local_cluster(2)
+    try:
+        with Client(cluster) as client:
+            killer = threading.Thread(target=kill_a_worker_in_recon, args=(client,))
+            killer.start()
+            report = batch.run(client, studies, "all", options)
+            killer.join()
+    finally:
+        cluster.close()
+
+    assert "pid" in killed, "no recon task was seen running"
+    index = int(str(killed["key"]).rsplit("-", 1)[1])
+    assert [o.status for o in report.outcomes] == ["ran"] * 6, report.outcomes
+    rerun = next(o for o in report.outcomes if o.study == str(studies[index]) and o.task == "recon")
+    assert rerun.pid != killed["pid"]  # the killed task ran again, in another process
+    for path in studies:
+        study = Study.open(path)
+        assert all(study.stage(s)["status"] == "complete" for s in DERIVED)
+        assert study.verify() == [] and not list(path.glob("*.partial"))
+        metrics = json.loads((path / "registration" / "metrics.json").read_text())
+        assert len(metrics["per_frame"]) == TINY["frames"] * len(batch.BONES)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_bad_input_is_refused_and_nothing_is_written(tmp_path):
+    out = tmp_path / "cohort"
+    nothing = runner.invoke(app, ["batch", "all", str(tmp_path / "no-such-*"), "--out", str(out)])
+    assert nothing.exit_code == 2 and "matches nothing" in nothing.output
+    (tmp_path / "not-a-study").mkdir()
+    stray = runner.invoke(app, ["batch", "recon", str(tmp_path / "not-a-study"), "--out", str(out)])
+    assert stray.exit_code == 2 and "is not a study folder" in stray.output
+    study = tmp_path / "study"
+    Study.create(study, {})
+    unknown = runner.invoke(app, ["batch", "segment", str(study), "--out", str(out)])
+    assert unknown.exit_code == 2 and "unknown action" in unknown.output
+
+    started = time.monotonic()
+    address = f"tcp://127.0.0.1:{_free_port()}"
+    args = ["batch", "all", str(study), "--scheduler", address, "--timeout", "2", "--out", str(out)]
+    unreachable = runner.invoke(app, args)
+    assert unreachable.exit_code == 2, unreachable.output
+    assert f"no dask scheduler reachable at '{address}' within 2 s" in unreachable.output
+    assert time.monotonic() - started < 15
+    assert not out.exists()
+    assert sorted(p.name for p in study.iterdir()) == ["study.json"]
