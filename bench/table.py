@@ -332,14 +332,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--write-readme", action="store_true", help="update the README")
     parser.add_argument("--readme", type=Path, default=README)
     args = parser.parse_args(argv)
-    new = blocks(json.loads(args.path.read_text()))
+    new = blocks(json.loads(args.path.read_text(encoding="utf-8")))
     if not args.write_readme:
         print("\n\n".join(wrapped(n, b) for n, b in new.items()))
         return 0
-    original = args.readme.read_text()
+    original = args.readme.read_text(encoding="utf-8")
     text, missing = replace_blocks(original, new)
     if text != original:
-        args.readme.write_text(text)
+        args.readme.write_text(text, encoding="utf-8")
     for name in new:
         state = "NOT updated (markers missing)" if name in missing else "updated"
         print(f"[bench/table] {args.readme}: {name} {state}", file=sys.stderr)

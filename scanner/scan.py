@@ -30,6 +30,8 @@ from scanner.storage import ScanStore, ViewRecord
 from trajectories.model import ScannerModel
 from trajectories.plan import Plan, view_at
 
+SETTLE_POLL_S = 0.01
+"""Re-read interval while arms settle onto a view's pose, s."""
 GROUP_SLICES = (slice(0, 2), slice(2, 8), slice(8, 14))
 """Plan joint indices of the backend's groups: stage (rotary, lift), source arm, detector arm."""
 
@@ -72,6 +74,7 @@ class ScanSettings:
             the planned view at exposure, mm.
         pose_tolerance_deg: largest angle between realised and planned panel normals, deg.
         start_tolerance: largest joint distance from the plan's start, deg (mm for the lift).
+        settle_s: longest wait for arms that lag behind a view's pose before refusing it, s.
         device_timeout_s: timeout of every device call, s.
         warmup_timeout_s: timeout of the generator's warm-up, s.
     """
@@ -79,6 +82,7 @@ class ScanSettings:
     pose_tolerance_mm: float = 2.0
     pose_tolerance_deg: float = 0.5
     start_tolerance: float = 0.5
+    settle_s: float = 0.25
     device_timeout_s: float = 2.0
     warmup_timeout_s: float = 30.0
 
@@ -292,11 +296,9 @@ class ScanRun:
     def _acquire(self, k: int) -> None:
         """One view: pose check, interlock check, expose, read, store."""
         b, timeout = self.backend, self.settings.device_timeout_s
-        q = self._read_q()
-        t_reading = b.clock.now()
-        realised = view_at(self.model, q, self.panel)
         planned = view_at(self.model, self.plan.view_q[k], self.panel)
-        self._check_pose(k, realised, planned)
+        q, realised = self._settled(k, planned)
+        t_reading = b.clock.now()
         status = b.generator.status(timeout)
         if not status.interlocks_closed:
             opened = [name for name, closed in status.interlocks.items() if not closed]
@@ -334,16 +336,34 @@ class ScanRun:
             )
         )
 
-    def _check_pose(self, k: int, realised: View, planned: View) -> None:
+    def _settled(self, k: int, planned: View) -> tuple[np.ndarray, View]:
+        """The measured joints and realised view once they are within tolerance of view ``k``.
+
+        The view's set-point has been sent; arms held up (e.g. a wall clock that stalled) get
+        up to ``settle_s`` to reach it while the stream waits, then the view is refused."""
+        clock = self.backend.clock
+        deadline = clock.now() + self.settings.settle_s
+        while True:
+            q = self._read_q()
+            realised = view_at(self.model, q, self.panel)
+            off = self._pose_error(k, realised, planned)
+            if off is None:
+                return q, realised
+            if clock.now() >= deadline:
+                raise DeviceError(off)
+            clock.sleep_until(clock.now() + SETTLE_POLL_S)
+
+    def _pose_error(self, k: int, realised: View, planned: View) -> str | None:
         ds = float(np.linalg.norm(realised.source_mm - planned.source_mm))
         dd = float(np.linalg.norm(realised.detector_center_mm - planned.detector_center_mm))
         angle = float(np.degrees(np.arccos(np.clip(realised.normal @ planned.normal, -1, 1))))
         tol_mm, tol_deg = self.settings.pose_tolerance_mm, self.settings.pose_tolerance_deg
         if ds > tol_mm or dd > tol_mm or angle > tol_deg:
-            raise DeviceError(
+            return (
                 f"view {k}: arms off pose (source {ds:.2f} mm, detector {dd:.2f} mm, panel "
                 f"{angle:.2f} deg; tolerance {tol_mm} mm, {tol_deg} deg): not exposing"
             )
+        return None
 
     # -- transitions and SAFE -----------------------------------------------------------
 

@@ -254,11 +254,11 @@ README = """# Project
 
 def test_write_readme_replaces_only_the_marked_blocks(tmp_path):
     readme = tmp_path / "README.md"
-    readme.write_text(README)
+    readme.write_text(README, encoding="utf-8")
     path = tmp_path / "all.json"
-    path.write_text(json.dumps(_all(plan=PLAN)))  # recon missing: its block stays
+    path.write_text(json.dumps(_all(plan=PLAN)), encoding="utf-8")  # recon missing: its block stays
     assert table.main([str(path), "--write-readme", "--readme", str(readme)]) == 0
-    text = readme.read_text()
+    text = readme.read_text(encoding="utf-8")
     before, _, rest = text.partition("<!-- bench:begin plan -->")
     inside, _, after = rest.partition("<!-- bench:end plan -->")
     old_before, _, old_rest = README.partition("<!-- bench:begin plan -->")
@@ -269,13 +269,13 @@ def test_write_readme_replaces_only_the_marked_blocks(tmp_path):
     assert "| orbit | old recon |" in after
     # idempotent
     assert table.main([str(path), "--write-readme", "--readme", str(readme)]) == 0
-    assert readme.read_text() == text
+    assert readme.read_text(encoding="utf-8") == text
 
 
 def test_write_readme_without_markers_reports_and_leaves_the_file(tmp_path):
     readme = tmp_path / "README.md"
-    readme.write_text("# Project\n")
+    readme.write_text("# Project\n", encoding="utf-8")
     path = tmp_path / "all.json"
-    path.write_text(json.dumps(_all(plan=PLAN)))
+    path.write_text(json.dumps(_all(plan=PLAN)), encoding="utf-8")
     assert table.main([str(path), "--write-readme", "--readme", str(readme)]) == 1
-    assert readme.read_text() == "# Project\n"
+    assert readme.read_text(encoding="utf-8") == "# Project\n"
