@@ -16,7 +16,7 @@ from scanner.hardware import (
     GeneratorStatus,
     Technique,
 )
-from scanner.serial_link import DEFAULT_BAUDRATE, Reply, SerialLink, format_number
+from scanner.serial_link import DEFAULT_BAUDRATE, Reply, SerialLink, format_number, time_left
 
 INTERLOCKS = ("estop", "door", "deadman")
 """Interlock inputs reported by STATUS?."""
@@ -61,15 +61,15 @@ class SerialGenerator:
                 word = format_number(value)
             except ValueError as exc:
                 raise DeviceError(f"{self.name}: {command} {value!r}: {exc}") from None
-            reply = self._call(command, word, timeout_s=_left(deadline))
-            self._numbers(reply, 1)
+            reply = self._call(command, word, timeout_s=time_left(deadline))
+            self._link.numbers(reply, 1)
 
     def prepare(self, timeout_s: float) -> None:
         """Start the warm-up (PREP) and return once STATUS? reports READY."""
         deadline = time.monotonic() + timeout_s
         self._call("PREP", timeout_s=timeout_s)
         while True:
-            status = self.status(_left(deadline))
+            status = self.status(time_left(deadline))
             if status.fault is not None:
                 raise DeviceError(f"{self.name}: 'PREP': fault {status.fault}")
             if status.ready:
@@ -86,7 +86,7 @@ class SerialGenerator:
         pulse's state is then unknown, so call :meth:`abort`.
         """
         reply = self._call("EXP", timeout_s=timeout_s)
-        kv, ma, ms, seq = self._numbers(reply, 4)
+        kv, ma, ms, seq = self._link.numbers(reply, 4)
         if seq != int(seq):
             raise DeviceError(f"{self.name}: 'EXP': sequence not an integer: {reply.line!r}")
         return Exposure(Technique(kv=kv, ma=ma, ms=ms), int(seq))
@@ -152,21 +152,6 @@ class SerialGenerator:
         if not reply.ok:
             raise self._link.refused(reply)
         return reply
-
-    def _numbers(self, reply: Reply, count: int) -> list[float]:
-        try:
-            values = [float(word) for word in reply.fields]
-        except ValueError:
-            values = []
-        if len(values) != count:
-            raise DeviceError(
-                f"{self.name}: {reply.request!r}: expected {count} number(s): {reply.line!r}"
-            )
-        return values
-
-
-def _left(deadline: float) -> float:
-    return max(deadline - time.monotonic(), 0.0)
 
 
 def _flag(word: str) -> bool:

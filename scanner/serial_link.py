@@ -170,6 +170,11 @@ def parse_reply(body: str, request: str = "") -> Reply:
     raise FrameError("neither 'OK <CMD> ...' nor 'ERR <CMD> <CODE> ...'")
 
 
+def time_left(deadline: float) -> float:
+    """Seconds until the ``time.monotonic`` deadline, never negative."""
+    return max(deadline - time.monotonic(), 0.0)
+
+
 def format_number(value: float) -> str:
     """A finite number as a protocol word (plain decimal, up to 6 decimals)."""
     value = float(value)
@@ -284,7 +289,7 @@ class SerialLink:
                 sent = True
             except DeviceError:  # the port failed under the other request: retry below
                 sent = False
-            if not self._lock.acquire(timeout=max(deadline - time.monotonic(), 0.0)):
+            if not self._lock.acquire(timeout=time_left(deadline)):
                 state = "sent, but no reply" if sent else "not sent"
                 raise DeviceTimeout(
                     f"{self.device}: {body!r} {state} within {timeout_s:.3g} s (link busy)"
@@ -308,6 +313,18 @@ class SerialLink:
     def refused(self, reply: Reply, error: type[DeviceError] = DeviceError) -> DeviceError:
         """The exception for an ``ERR`` reply: device, request, code and the device's message."""
         return error(f"{self.device}: {reply.request!r} refused: {reply.code} {reply.message}")
+
+    def numbers(self, reply: Reply, count: int) -> list[float]:
+        """The ``count`` numbers of an ``OK`` reply; DeviceError naming the line otherwise."""
+        try:
+            values = [float(word) for word in reply.fields]
+        except ValueError:
+            values = []
+        if len(values) != count:
+            raise DeviceError(
+                f"{self.device}: {reply.request!r}: expected {count} number(s): {reply.line!r}"
+            )
+        return values
 
     # -- internals -------------------------------------------------------------------------
 

@@ -15,7 +15,7 @@ from collections.abc import Callable
 import numpy as np
 
 from scanner.hardware import DeviceError, DeviceTimeout, JointState, ProtectiveStop
-from scanner.serial_link import DEFAULT_BAUDRATE, Reply, SerialLink, format_number
+from scanner.serial_link import DEFAULT_BAUDRATE, Reply, SerialLink, format_number, time_left
 
 JOINTS = ("rotary", "lift")
 UNITS = ("deg", "mm")
@@ -79,7 +79,7 @@ class SerialStage:
         deadline = time.monotonic() + timeout_s
         target = self._target(q)
         reply = self._call("MOVE", *(format_number(v) for v in target), timeout_s=timeout_s)
-        (planned_s,) = self._numbers(reply, 1)
+        (planned_s,) = self._link.numbers(reply, 1)
         if time.monotonic() + planned_s > deadline:
             self._stop_quietly()
             raise DeviceTimeout(
@@ -87,7 +87,7 @@ class SerialStage:
                 f"timeout {timeout_s:.3g} s: stopped"
             )
         while True:
-            reading, moving = self._read(_left(deadline))
+            reading, moving = self._read(time_left(deadline))
             if reading.protective_stop:
                 raise ProtectiveStop(
                     f"{self.name}: protective stop during MOVE at q={reading.q.tolist()}"
@@ -142,7 +142,7 @@ class SerialStage:
         t_send = self.clock()
         reply = self._call("POS?", timeout_s=timeout_s)
         t_s = 0.5 * (t_send + self.clock())
-        rot, lift, t_controller, pstop, moving = self._numbers(reply, 5)
+        rot, lift, t_controller, pstop, moving = self._link.numbers(reply, 5)
         if pstop not in (0.0, 1.0) or moving not in (0.0, 1.0):
             raise DeviceError(f"{self.name}: 'POS?': flags not 0/1: {reply.line!r}")
         self.controller_t_s = t_controller
@@ -154,23 +154,8 @@ class SerialStage:
             raise ValueError(f"{self.name}: q must be 2 finite values (rotary deg, lift mm): {q}")
         return target
 
-    def _numbers(self, reply: Reply, count: int) -> list[float]:
-        try:
-            values = [float(word) for word in reply.fields]
-        except ValueError:
-            values = []
-        if len(values) != count:
-            raise DeviceError(
-                f"{self.name}: {reply.request!r}: expected {count} number(s): {reply.line!r}"
-            )
-        return values
-
     def _stop_quietly(self) -> None:
         try:
             self.stop()
         except DeviceError:
             pass
-
-
-def _left(deadline: float) -> float:
-    return max(deadline - time.monotonic(), 0.0)
