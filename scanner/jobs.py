@@ -6,10 +6,8 @@ outputs go to new files or to a folder that does not exist yet (or is empty).
 
 from __future__ import annotations
 
-import hashlib
 import json
 from collections.abc import Callable
-from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +24,7 @@ from recon.preview import save_orthogonal_slices
 from recon.rtk_xml import read_rtk_geometry, write_rtk_geometry
 from recon.volume import Volume, VolumeGrid
 from registration.poses import BonePose, poses_by_frame, read_poses
+from scanner.study import sha256, software_version
 from sim.phantoms.bb import BBPhantomSpec, project_bb
 from sim.phantoms.knee import KneePhantomSpec
 from sim.scan import add_noise, photons_per_pixel, simulate_knee_scan
@@ -36,21 +35,6 @@ from trajectories.plan import Plan, plan_scan
 from trajectories.recording import record_plan
 
 Status = Callable[[str], None]
-
-
-def software_version() -> str:
-    try:
-        return version("dualarm-cbct")
-    except PackageNotFoundError:  # pragma: no cover - running from a bare checkout
-        return "unknown"
-
-
-def sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def new_folder(path: Path) -> Path:

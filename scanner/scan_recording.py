@@ -24,16 +24,10 @@ import rerun as rr
 from recon.geometry import View
 from scanner.storage import SCAN_FOLDERS, ViewRecord
 from scanner.study import Study
+from trajectories.recording import frustum
 
 TIMELINE = "scan_time"
 VIEW_TIMELINE = "view"
-
-
-def _frustum(view: View) -> list[np.ndarray]:
-    r, c = view.rows - 1, view.cols - 1
-    corners = view.pixel_to_world(np.array([0, c, c, 0]), np.array([0, 0, r, r]))
-    rays = [np.array([view.source_mm, corner]) for corner in corners]
-    return [*rays, np.vstack([corners, corners[:1]])]
 
 
 class ScanRecorder:
@@ -70,7 +64,7 @@ class ScanRecorder:
             f"world/{self.stage}/detector",
             rr.Points3D([view.detector_center_mm], colors=[(60, 130, 220)]),
         )
-        rec.log(f"world/{self.stage}/frustum", rr.LineStrips3D(_frustum(view)))
+        rec.log(f"world/{self.stage}/frustum", rr.LineStrips3D(frustum(view)))
         rec.log(f"{self.stage}/projection", rr.Image(image.astype(np.float32)))
         rec.log(
             f"{self.stage}/events",

@@ -41,8 +41,8 @@ RECON_EXTENT_MM = (100.0, 100.0, 240.0)
 """Reconstructed field: x, y, z extent, mm (what a lateral fluoroscopy field sees of a knee)."""
 RECON_OFFSET_MM = (0.0, -10.0, 10.0)
 """Its centre relative to the orbit's isocentre, mm (the patella lies anterior, -y)."""
-MU_WATER_70KEV = 0.0193
-"""Water at 70 keV, 1/mm: the HU scale of DICOM series of real scans."""
+REAL_SCAN_ENERGY_KEV = 70.0
+"""Effective energy assumed for the HU scale of a real scan's DICOM series, keV."""
 
 
 def run_stage(study: Study, name: str, work: Callable[[], dict | None], say: Say) -> bool:
@@ -126,11 +126,8 @@ def recon_stage(
         write_volume(folder / "volume.nii.gz", volume)
         write_volume(folder / "volume.mha", volume)
         knee = simulated_knee(study)
-        water = (
-            MU_WATER_70KEV
-            if knee is None
-            else attenuation_per_mm(knee.effective_energy_kev)["water"]
-        )
+        energy = REAL_SCAN_ENERGY_KEV if knee is None else knee.effective_energy_kev
+        water = attenuation_per_mm(energy)["water"]
         write_dicom_series(folder / "dicom", volume, mu_water_per_mm=water)
         save_orthogonal_slices(volume, folder / "slices.png", title="weighted FDK")
         record_volume(volume, folder / "recording.rrd")

@@ -44,7 +44,7 @@ def sha256(path: Path) -> str:
     return digest.hexdigest()
 
 
-def _software_version() -> str:
+def software_version() -> str:
     try:
         return version("dualarm-cbct")
     except PackageNotFoundError:  # pragma: no cover - running from a bare checkout
@@ -82,7 +82,7 @@ class Study:
             )
         path.mkdir(parents=True, exist_ok=True)
         manifest = {
-            "software_version": _software_version(),
+            "software_version": software_version(),
             "created": _now(),
             "config": config,
             "stages": {},

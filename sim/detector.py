@@ -20,7 +20,7 @@ import numpy as np
 
 from recon.config import ExposureSpec
 from recon.geometry import DetectorSpec, View
-from sim.scan import ELECTRONIC_NOISE_PHOTONS, photons_per_pixel
+from sim.scan import add_noise, photons_per_pixel
 
 
 class SimFrame(NamedTuple):
@@ -113,9 +113,8 @@ class SimDetector:
         line_integrals = self._subject(view)
         photons = photons_per_pixel(technique, self.panel, view.sdd_mm)
         rng = np.random.default_rng([self.seed, zlib.crc32(view.matrix.tobytes())])
-        expected = photons * np.exp(-np.asarray(line_integrals, dtype=np.float64))
-        counts = rng.poisson(expected) + rng.normal(0.0, ELECTRONIC_NOISE_PHOTONS, expected.shape)
-        return SimFrame(np.maximum(counts, 1.0).astype(np.float32), self._now())
+        counts, _ = add_noise(np.asarray(line_integrals), photons, rng)
+        return SimFrame(counts, self._now())
 
     def flood_counts(self, technique) -> np.ndarray:
         """Mean unattenuated counts per pixel at ``technique`` (kv, ma, ms attributes)."""

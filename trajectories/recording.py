@@ -92,7 +92,7 @@ def _color(name: str, fixed: bool) -> tuple[int, ...]:
     return COLORS[role if role in COLORS else "scanner"]
 
 
-def _frustum(view: View) -> list[np.ndarray]:
+def frustum(view: View) -> list[np.ndarray]:
     """Rays from the focal spot to the panel's four outer corners and the closed outline (mm)."""
     u = (-0.5, view.cols - 0.5, view.cols - 0.5, -0.5)
     v = (-0.5, -0.5, view.rows - 0.5, view.rows - 0.5)
@@ -226,7 +226,7 @@ def _log_views(rec: rr.RecordingStream, plan: Plan) -> None:
         rr.TimeColumn(TIMELINE, duration=plan.view_times_s),
         rr.TimeColumn(VIEW_TIMELINE, sequence=np.arange(len(achieved))),
     ]
-    strips = [strip for view in achieved for strip in _frustum(view)]
+    strips = [strip for view in achieved for strip in frustum(view)]
     rec.send_columns(
         "world/views/frustum",
         indexes=indexes,
