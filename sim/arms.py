@@ -4,9 +4,9 @@ A :class:`SimWorld` holds the true joint state of the whole scanner (rotary, lif
 and six detector joints, in the plan's joint units) and the virtual time. :class:`MockArm`
 drives one joint group of it through the same calls as a real controller: streamed set-points
 are ramped over their ``dt`` and followed with a first-order lag plus a little tracking noise;
-point-to-point moves are jerk-limited (ruckig); a protective stop can be injected. Time only
-passes when the scan sleeps on the :class:`VirtualClock`, so a scan of half a minute simulates
-in a fraction of a second.
+point-to-point moves are jerk-limited (trajectories.timing's ruckig move); a protective stop
+can be injected. Time only passes when the scan sleeps on the :class:`VirtualClock`, so a scan
+of half a minute simulates in a fraction of a second.
 """
 
 from __future__ import annotations
@@ -17,9 +17,9 @@ import threading
 from typing import NamedTuple
 
 import numpy as np
-from ruckig import InputParameter, Result, Ruckig, Trajectory
 
 from trajectories.model import ScannerModel
+from trajectories.timing import point_to_point
 
 STEP_S = 0.001
 """Integration step of the arm dynamics, s."""
@@ -75,7 +75,7 @@ class SimWorld:
         self._ramp_to = self.filtered.copy()
         self._ramp_t0 = np.zeros(14)
         self._ramp_t1 = np.zeros(14)
-        self._moves: dict[str, tuple[float, Trajectory]] = {}
+        self._moves: dict[str, tuple[float, object]] = {}
         self.protective_stop: dict[str, bool] = dict.fromkeys(GROUPS, False)
         self.exposures = 0
         self.events: list[tuple[int, float, str, str]] = []
@@ -105,34 +105,24 @@ class SimWorld:
         self.command(group, self.filtered[GROUPS[group]].copy(), 0.0)
 
     def move(self, group: str, goal: np.ndarray) -> float:
-        """Start a jerk-limited rest-to-rest move of the group; returns its duration, s."""
+        """Start a jerk-limited rest-to-rest move of the group at half its speed and
+        acceleration limits (trajectories.timing.point_to_point); returns its duration, s."""
         idx = GROUPS[group]
-        n = idx.stop - idx.start
-        inp = InputParameter(n)
-        inp.current_position = list(self.filtered[idx])
-        inp.current_velocity = [0.0] * n
-        inp.current_acceleration = [0.0] * n
-        inp.target_position = list(goal)
-        inp.target_velocity = [0.0] * n
-        inp.target_acceleration = [0.0] * n
-        inp.max_velocity = list(self.vmax[idx] * 0.5)
-        inp.max_acceleration = list(self.amax[idx] * 0.5)
-        inp.max_jerk = list(self.amax[idx] * 5.0)
-        trajectory = Trajectory(n)
-        if Ruckig(n).calculate(inp, trajectory) not in (Result.Working, Result.Finished):
-            raise ArmFault(f"{group}: no jerk-limited move to {np.round(goal, 3).tolist()}")
+        goal = np.asarray(goal, dtype=np.float64)
+        segment = point_to_point(
+            self.filtered[idx].copy(), goal, self.vmax[idx] * 0.5, self.amax[idx] * 0.5, group
+        )
         with self.lock:
-            self.command(group, np.asarray(goal, dtype=np.float64), 0.0)
-            self._moves[group] = (self.t, trajectory)
-        return float(trajectory.duration)
+            self.command(group, goal, 0.0)
+            self._moves[group] = (self.t, segment)
+        return float(segment.duration)
 
     def _setpoint(self, t: float) -> np.ndarray:
         span = np.maximum(self._ramp_t1 - self._ramp_t0, 1e-12)
         w = np.clip((t - self._ramp_t0) / span, 0.0, 1.0)
         out = self._ramp_from + w * (self._ramp_to - self._ramp_from)
-        for group, (t0, trajectory) in self._moves.items():
-            position, _, _ = trajectory.at_time(min(t - t0, trajectory.duration))
-            out[GROUPS[group]] = position
+        for group, (t0, segment) in self._moves.items():
+            out[GROUPS[group]] = segment.evaluate(min(t - t0, segment.duration))[0]
         return out
 
     def advance(self, t_s: float) -> None:
