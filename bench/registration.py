@@ -60,9 +60,10 @@ METHODS = {
 TRACKED = ("femur", "tibia_fibula", "patella")
 START_PERTURBATION = (4.0, 4.0)
 """First-frame start: the truth moved by up to this many mm and degrees per axis."""
-CBCT_GRID = VolumeGrid.centered((140, 140, 440), 0.6, (0.0, -4.0, 490.0))
-"""The registration's CBCT volume: 84 x 84 x 264 mm around the knee, 0.6 mm voxels (the
-fluoroscopy field sees about 205 mm of the leg)."""
+CBCT_GRID = VolumeGrid.centered((140, 166, 440), 0.6, (0.0, -10.0, 490.0))
+"""The registration's CBCT volume: 84 x 100 x 264 mm around the knee, 0.6 mm voxels (the
+fluoroscopy field sees about 205 mm of the leg); from y = -60 mm it holds the whole patella
+(centre at y = -40 mm; a box from y = -46 mm cut it in half and lost its tracking)."""
 SIMULATION_GRID = VolumeGrid.centered((187, 187, 400), 0.75, (0.0, -4.0, 490.0))
 
 

@@ -255,8 +255,9 @@ def _edge_threshold(relative: np.ndarray, spacing_zyx: np.ndarray) -> float:
 def _fill_bone(shell: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Cortical shell -> solid bone and its interior (cancellous bone and marrow).
 
-    The shell is closed by one voxel and filled: holes per axial slice (shafts leaving through
-    the top or bottom), caps on the faces of the array (filled cross-sections where a bone
+    The shell is closed by one voxel and filled: holes per slice along each axis (shafts
+    leaving through the top or bottom; a gap in one slice's shell is usually closed in the
+    slices across it), caps on the faces of the array (filled cross-sections where a bone
     leaves the field of view), then holes in 3D. Voxels the closing added are kept only where
     they end up enclosed, so the closing seals gaps in the shell without growing the bones or
     bridging them.
@@ -267,7 +268,11 @@ def _fill_bone(shell: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     cross = ndimage.generate_binary_structure(3, 1)
     # pad by repetition: a closing erodes the array's border, where bones leave the field
     sealed = ndimage.binary_closing(np.pad(shell, 1, mode="edge"), cross)[1:-1, 1:-1, 1:-1]
-    filled = np.stack([ndimage.binary_fill_holes(image) for image in sealed])
+    filled = sealed.copy()
+    for axis in range(3):  # a gap in the shell of one slice is often closed across the others
+        view = np.moveaxis(filled, axis, 0)
+        for k, image in enumerate(np.moveaxis(sealed, axis, 0)):
+            view[k] |= ndimage.binary_fill_holes(image)
     for axis in range(3):  # cap bones cut by a face of the field of view
         faces = np.moveaxis(filled, axis, 0)
         for k in (0, -1):

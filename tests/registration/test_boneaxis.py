@@ -9,7 +9,14 @@ import pytest
 from recon.geometry import Geometry
 from recon.project import forward_project
 from recon.volume import Volume, VolumeGrid
-from registration.boneaxis import TRACK_ORDER, Settings, Tracker, compose, predict
+from registration.boneaxis import (
+    TRACK_ORDER,
+    Settings,
+    Tracker,
+    compose,
+    patellofemoral_deviation,
+    predict,
+)
 from registration.drr import bone_models, soft_tissue_level
 from registration.metrics import pose_error
 from registration.segment import BONE_UNITS
@@ -150,3 +157,20 @@ def test_bad_models_are_refused(knee_case) -> None:
     )
     with pytest.raises(ValueError, match="missing from the labels"):
         bone_models(volume, no_bone)
+
+
+def test_patellofemoral_deviation_counts_only_out_of_plane_motion() -> None:
+    """Lateral view along x: flexing the patella about any medial-lateral axis and sliding it
+    in the sagittal plane deviate nothing; a medial-lateral shift and a tilt about the
+    anterior-posterior axis are counted in full, also with the femur moved."""
+    ray, center = np.array([1.0, 0.0, 0.0]), np.array([0.0, -40.0, 520.0])
+    femur = compose(np.array([3.0, -2.0, 5.0, 20.0, 0.0, 0.0]), np.eye(4), np.zeros(3))
+    flexed = compose(np.array([0.0, 6.0, -4.0, 25.0, 0.0, 0.0]), femur, center)
+    assert patellofemoral_deviation(femur, flexed, center, femur[:3, :3] @ ray) == pytest.approx(
+        (0.0, 0.0), abs=1e-9
+    )
+    shifted = femur @ compose(np.array([2.5, 0.0, 0.0, 0.0, 0.0, 0.0]), np.eye(4), center)
+    tilted = femur @ compose(np.array([0.0, 0.0, 0.0, 0.0, 4.0, 0.0]), np.eye(4), center)
+    on_ray = femur[:3, :3] @ ray
+    assert patellofemoral_deviation(femur, shifted, center, on_ray) == pytest.approx((2.5, 0.0))
+    assert patellofemoral_deviation(femur, tilted, center, on_ray) == pytest.approx((0.0, 4.0))

@@ -11,7 +11,14 @@ import pytest
 from recon.config import load_protocol
 from recon.fdk import fdk_reconstruct
 from recon.volume import Volume, VolumeGrid
-from registration.segment import BONE_UNITS, LABELS, bone_points, bone_surfaces, segment_bones
+from registration.segment import (
+    BONE_UNITS,
+    LABELS,
+    _fill_bone,
+    bone_points,
+    bone_surfaces,
+    segment_bones,
+)
 from sim.phantoms.knee import KNEE_LABELS, KneePhantomSpec, attenuation_per_mm, rasterize_knee
 from sim.scan import simulate_knee_scan
 
@@ -133,3 +140,17 @@ def test_bone_points_are_the_labelled_voxels() -> None:
         bone_points(seg, _crop_z(recon, recon.grid.axes_mm()[2][-1]))
     with pytest.raises(ValueError, match="no patella"):
         bone_points(Volume(np.where(seg.data == 5, 1, seg.data), seg.grid, "label"), recon)
+
+
+def test_a_shell_open_in_some_axial_slices_is_still_filled() -> None:
+    """A hollow ball (shell 2 voxels thick) slit open across 4 axial slices: those slices'
+    rings are open, but the slices across them (coronal, sagittal) are closed rings."""
+    z, y, x = np.mgrid[:41, :41, :41] - 20
+    r = np.sqrt(x**2 + y**2 + z**2)
+    shell = (r <= 15) & (r > 13)
+    shell[18:22, :, 20] = False  # a 1-voxel slit through the +x and -x walls in 4 slices
+    shell[18:22, 20, :] = False  # and through the +y and -y walls: no axial ring is closed
+    bone, interior = _fill_bone(shell)
+    inside = r <= 13
+    assert interior[inside].mean() > 0.99
+    assert not bone[r > 15.5].any()  # nothing grows outside the ball
