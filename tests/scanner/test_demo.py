@@ -96,7 +96,7 @@ def test_the_recording_holds_every_stage_on_its_timeline(demo: Path):
     strict=True,
     reason="issue 9: at the varus frames the femur takes its mirror pose about the view axis "
     "(up to ~3.6 mm, the soft tissue's cut box faces) and the patella follows it; issue 7 "
-    "asks for TRE < 1.5 mm on every frame"
+    "asks for TRE < 1.5 mm on every frame",
 )
 def test_registration_is_below_1_5_mm_on_every_frame(demo: Path):
     metrics = json.loads((demo / "registration" / "metrics.json").read_text(encoding="utf-8"))
