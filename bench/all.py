@@ -13,7 +13,8 @@ results survive an interruption). A failed benchmark (non-zero exit, or stdout t
 JSON object) gets ``"error"`` and the tail of its stderr instead of ``"result"``; the others
 still run and the exit status is 1.
 
-Usage: ``python bench/all.py [--quick] [--only NAME ...] [--out PATH]``; then
+Usage: ``python bench/all.py [--quick] [--only NAME ...] [--out PATH]`` (``--only`` runs the
+named benchmarks in the order given, e.g. the longest first); then
 ``python bench/table.py --write-readme`` puts the tables into README.md.
 """
 
@@ -153,7 +154,7 @@ def main() -> int:
     parser.add_argument("--only", nargs="+", metavar="NAME", choices=available)
     parser.add_argument("--out", type=Path, default=OUT, help=f"default: {OUT.relative_to(ROOT)}")
     args = parser.parse_args()
-    names = [n for n in available if n in args.only] if args.only else available
+    names = list(dict.fromkeys(args.only)) if args.only else available
 
     out: dict = {}
     commit, dirty = git_commit()

@@ -46,6 +46,11 @@ TRACK_ORDER = ("tibia_fibula", "femur", "patella")
 
 LONG_BONES = ("tibia_fibula", "femur")
 
+CARRIER = {"patella": "femur"}
+"""Bones whose motion the KPM predicts relative to another bone, registered before them each
+frame: the patella rides in the femur's trochlea, so it is carried by the femur's new pose
+and extrapolated in the femur's frame."""
+
 MAX_KPM_STEP = (25.0, 25.0)
 """A frame-to-frame motion beyond (mm, deg) is not extrapolated (it is a failure, not motion)."""
 
@@ -430,20 +435,27 @@ class Tracker:
         )
 
     def _kpm(self, frame: int, name: str, poses, history) -> tuple[np.ndarray, int]:
-        """Line search along the last frame-to-frame motion (the kinematic direction)."""
-        T1, T2 = history[-2][name], history[-1][name]
+        """Line search along the last frame-to-frame motion (the kinematic direction); a
+        carried bone (:data:`CARRIER`) moves along its last motion relative to its carrier,
+        from the carrier's pose in this frame."""
+        carrier = CARRIER.get(name)
+        base = np.eye(4) if carrier is None else poses[carrier]
+        T1, T2 = (
+            (np.linalg.inv(h[carrier]) @ h[name] if carrier else h[name]) for h in history[-2:]
+        )
         twist = kinematic_twist(T1, T2, self.bones[name].centroid_mm)
         if twist is None:
-            return poses[name], 0
-        objective = self._objective(frame, self.levels[0], name, poses)  # mask: the prediction
+            return base @ T2, 0
+        predicted = {**poses, name: base @ T2 @ expm(twist)}
+        objective = self._objective(frame, self.levels[0], name, predicted)
 
         def along(lam: float) -> float:
-            return objective.cost(T2 @ expm(lam * twist))
+            return objective.cost(base @ T2 @ expm(lam * twist))
 
         best = minimize_scalar(
             along, bounds=(-0.5, 2.5), method="bounded", options={"xatol": 0.02, "maxiter": 25}
         )
-        return T2 @ expm(best.x * twist), best.nfev
+        return base @ T2 @ expm(best.x * twist), best.nfev
 
     def register(
         self, frame: int, poses: dict[str, np.ndarray], history: list[dict[str, np.ndarray]]
@@ -513,6 +525,9 @@ class Tracker:
         if s.kpm and len(history) >= 2:
             poses[name], n = self._kpm(frame, name, poses, history)
             evaluations += n
+        elif s.kpm and history and name in CARRIER:  # carried at its last relative pose
+            carrier = history[-1][CARRIER[name]]
+            poses[name] = poses[CARRIER[name]] @ np.linalg.inv(carrier) @ history[-1][name]
         poses[name], n = self._refine(frame, name, poses)
         evaluations += n
         score, grad = self._score(frame, name, poses)
