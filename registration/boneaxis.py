@@ -214,6 +214,12 @@ def patellofemoral_deviation(
     return shift, float(np.linalg.norm(rotvec - (rotvec @ axis) * axis))
 
 
+def _carried_pose(name: str, poses: dict[str, np.ndarray]) -> np.ndarray:
+    """The pose of bone ``name`` in its carrier's frame (:data:`CARRIER`), else in the world."""
+    carrier = CARRIER.get(name)
+    return poses[name] if carrier is None else np.linalg.inv(poses[carrier]) @ poses[name]
+
+
 def principal_axes(points_mm: np.ndarray) -> np.ndarray:
     """Columns: the bone's principal axes (PCA), the longest first."""
     centered = points_mm - points_mm.mean(axis=0)
@@ -329,12 +335,14 @@ class Tracker:
         )
 
     def _prior(self, name: str, poses: dict[str, np.ndarray]) -> Callable | None:
-        """The patellofemoral prior of the patella against the femur's estimate, else None."""
+        """The patellofemoral prior of a carried bone (the patella, :data:`CARRIER`) against
+        its carrier's estimate (the femur), else None."""
         s = self.settings
-        if name != "patella" or "femur" not in poses or s.patellofemoral_sigma is None:
+        carrier = CARRIER.get(name)
+        if carrier not in poses or s.patellofemoral_sigma is None:
             return None
         sigma_mm, sigma_deg = s.patellofemoral_sigma
-        T_femur, center, ray = poses["femur"], self.bones[name].centroid_mm, self.view.normal
+        T_femur, center, ray = poses[carrier], self.bones[name].centroid_mm, self.view.normal
 
         def prior(T: np.ndarray) -> float:
             shift, tilt = patellofemoral_deviation(T_femur, T, center, ray)
@@ -440,9 +448,7 @@ class Tracker:
         from the carrier's pose in this frame."""
         carrier = CARRIER.get(name)
         base = np.eye(4) if carrier is None else poses[carrier]
-        T1, T2 = (
-            (np.linalg.inv(h[carrier]) @ h[name] if carrier else h[name]) for h in history[-2:]
-        )
+        T1, T2 = (_carried_pose(name, h) for h in history[-2:])
         twist = kinematic_twist(T1, T2, self.bones[name].centroid_mm)
         if twist is None:
             return base @ T2, 0
@@ -526,8 +532,7 @@ class Tracker:
             poses[name], n = self._kpm(frame, name, poses, history)
             evaluations += n
         elif s.kpm and history and name in CARRIER:  # carried at its last relative pose
-            carrier = history[-1][CARRIER[name]]
-            poses[name] = poses[CARRIER[name]] @ np.linalg.inv(carrier) @ history[-1][name]
+            poses[name] = poses[CARRIER[name]] @ _carried_pose(name, history[-1])
         poses[name], n = self._refine(frame, name, poses)
         evaluations += n
         score, grad = self._score(frame, name, poses)
