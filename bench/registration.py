@@ -43,7 +43,7 @@ from recon.fdk import fdk_reconstruct  # noqa: E402
 from recon.geometry import DetectorSpec  # noqa: E402
 from recon.volume import Volume, VolumeGrid  # noqa: E402
 from registration.boneaxis import Settings, Tracker, compose  # noqa: E402
-from registration.drr import bone_models, scene, soft_tissue_parts  # noqa: E402
+from registration.drr import SoftTissue, bone_models, scene  # noqa: E402
 from registration.metrics import pose_error, summarize  # noqa: E402
 from registration.segment import segment_bones  # noqa: E402
 from sim.fluoro import add_fluoro_noise, distort, lateral_view, simulate_fluoroscopy  # noqa: E402
@@ -196,7 +196,7 @@ def main() -> None:
         log(f"regime {regime}: bone models")
         volume, labels = phantom_volumes(spec) if regime == "matched" else cbct(spec)
         models = bone_models(volume, labels)
-        soft = soft_tissue_parts(volume, labels)
+        soft = SoftTissue.of(volume, labels)
         drr_ms = drr_ms_256(models, view)
         runs = {m: {"errors": [], "first": [], "warm": []} for m in args.methods}
         photons = 2.0e4 * (detector.pixel_pitch_mm / 0.3) ** 2

@@ -37,8 +37,9 @@ from scipy.ndimage import binary_dilation
 from scipy.optimize import differential_evolution, minimize, minimize_scalar
 from scipy.spatial.transform import Rotation
 
-from recon.geometry import View
-from registration.drr import BoneModel, RigidVolume, scene
+from recon.geometry import Geometry, View
+from recon.project import JosephProjector
+from registration.drr import BoneModel, SoftTissue, scene
 from registration.similarity import gradient_ncc, highpass, ncc
 
 TRACK_ORDER = ("tibia_fibula", "femur", "patella")
@@ -146,9 +147,10 @@ def compose(x: np.ndarray, T0: np.ndarray, center_mm: np.ndarray) -> np.ndarray:
 class _Objective:
     """-NCC of one bone at one pyramid level against a frame, the rest of the scene fixed.
 
-    The bone moves with the soft tissue part attached to it (if any); the similarity is taken
-    over the bone's silhouette at the start pose, dilated (the frame's 2D mask), in a crop of
-    the view around it.
+    The soft tissue is deformed by the bones' estimates at the start; the bone carries its
+    share of it (``carried``, rendered moved by the bone's motion from its start pose). The
+    similarity is taken over the bone's silhouette at the start pose, dilated (the frame's 2D
+    mask), in a crop of the view around it.
     """
 
     def __init__(
@@ -157,7 +159,7 @@ class _Objective:
         target_hp: np.ndarray,
         background_hp: np.ndarray,
         bone: BoneModel,
-        attached: RigidVolume | None,
+        carried: JosephProjector | None,
         T0: np.ndarray,
         sigma_px: float,
         dilation_px: int,
@@ -176,14 +178,15 @@ class _Objective:
         self.mask = mask[r0:r1, c0:c1]
         self.target = target_hp[r0:r1, c0:c1]
         self.background = background_hp[r0:r1, c0:c1]
-        self.bone, self.attached, self.T0 = bone, attached, T0
+        self.bone, self.carried, self.T0 = bone, carried, T0
         self.sigma, self.coarse, self.prior = sigma_px, coarse, prior
         self.evaluations = 0
 
     def image(self, T: np.ndarray) -> np.ndarray:
         moving = self.bone.render(self.view, T, self.coarse)
-        if self.attached is not None:
-            moving += self.attached.render(self.view, T, coarse=True)
+        if self.carried is not None:
+            moved = self.view.transformed(self.T0 @ np.linalg.inv(T))
+            moving += self.carried.project(Geometry([moved]))[0]
         return self.background + highpass(moving, self.sigma)
 
     def __call__(self, x: np.ndarray) -> float:
@@ -258,8 +261,8 @@ class Tracker:
         frames: line integrals (F, rows, cols).
         bones: the tracked bones (registration.drr.bone_models).
         settings: registration settings.
-        soft_tissue: soft tissue parts moving with "femur" and "tibia_fibula"
-            (registration.drr.soft_tissue_parts); None leaves the soft tissue out.
+        soft_tissue: the soft tissue, deformed by the femur and the tibia
+            (registration.drr.SoftTissue); None leaves it out.
     """
 
     def __init__(
@@ -268,12 +271,13 @@ class Tracker:
         frames: np.ndarray,
         bones: dict[str, BoneModel],
         settings: Settings | None = None,
-        soft_tissue: dict[str, RigidVolume] | None = None,
+        soft_tissue: SoftTissue | None = None,
     ) -> None:
         self.view = view
         self.frames = np.asarray(frames, dtype=np.float32)
         self.bones = bones
-        self.soft_tissue = soft_tissue or {}
+        self.soft_tissue = soft_tissue
+        self._soft: dict[tuple, tuple] = {}
         self.settings = settings or Settings()
         self.levels = tuple(
             dict.fromkeys(max(1, round(mm / view.pitch_u_mm)) for mm in self.settings.pyramid_mm)
@@ -313,12 +317,12 @@ class Tracker:
         view = self._views[level]
         coarse = self._coarse(level, name)
         others = scene(
-            view,
-            {} if lone else {b: m for b, m in self.bones.items() if b != name},
-            poses,
-            {} if lone else {b: v for b, v in self.soft_tissue.items() if b != name},
-            coarse,
+            view, {} if lone else {b: m for b, m in self.bones.items() if b != name}, poses
         )
+        carried = None
+        if not lone and self.soft_tissue is not None:
+            stays, carried = self._soft_tissue(level, name, poses)
+            others += stays
         dilation = round(self.settings.mask_dilation_mm / view.pitch_u_mm)
         prior = None if lone else self._prior(name, poses)
         return _Objective(
@@ -326,13 +330,34 @@ class Tracker:
             self._target(frame, level),
             highpass(others, self._sigma_px(level)),
             self.bones[name],
-            None if lone else self.soft_tissue.get(name),
+            carried,
             poses[name],
             self._sigma_px(level),
             dilation,
             coarse,
             prior,
         )
+
+    def _soft_tissue(
+        self, level: int, name: str, poses: dict[str, np.ndarray]
+    ) -> tuple[np.ndarray, JosephProjector | None]:
+        """The soft tissue deformed by ``poses``: the image at ``level`` of what stays when
+        bone ``name`` moves, and what it carries (registration.drr.SoftTissue.carried;
+        kept for the frame being registered)."""
+        knee = (poses["femur"].tobytes(), poses["tibia_fibula"].tobytes())
+        if knee not in self._soft:
+            T_femur, T_tibia = poses["femur"], poses["tibia_fibula"]
+            self._soft[knee] = self.soft_tissue.deformed(T_femur, T_tibia, self.view)
+        key = (*knee, name)
+        if key not in self._soft:
+            grid = self._soft[knee][2]
+            stays, carried = self.soft_tissue.carried(self._soft[knee], name)
+            moving = JosephProjector(carried, grid) if carried.any() else None
+            self._soft[key] = (JosephProjector(stays, grid), moving, {})
+        stays, moving, images = self._soft[key]
+        if level not in images:
+            images[level] = stays.project(Geometry([self._views[level]]))[0]
+        return images[level], moving
 
     def _prior(self, name: str, poses: dict[str, np.ndarray]) -> Callable | None:
         """The patellofemoral prior of a carried bone (the patella, :data:`CARRIER`) against
@@ -479,6 +504,7 @@ class Tracker:
         s = self.settings
         result = FrameResult(frame)
         poses = dict(poses)
+        self._soft.clear()
         if s.kpm and len(history) >= 2:  # every bone at its constant-velocity prediction first
             poses = {
                 b: predict(history[-2][b], history[-1][b], self.bones[b].centroid_mm)
@@ -538,9 +564,13 @@ class Tracker:
         score, grad = self._score(frame, name, poses)
         previous = self._last_ncc.get(name, score)
         if s.kpm and history and (score < s.fail_ncc or score < previous - s.drop_ncc):
-            # the prediction failed: widen the search, keep the better of the two
+            # the prediction failed: widen the search about the last frame's pose (carried by
+            # the carrier's new pose), keep the better of the two
             wide = dict(poses)
-            wide[name], n = self._global(frame, name, poses, scale=0.5)
+            carrier = CARRIER.get(name)
+            base = np.eye(4) if carrier is None else poses[carrier]
+            wide[name] = base @ _carried_pose(name, history[-1])
+            wide[name], n = self._global(frame, name, wide, scale=0.5)
             wide[name], m = self._refine(frame, name, wide)
             evaluations += n + m
             wide_score, wide_grad = self._score(frame, name, wide)

@@ -2,8 +2,8 @@
 
 A bone is its CBCT attenuation minus the soft tissue's, in a sub-volume cropped around it
 (:class:`BoneModel`); the soft tissue is the CBCT volume with every bone voxel filled with the
-soft tissue's attenuation (the bones displace it, no hole is left), in two parts that follow
-the femur and the tibia (:func:`soft_tissue_parts`). A frame's scene is the soft
+soft tissue's attenuation (the bones displace it, no hole is left), bent at the knee by the
+femur's and the tibia's poses (:class:`SoftTissue`). A frame's scene is the soft
 tissue plus every bone at its pose; moving a bone by ``T`` is rendering the unmoved bone
 through the view moved by ``T^-1`` (recon.geometry.View.transformed), with the recon
 projector (Joseph). Views are binned for the coarse levels of a resolution pyramid, and
@@ -16,7 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import distance_transform_edt
+from scipy.ndimage import distance_transform_edt, map_coordinates
 
 from recon.geometry import Geometry, View
 from recon.project import JosephProjector
@@ -29,14 +29,16 @@ BONE_EDGE_MM = 1.5
 """Soft-tissue rim moved with each bone (the blurred outside of its edge), mm."""
 SOFT_TISSUE_BLEND_MM = 40.0
 """Width of the smooth hand-over of the soft tissue from the tibia to the femur, mm."""
+SOFT_TISSUE_VOXEL_MM = 2.0
+"""The soft tissue's lattice: the scan's voxels pooled to about this size, mm (its detail is
+the skin and fat outline, which the high-pass similarity sees at a few mm)."""
 
 
 def _pooled(
-    data: np.ndarray, grid: VolumeGrid, axes_xyz: tuple[int, ...] = (0, 1, 2)
+    data: np.ndarray, grid: VolumeGrid, factor_xyz: tuple[int, int, int] = (2, 2, 2)
 ) -> tuple[np.ndarray, VolumeGrid]:
-    """Mean over pairs of voxels along ``axes_xyz`` (0 = x); a trailing odd slice is dropped."""
-    factor = np.ones(3, dtype=int)
-    factor[list(axes_xyz)] = 2
+    """Mean over blocks of ``factor_xyz`` voxels (x, y, z); trailing partial blocks are dropped."""
+    factor = np.asarray(factor_xyz, dtype=int)
     fz, fy, fx = factor[::-1]
     nz, ny, nx = (n // f for n, f in zip(data.shape, (fz, fy, fx), strict=True))
     blocks = data[: fz * nz, : fy * ny, : fx * nx].reshape(nz, fz, ny, fy, nx, fx)
@@ -60,14 +62,14 @@ class RigidVolume:
     coarse: JosephProjector
 
     @classmethod
-    def of(cls, data: np.ndarray, grid: VolumeGrid, fine: bool = True) -> RigidVolume:
-        """Prepare ``data`` on ``grid``; ``fine=False`` keeps only the pooled copy (smooth
-        volumes such as soft tissue, whose detail the high-pass similarity does not see)."""
+    def of(cls, data: np.ndarray, grid: VolumeGrid) -> RigidVolume:
+        """Prepare ``data`` on ``grid``."""
         data = np.asarray(data, dtype=np.float32)
         coarse = JosephProjector(*_pooled(data, grid))
-        if not fine:
-            return cls((coarse, coarse, coarse), coarse)
-        along = tuple(JosephProjector(*_pooled(data, grid, (k,))) for k in range(3))
+        along = tuple(
+            JosephProjector(*_pooled(data, grid, tuple(np.eye(3, dtype=int)[k] + 1)))
+            for k in range(3)
+        )
         return cls(along, coarse)
 
     def voxel_mm(self) -> float:
@@ -184,49 +186,154 @@ def bone_models(
     return models
 
 
-def soft_tissue_parts(
-    volume: Volume,
-    labels: Volume,
-    blend_mm: float = SOFT_TISSUE_BLEND_MM,
-    edge_mm: float = BONE_EDGE_MM,
-) -> dict[str, RigidVolume]:
+@dataclass(frozen=True, eq=False)
+class SoftTissue:
     """The soft tissue (every bone voxel filled with the soft tissue's attenuation, every rim
-    voxel of :func:`bone_regions` capped at it: the complement of :func:`bone_models`) in two
-    parts that sum to it: one moves with the femur, one with the tibia and fibula. The share
-    of the femur's part rises smoothly (a smoothstep over ``blend_mm``) across the joint line,
-    midway between the femur's lowest and the tibia's highest voxel, so that bending the knee
-    leaves no cut edge in the images. Kept at half resolution only."""
-    soft = soft_tissue_level(volume, labels)
-    bone = labels.data > SOFT_TISSUE_LABEL
-    rim = ~bone & (bone_regions(labels, edge_mm) > 0)
-    filled = np.where(bone, soft, np.where(rim, np.minimum(volume.data, soft), volume.data))
-    filled = filled.astype(np.float32)
-    z = volume.grid.axes_mm()[2]
-    femur_z = z[np.flatnonzero(np.isin(labels.data, BONE_UNITS["femur"]).any(axis=(1, 2)))]
-    tibia_z = z[np.flatnonzero(np.isin(labels.data, BONE_UNITS["tibia_fibula"]).any(axis=(1, 2)))]
-    if not femur_z.size or not tibia_z.size:
-        raise ValueError("the soft tissue is split at the knee: femur and tibia must be labelled")
-    joint = 0.5 * (femur_z.min() + tibia_z.max())
-    t = np.clip((z - joint) / blend_mm + 0.5, 0.0, 1.0)
-    share = (t * t * (3.0 - 2.0 * t)).astype(np.float32)[:, None, None]
-    return {
-        "femur": RigidVolume.of(filled * share, volume.grid, fine=False),
-        "tibia_fibula": RigidVolume.of(filled * (1.0 - share), volume.grid, fine=False),
-    }
+    voxel of :func:`bone_regions` capped at it: the complement of :func:`bone_models`), on a
+    lattice of about :data:`SOFT_TISSUE_VOXEL_MM`, deformed with the knee: a point ``x``
+    shows the static scan at the blended pull-back ``(1 - w) T_tibia^-1 x + w T_femur^-1 x``,
+    with ``w`` a smoothstep over ``blend_mm`` across the joint plane (through the moved joint
+    centre, normal to the mean of the moved femoral and tibial long axes). The flesh bends
+    at the knee instead of two rigid halves crossing each other; what the scan's box leaves
+    out stays out.
+
+    Attributes:
+        data: attenuation (1/mm) on ``grid``, the static scan's pose.
+        grid: the lattice (the scan's box, pooled).
+        joint_mm: the joint centre at the static scan (world mm).
+        axes: the femur's and the tibia's long axes at the static scan, pointing up (2, 3).
+        blend_mm: width of the hand-over from the tibia to the femur, mm.
+    """
+
+    data: np.ndarray
+    grid: VolumeGrid
+    joint_mm: np.ndarray
+    axes: np.ndarray
+    blend_mm: float = SOFT_TISSUE_BLEND_MM
+
+    @classmethod
+    def of(
+        cls,
+        volume: Volume,
+        labels: Volume,
+        blend_mm: float = SOFT_TISSUE_BLEND_MM,
+        edge_mm: float = BONE_EDGE_MM,
+    ) -> SoftTissue:
+        """The soft tissue of a segmented CBCT volume (attenuation 1/mm, labels on its grid)."""
+        soft = soft_tissue_level(volume, labels)
+        bone = labels.data > SOFT_TISSUE_LABEL
+        rim = ~bone & (bone_regions(labels, edge_mm) > 0)
+        filled = np.where(bone, soft, np.where(rim, np.minimum(volume.data, soft), volume.data))
+        factor = tuple(max(1, round(SOFT_TISSUE_VOXEL_MM / s)) for s in volume.grid.spacing_mm)
+        data, grid = _pooled(filled.astype(np.float32), volume.grid, factor)
+        axes_mm = volume.grid.axes_mm()
+        ends, axes, points = [], [], []
+        for name in ("femur", "tibia"):
+            kz, ky, kx = np.nonzero(labels.data == LABELS[name])
+            if kz.size == 0:
+                raise ValueError(f"the soft tissue bends at the knee: {name} must be labelled")
+            xyz = np.column_stack((axes_mm[0][kx], axes_mm[1][ky], axes_mm[2][kz]))
+            sample = xyz[:: max(1, len(xyz) // 20000)] - xyz.mean(axis=0)
+            _, _, vt = np.linalg.svd(sample, full_matrices=False)
+            axes.append(vt[0] if vt[0, 2] > 0 else -vt[0])
+            ends.append(xyz[:, 2].min() if name == "femur" else xyz[:, 2].max())
+            points.append(xyz)
+        joint_z = 0.5 * sum(ends)
+        near = np.vstack(points)
+        near = near[np.abs(near[:, 2] - joint_z) < 0.5 * blend_mm]
+        joint = np.array([*near[:, :2].mean(axis=0), joint_z])
+        return cls(data, grid, joint, np.array(axes), blend_mm)
+
+    def deformed(
+        self, T_femur: np.ndarray, T_tibia: np.ndarray, view: View | None = None
+    ) -> tuple[np.ndarray, np.ndarray, VolumeGrid]:
+        """The soft tissue with the femur at ``T_femur`` and the tibia at ``T_tibia`` (zero
+        where the pull-back leaves the scan's box), the femur's share ``w`` of each voxel's
+        motion (the tibia's is ``1 - w``), and their grid: the lattice of ``grid`` over the
+        box moved by either bone, within what ``view`` (if given) sees."""
+        ends = [a[[0, -1]] for a in self.grid.axes_mm()]  # the outermost voxel centres
+        corners = np.array([[x, y, z] for x in ends[0] for y in ends[1] for z in ends[2]])
+        moved = np.vstack([corners @ T[:3, :3].T + T[:3, 3] for T in (T_femur, T_tibia)])
+        lo, hi = moved.min(axis=0), moved.max(axis=0)
+        if view is not None:
+            lo, hi = _within_field(view, lo, hi)
+        first = np.floor(self.grid.world_to_index(lo) + 1e-9)
+        last = np.ceil(self.grid.world_to_index(hi) - 1e-9)
+        spacing = np.asarray(self.grid.spacing_mm)
+        origin = np.asarray(self.grid.origin_mm) + first * spacing
+        shape = tuple(int(n) for n in np.maximum(last - first + 1, 1)[::-1])
+        grid = VolumeGrid(shape, tuple(spacing), tuple(origin))
+        axes = grid.axes_mm()
+        z, y, x = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
+        points = np.stack((x.ravel(), y.ravel(), z.ravel()), axis=1)
+        normal = T_femur[:3, :3] @ self.axes[0] + T_tibia[:3, :3] @ self.axes[1]
+        normal /= np.linalg.norm(normal)
+        center = 0.5 * (T_femur[:3, :3] @ self.joint_mm + T_femur[:3, 3])
+        center += 0.5 * (T_tibia[:3, :3] @ self.joint_mm + T_tibia[:3, 3])
+        t = np.clip((points - center) @ normal / self.blend_mm + 0.5, 0.0, 1.0)
+        w = t * t * (3.0 - 2.0 * t)
+        tibia, femur = (
+            points @ np.linalg.inv(T)[:3, :3].T + np.linalg.inv(T)[:3, 3]
+            for T in (T_tibia, T_femur)
+        )
+        index = self.grid.world_to_index(tibia + w[:, None] * (femur - tibia))
+        values = map_coordinates(
+            self.data, index[:, ::-1].T, order=1, mode="grid-constant", prefilter=False
+        )
+        return (
+            values.reshape(shape).astype(np.float32),
+            w.reshape(shape).astype(np.float32),
+            grid,
+        )
+
+    def carried(
+        self, deformed: tuple[np.ndarray, np.ndarray, VolumeGrid], name: str
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The :meth:`deformed` soft tissue split into what stays when bone ``name`` moves a
+        little and what it carries along (its share of each voxel's motion: the deformation
+        to first order); all stays for a bone other than the femur and the tibia."""
+        data, w, _ = deformed
+        share = {"femur": w, "tibia_fibula": 1.0 - w}.get(name)
+        if share is None:
+            return data, np.zeros_like(data)
+        return data * (1.0 - share), data * share
+
+    def render(self, view: View, poses: dict[str, np.ndarray]) -> np.ndarray:
+        """Line integrals of the soft tissue deformed by ``poses`` (femur, tibia_fibula)."""
+        data, _, grid = self.deformed(poses["femur"], poses["tibia_fibula"], view)
+        return JosephProjector(data, grid).project(Geometry([view]))[0]
+
+
+def _within_field(view: View, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The box ``lo``-``hi`` (world mm) cut to the bounding box of the part of ``view``'s
+    field that crosses it: the panel's corner rays where they enter and leave the box's slab
+    along the axis nearest the rays."""
+    axis = int(np.argmax(np.abs(view.normal)))
+    u = np.array([-0.5, view.cols - 0.5, -0.5, view.cols - 0.5])
+    v = np.array([-0.5, -0.5, view.rows - 0.5, view.rows - 0.5])
+    rays = view.pixel_to_world(u, v) - view.source_mm
+    ends = [
+        view.source_mm + ((plane - view.source_mm[axis]) / rays[:, axis])[:, None] * rays
+        for plane in (lo[axis], hi[axis])
+    ]
+    seen = np.vstack(ends)
+    cut_lo, cut_hi = np.maximum(lo, seen.min(axis=0)), np.minimum(hi, seen.max(axis=0))
+    cut_lo[axis], cut_hi[axis] = lo[axis], hi[axis]
+    return cut_lo, np.maximum(cut_hi, cut_lo)
 
 
 def scene(
     view: View,
     bones: dict[str, BoneModel],
     poses: dict[str, np.ndarray],
-    soft_tissue: dict[str, RigidVolume] | None = None,
+    soft_tissue: SoftTissue | None = None,
     coarse: bool = False,
 ) -> np.ndarray:
-    """Line integrals of every bone at its pose plus the soft tissue parts moved with theirs
+    """Line integrals of every bone at its pose plus the soft tissue deformed by them
     (``coarse``: the bones' pooled volumes)."""
     image = np.zeros((view.rows, view.cols), dtype=np.float32)
-    for name, part in (soft_tissue or {}).items():
-        image += part.render(view, poses[name], coarse=True)
+    if soft_tissue is not None:
+        image += soft_tissue.render(view, poses)
     for name, model in bones.items():
         image += model.render(view, poses[name], coarse)
     return image

@@ -21,7 +21,7 @@ from recon.io import read_volume
 from recon.rtk_xml import read_rtk_geometry
 from recon.volume import Volume
 from registration.boneaxis import TRACK_ORDER, FrameResult, Settings, Tracker
-from registration.drr import bone_models, soft_tissue_parts
+from registration.drr import SoftTissue, bone_models
 from registration.frames import Frames, read_frames
 from registration.metrics import as_rows, pose_error, summarize
 from registration.poses import BonePose, poses_by_frame, read_poses, write_poses
@@ -94,7 +94,7 @@ def register_files(
     truth = None if truth_path is None else _truth(truth_path, len(frames.data))
     start = _initial(initial_path)
     models = bone_models(volume, labels)
-    tracker = Tracker(view, frames.data, models, settings, soft_tissue_parts(volume, labels))
+    tracker = Tracker(view, frames.data, models, settings, SoftTissue.of(volume, labels))
     results = tracker.track(start, progress=progress)
     _write(out, results, models, view, tracker.settings, truth)
     return results

@@ -36,8 +36,10 @@ from trajectories.recording import record_plan
 
 Say = Callable[[str], None]
 PHANTOMS = {"knee": KneePhantomSpec, "bb": BBPhantomSpec}
-LEG_HEIGHT_MM = 320.0
-"""Length of leg the simulated panel images, mm (more than the cone covers at the knee)."""
+LEG_HEIGHT_MM = 480.0
+"""Length of leg the simulated panel images, mm, centred on the joint line: more than the cone
+covers at the knee (a leg cut off inside the cone would end in the reconstruction, and in the
+registration's soft tissue, where a patient's does not)."""
 
 
 @dataclass(frozen=True)
@@ -137,7 +139,12 @@ def subject(inputs: SessionInputs, say: Say) -> Callable[[View], np.ndarray]:
     rasterised and projected."""
     if isinstance(inputs.phantom, BBPhantomSpec):
         return lambda view: project_bb(inputs.phantom, Geometry([view]))[0]
-    grid = knee_grid(inputs.phantom, spacing_mm=inputs.phantom_voxel_mm, height_mm=LEG_HEIGHT_MM)
+    grid = knee_grid(
+        inputs.phantom,
+        spacing_mm=inputs.phantom_voxel_mm,
+        height_mm=LEG_HEIGHT_MM,
+        below_mm=0.5 * LEG_HEIGHT_MM,
+    )
     say(f"rasterising the knee phantom ({grid.size_xyz} voxels of {inputs.phantom_voxel_mm} mm)")
     _, mu = rasterize_knee(inputs.phantom, grid)
     return volume_subject(Volume(mu, grid, "1/mm"))

@@ -37,10 +37,14 @@ from sim.phantoms.knee import KneePhantomSpec, attenuation_per_mm, rasterize_kne
 
 Say = Callable[[str], None]
 
-RECON_EXTENT_MM = (100.0, 100.0, 240.0)
-"""Reconstructed field: x, y, z extent, mm (what a lateral fluoroscopy field sees of a knee)."""
-RECON_OFFSET_MM = (0.0, -10.0, 10.0)
-"""Its centre relative to the orbit's isocentre, mm (the patella lies anterior, -y)."""
+RECON_EXTENT_MM = (140.0, 140.0, 320.0)
+"""Reconstructed field: x, y, z extent, mm: the leg's whole cross-section, and as much thigh as
+a knee flexed to 90 degrees brings into a lateral fluoroscopy field. The registration's soft
+tissue ends where this box does; a box that cuts the leg leaves edges in its DRRs that the
+frames do not have (measured on the quick demo: a 100 x 100 x 240 mm box drew the femur to its
+mirror pose at the flexed frames)."""
+RECON_OFFSET_MM = (0.0, 0.0, 40.0)
+"""Its centre relative to the orbit's isocentre, mm."""
 REAL_SCAN_ENERGY_KEV = 70.0
 """Effective energy assumed for the HU scale of a real scan's DICOM series, keV."""
 

@@ -521,22 +521,25 @@ def knee_grid(
     spacing_mm: float = 1.0,
     margin_mm: float = 10.0,
     height_mm: float | None = None,
+    below_mm: float | None = None,
 ) -> VolumeGrid:
     """Default field of view: the leg's cross-section plus ``margin_mm`` on each side, and
-    ``height_mm`` (default 160 mm x scale) from 70 mm x scale below the joint line.
+    ``height_mm`` (default 160 mm x scale) from ``below_mm`` (default 70 mm x scale) below the
+    joint line.
 
     At scale 1 with the default spec this is 140 x 140 x 160 mm.
     """
     if not (spacing_mm > 0 and margin_mm >= 0):
         raise ValueError(f"need spacing_mm > 0 and margin_mm >= 0, got {spacing_mm}, {margin_mm}")
     height = 160.0 * spec.scale if height_mm is None else float(height_mm)
+    below = 70.0 * spec.scale if below_mm is None else float(below_mm)
     side = 2.0 * (spec.soft_tissue_radius_mm + margin_mm)
     n_xy = math.ceil(side / spacing_mm)
     n_z = math.ceil(height / spacing_mm)
     center = (
         0.0,
         _ENVELOPE_OFFSET_Y_MM * spec.scale,
-        spec.joint_line_height_mm - 70.0 * spec.scale + 0.5 * height,
+        spec.joint_line_height_mm - below + 0.5 * height,
     )
     return VolumeGrid.centered((n_xy, n_xy, n_z), spacing_mm, center)
 

@@ -15,7 +15,7 @@ import pytest
 from recon.geometry import DetectorSpec, View
 from recon.volume import Volume, VolumeGrid
 from registration.boneaxis import TRACK_ORDER
-from registration.drr import BoneModel, RigidVolume, bone_models, scene, soft_tissue_parts
+from registration.drr import BoneModel, SoftTissue, bone_models, scene
 from sim.fluoro import add_fluoro_noise, lateral_view
 from sim.motion import squat_motion
 from sim.phantoms.knee import KneePhantomSpec, rasterize_knee
@@ -30,7 +30,7 @@ class KneeCase:
     volume: Volume
     labels: Volume
     models: dict[str, BoneModel]
-    soft: dict[str, RigidVolume]
+    soft: SoftTissue
     view: View
     truth: list[dict[str, np.ndarray]]
     frames: np.ndarray
@@ -41,7 +41,7 @@ def knee_case() -> KneeCase:
     labels, mu = rasterize_knee(SPEC, GRID, supersample=1)
     volume, labels = Volume(mu, GRID, "1/mm"), Volume(labels, GRID, "label")
     models = bone_models(volume, labels)
-    soft = soft_tissue_parts(volume, labels)
+    soft = SoftTissue.of(volume, labels)
     view = lateral_view(SPEC, DetectorSpec(rows=160, cols=160, pixel_pitch_mm=1.92))
     motion = squat_motion(SPEC, frames=FRAMES, max_flexion_deg=30.0, seed=0)
     truth = [{b: motion.poses[b][k] for b in TRACK_ORDER} for k in range(FRAMES)]
