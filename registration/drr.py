@@ -263,28 +263,40 @@ class SoftTissue:
         origin = np.asarray(self.grid.origin_mm) + first * spacing
         shape = tuple(int(n) for n in np.maximum(last - first + 1, 1)[::-1])
         grid = VolumeGrid(shape, tuple(spacing), tuple(origin))
-        axes = grid.axes_mm()
-        z, y, x = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
-        points = np.stack((x.ravel(), y.ravel(), z.ravel()), axis=1)
+        x, y, z = (a.astype(np.float32) for a in grid.axes_mm())
         normal = T_femur[:3, :3] @ self.axes[0] + T_tibia[:3, :3] @ self.axes[1]
         normal /= np.linalg.norm(normal)
         center = 0.5 * (T_femur[:3, :3] @ self.joint_mm + T_femur[:3, 3])
         center += 0.5 * (T_tibia[:3, :3] @ self.joint_mm + T_tibia[:3, 3])
-        t = np.clip((points - center) @ normal / self.blend_mm + 0.5, 0.0, 1.0)
+        slope = (normal / self.blend_mm).astype(np.float32)
+        center = center.astype(np.float32)
+        t = (
+            (z[:, None, None] - center[2]) * slope[2]
+            + (y[None, :, None] - center[1]) * slope[1]
+            + (x[None, None, :] - center[0]) * slope[0]
+            + np.float32(0.5)
+        )
+        t = np.clip(t, 0.0, 1.0)
         w = t * t * (3.0 - 2.0 * t)
-        tibia, femur = (
-            points @ np.linalg.inv(T)[:3, :3].T + np.linalg.inv(T)[:3, 3]
-            for T in (T_tibia, T_femur)
-        )
-        index = self.grid.world_to_index(tibia + w[:, None] * (femur - tibia))
-        values = map_coordinates(
-            self.data, index[:, ::-1].T, order=1, mode="grid-constant", prefilter=False
-        )
-        return (
-            values.reshape(shape).astype(np.float32),
-            w.reshape(shape).astype(np.float32),
-            grid,
-        )
+        # each bone's pull-back straight to the scan's voxel indices: (x - origin) / spacing
+        to_index = []
+        for T in (T_tibia, T_femur):
+            inv = np.linalg.inv(T)
+            A = (inv[:3, :3] / spacing[:, None]).astype(np.float32)
+            b = ((inv[:3, 3] - np.asarray(self.grid.origin_mm)) / spacing).astype(np.float32)
+            to_index.append((A, b))
+        index = []
+        for k in (2, 1, 0):  # map_coordinates takes (z, y, x)
+            qt, qf = (
+                A[k, 0] * x[None, None, :]
+                + A[k, 1] * y[None, :, None]
+                + A[k, 2] * z[:, None, None]
+                + b[k]
+                for A, b in to_index
+            )
+            index.append(qt + w * (qf - qt))
+        values = map_coordinates(self.data, index, order=1, mode="grid-constant", prefilter=False)
+        return values.astype(np.float32, copy=False), w.astype(np.float32, copy=False), grid
 
     def carried(
         self, deformed: tuple[np.ndarray, np.ndarray, VolumeGrid], name: str
