@@ -223,6 +223,12 @@ def _carried_pose(name: str, poses: dict[str, np.ndarray]) -> np.ndarray:
     return poses[name] if carrier is None else np.linalg.inv(poses[carrier]) @ poses[name]
 
 
+def _carrier_pose(name: str, poses: dict[str, np.ndarray]) -> np.ndarray:
+    """The pose of bone ``name``'s carrier (:data:`CARRIER`) in ``poses``, else the identity."""
+    carrier = CARRIER.get(name)
+    return np.eye(4) if carrier is None else poses[carrier]
+
+
 def principal_axes(points_mm: np.ndarray) -> np.ndarray:
     """Columns: the bone's principal axes (PCA), the longest first."""
     centered = points_mm - points_mm.mean(axis=0)
@@ -277,7 +283,10 @@ class Tracker:
         self.frames = np.asarray(frames, dtype=np.float32)
         self.bones = bones
         self.soft_tissue = soft_tissue
-        self._soft: dict[tuple, tuple] = {}
+        self._deformed: dict[tuple, tuple] = {}
+        """Per (femur, tibia) pose pair of the frame: the deformed soft tissue."""
+        self._split: dict[tuple, tuple] = {}
+        """Per pose pair and bone: what stays, what the bone carries, the stays' images."""
         self.settings = settings or Settings()
         self.levels = tuple(
             dict.fromkeys(max(1, round(mm / view.pitch_u_mm)) for mm in self.settings.pyramid_mm)
@@ -345,16 +354,15 @@ class Tracker:
         bone ``name`` moves, and what it carries (registration.drr.SoftTissue.carried;
         kept for the frame being registered)."""
         knee = (poses["femur"].tobytes(), poses["tibia_fibula"].tobytes())
-        if knee not in self._soft:
+        if knee not in self._deformed:
             T_femur, T_tibia = poses["femur"], poses["tibia_fibula"]
-            self._soft[knee] = self.soft_tissue.deformed(T_femur, T_tibia, self.view)
-        key = (*knee, name)
-        if key not in self._soft:
-            grid = self._soft[knee][2]
-            stays, carried = self.soft_tissue.carried(self._soft[knee], name)
-            moving = JosephProjector(carried, grid) if carried.any() else None
-            self._soft[key] = (JosephProjector(stays, grid), moving, {})
-        stays, moving, images = self._soft[key]
+            self._deformed[knee] = self.soft_tissue.deformed(T_femur, T_tibia, self.view)
+        if (knee, name) not in self._split:
+            deformed = self._deformed[knee]
+            stays, carried = self.soft_tissue.carried(deformed, name)
+            moving = None if carried is None else JosephProjector(carried, deformed[2])
+            self._split[knee, name] = (JosephProjector(stays, deformed[2]), moving, {})
+        stays, moving, images = self._split[knee, name]
         if level not in images:
             images[level] = stays.project(Geometry([self._views[level]]))[0]
         return images[level], moving
@@ -471,8 +479,7 @@ class Tracker:
         """Line search along the last frame-to-frame motion (the kinematic direction); a
         carried bone (:data:`CARRIER`) moves along its last motion relative to its carrier,
         from the carrier's pose in this frame."""
-        carrier = CARRIER.get(name)
-        base = np.eye(4) if carrier is None else poses[carrier]
+        base = _carrier_pose(name, poses)
         T1, T2 = (_carried_pose(name, h) for h in history[-2:])
         twist = kinematic_twist(T1, T2, self.bones[name].centroid_mm)
         if twist is None:
@@ -504,7 +511,8 @@ class Tracker:
         s = self.settings
         result = FrameResult(frame)
         poses = dict(poses)
-        self._soft.clear()
+        self._deformed.clear()
+        self._split.clear()
         if s.kpm and len(history) >= 2:  # every bone at its constant-velocity prediction first
             poses = {
                 b: predict(history[-2][b], history[-1][b], self.bones[b].centroid_mm)
@@ -558,7 +566,7 @@ class Tracker:
             poses[name], n = self._kpm(frame, name, poses, history)
             evaluations += n
         elif s.kpm and history and name in CARRIER:  # carried at its last relative pose
-            poses[name] = poses[CARRIER[name]] @ _carried_pose(name, history[-1])
+            poses[name] = _carrier_pose(name, poses) @ _carried_pose(name, history[-1])
         poses[name], n = self._refine(frame, name, poses)
         evaluations += n
         score, grad = self._score(frame, name, poses)
@@ -567,9 +575,7 @@ class Tracker:
             # the prediction failed: widen the search about the last frame's pose (carried by
             # the carrier's new pose), keep the better of the two
             wide = dict(poses)
-            carrier = CARRIER.get(name)
-            base = np.eye(4) if carrier is None else poses[carrier]
-            wide[name] = base @ _carried_pose(name, history[-1])
+            wide[name] = _carrier_pose(name, poses) @ _carried_pose(name, history[-1])
             wide[name], n = self._global(frame, name, wide, scale=0.5)
             wide[name], m = self._refine(frame, name, wide)
             evaluations += n + m

@@ -300,14 +300,15 @@ class SoftTissue:
 
     def carried(
         self, deformed: tuple[np.ndarray, np.ndarray, VolumeGrid], name: str
-    ) -> tuple[np.ndarray, np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray | None]:
         """The :meth:`deformed` soft tissue split into what stays when bone ``name`` moves a
         little and what it carries along (its share of each voxel's motion: the deformation
-        to first order); all stays for a bone other than the femur and the tibia."""
+        to first order); all stays (and None is carried) for a bone other than the femur and
+        the tibia."""
         data, w, _ = deformed
         share = {"femur": w, "tibia_fibula": 1.0 - w}.get(name)
         if share is None:
-            return data, np.zeros_like(data)
+            return data, None
         return data * (1.0 - share), data * share
 
     def render(self, view: View, poses: dict[str, np.ndarray]) -> np.ndarray:
