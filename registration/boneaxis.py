@@ -31,9 +31,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, PositiveInt
+from pydantic import BaseModel, ConfigDict, Field, NonNegativeFloat, PositiveFloat, PositiveInt
 from scipy.linalg import expm, logm
-from scipy.ndimage import binary_dilation
+from scipy.ndimage import binary_dilation, gaussian_filter
 from scipy.optimize import differential_evolution, minimize, minimize_scalar
 from scipy.spatial.transform import Rotation
 
@@ -60,6 +60,10 @@ MIN_SILHOUETTE_PX = 20
 """A bone casting fewer pixels (at a pyramid level) than this is out of the field of view."""
 
 
+FRAME_BLUR_MM = np.arange(0.0, 3.01, 0.5)
+"""Candidate blurs of the frames (Gaussian sigma at the panel, mm) for resolution matching."""
+
+
 class OutOfView(ValueError):
     """The bone's projection (nearly) misses the detector: its frame is flagged, not guessed."""
 
@@ -77,6 +81,12 @@ class Settings(BaseModel):
         "each level bins the panel by the nearest whole factor (at least 1)",
     )
     highpass_mm: PositiveFloat = Field(3.0, description="high-pass Gaussian sigma, mm")
+    frame_blur_mm: NonNegativeFloat | None = Field(
+        None,
+        description="Gaussian sigma at the panel, mm, the frames are blurred by to match the "
+        "DRRs' resolution (a CBCT is blurrier than a fluoroscopy panel); None estimates it per "
+        "bone on the first frame (the sigma of FRAME_BLUR_MM that maximises the bone's NCC)",
+    )
     mask_dilation_mm: PositiveFloat = Field(4.0, description="2D mask dilation, mm")
     de_translation_mm: PositiveFloat = Field(12.0, description="DE box half-width, mm")
     de_long_axis_deg: PositiveFloat = Field(15.0, description="DE box about the long axis, deg")
@@ -88,7 +98,8 @@ class Settings(BaseModel):
     passes: PositiveInt = Field(
         2,
         description="passes over the bones per frame; later passes refine each against the "
-        "others' newest estimates (Powell in a box of 0.4 x refine_range, then Nelder-Mead)",
+        "others' newest estimates (Powell in a box of 0.4 x refine_range, then Nelder-Mead); "
+        "a first frame that estimates the frames' blur takes at least two",
     )
     kpm: bool = True
     global_init: bool = True
@@ -126,6 +137,11 @@ class BoneResult:
     failed: bool
     reason: str = ""
     """Why the bone failed (empty when it did not)."""
+
+    def scored(self, ncc: float, gradient_ncc: float, fail_ncc: float) -> None:
+        """Set the similarity, and the failure flag against ``fail_ncc``."""
+        self.ncc, self.gradient_ncc, self.failed = ncc, gradient_ncc, ncc < fail_ncc
+        self.reason = f"NCC {ncc:.3f} below {fail_ncc}" if self.failed else ""
 
 
 @dataclass
@@ -293,16 +309,23 @@ class Tracker:
         )
         """Binning factors of the pyramid, coarse to fine."""
         self._views = {b: view.binned(b) for b in self.levels}
-        self._targets: dict[tuple[int, int], np.ndarray] = {}
+        self._targets: dict[tuple[int, int, float], np.ndarray] = {}
+        blur = self.settings.frame_blur_mm
+        self.frame_blur_mm = {name: blur or 0.0 for name in bones}
+        """Per bone: the frames' matching blur, panel mm (estimated on the first frame when
+        the settings leave it open)."""
         self._last_ncc: dict[str, float] = {}
 
     def _sigma_px(self, level: int) -> float:
         return self.settings.highpass_mm / self._views[level].pitch_u_mm
 
-    def _target(self, frame: int, level: int) -> np.ndarray:
-        key = (frame, level)
+    def _target(self, frame: int, level: int, blur_mm: float) -> np.ndarray:
+        """The frame blurred by ``blur_mm`` (panel mm), binned to ``level``, high-passed."""
+        key = (frame, level, blur_mm)
         if key not in self._targets:
             image = self.frames[frame]
+            if blur_mm > 0:
+                image = gaussian_filter(image, blur_mm / self.view.pitch_u_mm, mode="nearest")
             if level > 1:
                 rows, cols = self._views[level].rows, self._views[level].cols
                 image = (
@@ -336,7 +359,7 @@ class Tracker:
         prior = None if lone else self._prior(name, poses)
         return _Objective(
             view,
-            self._target(frame, level),
+            self._target(frame, level, self.frame_blur_mm[name]),
             highpass(others, self._sigma_px(level)),
             self.bones[name],
             carried,
@@ -537,7 +560,10 @@ class Tracker:
             bone.seconds += spent[name][0] + time.perf_counter() - start
             bone.evaluations += spent[name][1]
             poses[name] = bone.pose
-        for _ in range(s.passes - 1):  # again, each bone against the others' new estimates
+        matching = not history and s.frame_blur_mm is None
+        if matching:  # then at least one more pass, against the matched frames
+            self._match_resolution(frame, poses, result)
+        for _ in range(max(s.passes - 1, int(matching))):  # each against the others' new poses
             for name, bone in result.bones.items():
                 if math.isnan(bone.ncc):
                     continue
@@ -549,13 +575,31 @@ class Tracker:
                     pose, n, score, grad = bone.pose, 0, -math.inf, math.nan
                 before = bone.ncc - self._penalty(name, poses)
                 if score - self._penalty(name, {**poses, name: pose}) > before:
-                    bone.pose, bone.ncc, bone.gradient_ncc = pose, score, grad
-                    bone.failed = score < s.fail_ncc
-                    bone.reason = f"NCC {score:.3f} below {s.fail_ncc}" if bone.failed else ""
-                    poses[name] = pose
+                    bone.pose = poses[name] = pose
+                    bone.scored(score, grad, s.fail_ncc)
                 bone.seconds += time.perf_counter() - start
                 bone.evaluations += n
         return result
+
+    def _match_resolution(
+        self, frame: int, poses: dict[str, np.ndarray], result: FrameResult
+    ) -> None:
+        """Per bone, the blur of the frames (:data:`FRAME_BLUR_MM`, refined by a parabola
+        through the best three) that maximises its NCC at ``poses``: the DRRs carry the CBCT's
+        blur, the panel does not, and the mismatch biases depth. Re-scores ``result``."""
+        for name, bone in result.bones.items():
+            if math.isnan(bone.ncc):
+                continue
+            scores = []
+            for blur in FRAME_BLUR_MM:
+                self.frame_blur_mm[name] = float(blur)
+                scores.append(self._score(frame, name, poses)[0])
+            i = int(np.clip(np.argmax(scores), 1, len(scores) - 2))
+            a, b, _ = np.polyfit(FRAME_BLUR_MM[i - 1 : i + 2], scores[i - 1 : i + 2], 2)
+            best = -b / (2 * a) if a < 0 else FRAME_BLUR_MM[int(np.argmax(scores))]
+            self.frame_blur_mm[name] = float(np.clip(best, FRAME_BLUR_MM[0], FRAME_BLUR_MM[-1]))
+            bone.scored(*self._score(frame, name, poses), self.settings.fail_ncc)
+            self._last_ncc[name] = bone.ncc
 
     def _track_bone(self, frame: int, name: str, poses: dict[str, np.ndarray], history):
         """KPM prediction (warm frames), refinement, and a wider search if the score fails."""
@@ -583,9 +627,9 @@ class Tracker:
             if wide_score - self._penalty(name, wide) > score - self._penalty(name, poses):
                 poses, score, grad = wide, wide_score, wide_grad
         self._last_ncc[name] = score
-        failed = score < s.fail_ncc
-        reason = f"NCC {score:.3f} below {s.fail_ncc}" if failed else ""
-        return BoneResult(poses[name], score, grad, 0.0, evaluations, failed, reason)
+        result = BoneResult(poses[name], score, grad, 0.0, evaluations, False)
+        result.scored(score, grad, s.fail_ncc)
+        return result
 
     def track(self, initial: dict[str, np.ndarray], progress=None) -> list[FrameResult]:
         """Register every frame in order; ``initial`` are the first frame's starting poses."""

@@ -96,11 +96,11 @@ def register_files(
     models = bone_models(volume, labels)
     tracker = Tracker(view, frames.data, models, settings, SoftTissue.of(volume, labels))
     results = tracker.track(start, progress=progress)
-    _write(out, results, models, view, tracker.settings, truth)
+    _write(out, results, models, view, tracker, truth)
     return results
 
 
-def _write(out, results, models, view, settings: Settings, truth) -> None:
+def _write(out, results, models, view, tracker: Tracker, truth) -> None:
     out.mkdir(parents=True)
     centroids = {name: model.centroid_mm for name, model in models.items()}
     poses = [
@@ -122,7 +122,11 @@ def _write(out, results, models, view, settings: Settings, truth) -> None:
         for r in results
         for name, b in r.bones.items()
     ]
-    report = {"settings": settings.model_dump(), "frames": per_frame}
+    report = {
+        "settings": tracker.settings.model_dump(),
+        "frame_blur_mm": tracker.frame_blur_mm,
+        "frames": per_frame,
+    }
     (out / "registration.json").write_text(json.dumps(report, indent=1), encoding="utf-8")
     if truth is None:
         return

@@ -92,12 +92,6 @@ def test_the_recording_holds_every_stage_on_its_timeline(demo: Path):
         assert "frame" in timelines[f"world/bones/{bone}"]
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="issue 9: depth (along the view axis) is off by 1-1.8 mm for the tibia in most "
-    "frames, and the frame after the varus tilt lands 1.8-4 mm off for femur or patella "
-    "depending on float rounding; issue 7 asks for TRE < 1.5 mm on every frame",
-)
 def test_registration_is_below_1_5_mm_on_every_frame(demo: Path):
     metrics = json.loads((demo / "registration" / "metrics.json").read_text(encoding="utf-8"))
     assert max(row["tre_mm"] for row in metrics["per_frame"]) < 1.5
