@@ -61,7 +61,8 @@ MIN_SILHOUETTE_PX = 20
 
 
 FRAME_BLUR_MM = np.arange(0.0, 3.01, 0.5)
-"""Candidate blurs of the frames (Gaussian sigma at the panel, mm) for resolution matching."""
+"""Candidate blurs of the frames along each panel axis (Gaussian sigma, mm) for resolution
+matching."""
 
 
 class OutOfView(ValueError):
@@ -81,11 +82,12 @@ class Settings(BaseModel):
         "each level bins the panel by the nearest whole factor (at least 1)",
     )
     highpass_mm: PositiveFloat = Field(3.0, description="high-pass Gaussian sigma, mm")
-    frame_blur_mm: NonNegativeFloat | None = Field(
+    frame_blur_mm: tuple[NonNegativeFloat, NonNegativeFloat] | None = Field(
         None,
-        description="Gaussian sigma at the panel, mm, the frames are blurred by to match the "
-        "DRRs' resolution (a CBCT is blurrier than a fluoroscopy panel); None estimates it per "
-        "bone on the first frame (the sigma of FRAME_BLUR_MM that maximises the bone's NCC)",
+        description="Gaussian sigmas (along the panel's u, v axes, mm) the frames are blurred "
+        "by to match the DRRs' resolution (a CBCT is blurrier than a fluoroscopy panel, and "
+        "blurrier across its axis than along it); None estimates them per bone on the first "
+        "frame (the pair on the FRAME_BLUR_MM grid that maximises the bone's NCC)",
     )
     mask_dilation_mm: PositiveFloat = Field(4.0, description="2D mask dilation, mm")
     de_translation_mm: PositiveFloat = Field(12.0, description="DE box half-width, mm")
@@ -191,9 +193,10 @@ class _Objective:
         r0, r1 = max(0, rows.min() - margin), min(view.rows, rows.max() + margin + 1)
         c0, c1 = max(0, cols.min() - margin), min(view.cols, cols.max() + margin + 1)
         self.view = view.cropped(r0, c0, r1 - r0, c1 - c0)
-        self.mask = mask[r0:r1, c0:c1]
-        self.target = target_hp[r0:r1, c0:c1]
-        self.background = background_hp[r0:r1, c0:c1]
+        self.crop = (slice(r0, r1), slice(c0, c1))
+        self.mask = mask[self.crop]
+        self.target = target_hp[self.crop]
+        self.background = background_hp[self.crop]
         self.bone, self.carried, self.T0 = bone, carried, T0
         self.sigma, self.coarse, self.prior = sigma_px, coarse, prior
         self.evaluations = 0
@@ -243,6 +246,15 @@ def _carrier_pose(name: str, poses: dict[str, np.ndarray]) -> np.ndarray:
     """The pose of bone ``name``'s carrier (:data:`CARRIER`) in ``poses``, else the identity."""
     carrier = CARRIER.get(name)
     return np.eye(4) if carrier is None else poses[carrier]
+
+
+def _parabola_peak(x: np.ndarray, y: np.ndarray, i: int) -> float:
+    """The peak of the parabola through samples i-1, i, i+1 of y(x) (sample i at an end or
+    without a peak between its neighbours: x[i])."""
+    if i == 0 or i == len(x) - 1:
+        return float(x[i])
+    a, b, _ = np.polyfit(x[i - 1 : i + 2], y[i - 1 : i + 2], 2)
+    return float(np.clip(-b / (2 * a), x[i - 1], x[i + 1])) if a < 0 else float(x[i])
 
 
 def principal_axes(points_mm: np.ndarray) -> np.ndarray:
@@ -310,22 +322,24 @@ class Tracker:
         """Binning factors of the pyramid, coarse to fine."""
         self._views = {b: view.binned(b) for b in self.levels}
         self._targets: dict[tuple[int, int, float], np.ndarray] = {}
-        blur = self.settings.frame_blur_mm
-        self.frame_blur_mm = {name: blur or 0.0 for name in bones}
-        """Per bone: the frames' matching blur, panel mm (estimated on the first frame when
-        the settings leave it open)."""
+        blur = self.settings.frame_blur_mm or (0.0, 0.0)
+        self.frame_blur_mm = {name: tuple(blur) for name in bones}
+        """Per bone: the frames' matching blur along (u, v), panel mm (estimated on the first
+        frame when the settings leave it open)."""
         self._last_ncc: dict[str, float] = {}
 
     def _sigma_px(self, level: int) -> float:
         return self.settings.highpass_mm / self._views[level].pitch_u_mm
 
-    def _target(self, frame: int, level: int, blur_mm: float) -> np.ndarray:
-        """The frame blurred by ``blur_mm`` (panel mm), binned to ``level``, high-passed."""
+    def _target(self, frame: int, level: int, blur_mm: tuple[float, float]) -> np.ndarray:
+        """The frame blurred by ``blur_mm`` (Gaussian sigmas along u, v at the panel, mm),
+        binned to ``level``, high-passed."""
         key = (frame, level, blur_mm)
         if key not in self._targets:
             image = self.frames[frame]
-            if blur_mm > 0:
-                image = gaussian_filter(image, blur_mm / self.view.pitch_u_mm, mode="nearest")
+            if any(blur_mm):
+                sigma_px = (blur_mm[1] / self.view.pitch_v_mm, blur_mm[0] / self.view.pitch_u_mm)
+                image = gaussian_filter(image, sigma_px, mode="nearest")
             if level > 1:
                 rows, cols = self._views[level].rows, self._views[level].cols
                 image = (
@@ -584,22 +598,32 @@ class Tracker:
     def _match_resolution(
         self, frame: int, poses: dict[str, np.ndarray], result: FrameResult
     ) -> None:
-        """Per bone, the blur of the frames (:data:`FRAME_BLUR_MM`, refined by a parabola
-        through the best three) that maximises its NCC at ``poses``: the DRRs carry the CBCT's
-        blur, the panel does not, and the mismatch biases depth. Re-scores ``result``."""
+        """Per bone, the blur of the frames along (u, v) that maximises its NCC at ``poses``:
+        the best pair on the :data:`FRAME_BLUR_MM` grid, each axis refined by a parabola
+        through its neighbours. The DRRs carry the CBCT's blur, the panel does not, and the
+        mismatch biases depth. Re-scores ``result``."""
+        level, grid = self.levels[-1], FRAME_BLUR_MM
+        pairs = [(float(u), float(v)) for u in grid for v in grid]
         for name, bone in result.bones.items():
             if math.isnan(bone.ncc):
                 continue
-            scores = []
-            for blur in FRAME_BLUR_MM:
-                self.frame_blur_mm[name] = float(blur)
-                scores.append(self._score(frame, name, poses)[0])
-            i = int(np.clip(np.argmax(scores), 1, len(scores) - 2))
-            a, b, _ = np.polyfit(FRAME_BLUR_MM[i - 1 : i + 2], scores[i - 1 : i + 2], 2)
-            best = -b / (2 * a) if a < 0 else FRAME_BLUR_MM[int(np.argmax(scores))]
-            self.frame_blur_mm[name] = float(np.clip(best, FRAME_BLUR_MM[0], FRAME_BLUR_MM[-1]))
+            objective = self._objective(frame, level, name, poses)
+            image = objective.image(poses[name])
+            scores = np.array(
+                [
+                    ncc(self._target(frame, level, pair)[objective.crop], image, objective.mask)
+                    for pair in pairs
+                ]
+            ).reshape(len(grid), len(grid))
+            best = np.unravel_index(np.argmax(scores), scores.shape)
+            self.frame_blur_mm[name] = tuple(
+                _parabola_peak(grid, np.take(scores, best[1 - axis], axis=1 - axis), best[axis])
+                for axis in (0, 1)
+            )
             bone.scored(*self._score(frame, name, poses), self.settings.fail_ncc)
             self._last_ncc[name] = bone.ncc
+        chosen = set(self.frame_blur_mm.values())
+        self._targets = {k: t for k, t in self._targets.items() if k[2] in chosen}
 
     def _track_bone(self, frame: int, name: str, poses: dict[str, np.ndarray], history):
         """KPM prediction (warm frames), refinement, and a wider search if the score fails."""

