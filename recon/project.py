@@ -16,7 +16,7 @@ import math
 import numba
 import numpy as np
 
-from recon.geometry import Geometry
+from recon.geometry import Geometry, View
 from recon.volume import VolumeGrid
 
 _PAD = 2  # zero voxels around the volume so Joseph's bilinear taps never leave the array
@@ -43,6 +43,11 @@ def check_in_front(geometry: Geometry, grid: VolumeGrid) -> None:
         )
 
 
+def full_spans(rows: int, cols: int) -> np.ndarray:
+    """Column spans (rows, 2) covering a whole ``rows x cols`` panel."""
+    return np.tile(np.array([0, cols], dtype=np.int64), (rows, 1))
+
+
 def _view_arrays(geometry: Geometry) -> tuple[np.ndarray, ...]:
     sources = np.asarray(geometry.sources_mm, dtype=np.float64)
     origins = np.stack([v.detector_origin_mm for v in geometry])
@@ -53,9 +58,11 @@ def _view_arrays(geometry: Geometry) -> tuple[np.ndarray, ...]:
 
 @numba.njit(parallel=True, fastmath=True, cache=True, error_model="numpy")
 def _joseph_kernel(
-    flat, strides, dims, origin, spacing, sources, det_origins, du, dv, out
+    flat, strides, dims, origin, spacing, sources, det_origins, du, dv, spans, out
 ):  # pragma: no cover
-    """Joseph line integrals; ``flat`` is the zero-padded volume raveled, strides per (x, y, z)."""
+    """Joseph line integrals; ``flat`` is the zero-padded volume raveled, strides per (x, y, z);
+    row r of every view is traced over columns ``spans[r, 0] <= c < spans[r, 1]``, zero
+    elsewhere."""
     n_views, rows, cols = out.shape
     for job in numba.prange(n_views * rows):
         view = job // rows
@@ -65,6 +72,9 @@ def _joseph_kernel(
         for ax in range(3):
             s[ax] = (sources[view, ax] - origin[ax]) / spacing[ax]
         for c in range(cols):
+            if c < spans[r, 0] or c >= spans[r, 1]:
+                out[view, r, c] = 0.0
+                continue
             length2 = 0.0
             for ax in range(3):
                 d_mm = (
@@ -138,6 +148,7 @@ class JosephProjector:
         self._dims = np.array(grid.size_xyz, dtype=np.int64)
         self._origin = np.array(grid.origin_mm)
         self._spacing = np.array(grid.spacing_mm)
+        self._corners = grid.corners_mm()
 
     def project(self, geometry: Geometry, out: np.ndarray | None = None) -> np.ndarray:
         """Line integrals through every pixel of every view, float32 (views, rows, cols)."""
@@ -155,9 +166,41 @@ class JosephProjector:
             origins,
             du,
             dv,
+            full_spans(geometry.rows, geometry.cols),
             out,
         )
         return out
+
+    def project_moved(
+        self, view: View, T: np.ndarray, spans: np.ndarray | None = None
+    ) -> np.ndarray:
+        """Line integrals through ``view`` of the volume moved by the rigid motion ``T`` (4x4,
+        mm), float32 (rows, cols): ``project(Geometry([view.transformed(inv(T))]))[0]`` without
+        building views (the registration's inner loop renders thousands of poses). ``spans``
+        (rows, 2): trace row r only over columns ``spans[r, 0] <= c < spans[r, 1]`` (zero
+        elsewhere; default all)."""
+        R, t = T[:3, :3], T[:3, 3]
+        w = self._corners @ (view.matrix[2, :3] @ R) + (view.matrix[2, :3] @ t + view.matrix[2, 3])
+        if w.min() <= 1e-3:
+            raise ValueError(
+                "the volume grid reaches behind the source of the view: move or shrink the grid"
+            )
+        # the view carried by inv(T): x -> R^T (x - t)
+        out = np.empty((1, view.rows, view.cols), dtype=np.float32)
+        _joseph_kernel(
+            self._flat,
+            self._strides,
+            self._dims,
+            self._origin,
+            self._spacing,
+            ((view.source_mm - t) @ R)[None],
+            ((view.detector_origin_mm - t) @ R)[None],
+            (view.pitch_u_mm * view.e_u @ R)[None],
+            (view.pitch_v_mm * view.e_v @ R)[None],
+            full_spans(view.rows, view.cols) if spans is None else spans,
+            out,
+        )
+        return out[0]
 
 
 def forward_project(volume: np.ndarray, grid: VolumeGrid, geometry: Geometry) -> np.ndarray:

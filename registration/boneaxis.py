@@ -10,9 +10,13 @@ a) first frame: the bone's principal axis (PCA of its voxels) orients a bounded 
    by differential evolution (global initialisation, seeded);
 b) kinematic priority module (KPM), from the third frame: the pose is predicted with constant
    velocity (the last frame-to-frame motion repeated) and searched first along that motion
-   (T_n = T_{n-1} exp(lambda S)); the search widens (a small DE box) only when the similarity
-   after refinement says the prediction failed;
-c) refinement: Powell then Nelder-Mead, coarse (binned panel) to fine.
+   (T_n = T_{n-1} exp(lambda S), lambda scanned from -1.5 to 2.5, so a reversal is found; at a
+   turning point, where the last motion nearly stops, S is the motion before it); the search
+   widens (a small DE box) only when the similarity after refinement says the prediction
+   failed;
+c) refinement: Powell then Nelder-Mead, coarse (binned panel) to fine; a second pass refines
+   each bone against the others' new estimates (on warm frames Nelder-Mead on the finest
+   level only: the first pass has brought every bone close).
 
 A single lateral view barely sees the patella's medial-lateral shift and its tilt and spin
 (depth along the ray and rotations out of the image plane; measured on the quick demo: a
@@ -33,13 +37,13 @@ from dataclasses import dataclass, field
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, NonNegativeFloat, PositiveFloat, PositiveInt
 from scipy.linalg import expm, logm
-from scipy.ndimage import binary_dilation, gaussian_filter
+from scipy.ndimage import binary_dilation, gaussian_filter, maximum_filter1d, minimum_filter1d
 from scipy.optimize import differential_evolution, minimize, minimize_scalar
 from scipy.spatial.transform import Rotation
 
 from recon.geometry import Geometry, View
 from recon.project import JosephProjector
-from registration.drr import BoneModel, SoftTissue, scene
+from registration.drr import BoneModel, SoftTissue, along_axis, scene
 from registration.similarity import gradient_ncc, highpass, ncc
 
 TRACK_ORDER = ("tibia_fibula", "femur", "patella")
@@ -54,6 +58,10 @@ and extrapolated in the femur's frame."""
 
 MAX_KPM_STEP = (25.0, 25.0)
 """A frame-to-frame motion beyond (mm, deg) is not extrapolated (it is a failure, not motion)."""
+
+KPM_LAMBDA = np.arange(-1.5, 2.51, 0.25)
+"""The KPM's scan along the kinematic direction, in steps of the last motion: from reversing
+it one and a half times to repeating it two and a half times (then Brent about the best)."""
 
 
 MIN_SILHOUETTE_PX = 20
@@ -100,8 +108,9 @@ class Settings(BaseModel):
     passes: PositiveInt = Field(
         2,
         description="passes over the bones per frame; later passes refine each against the "
-        "others' newest estimates (Powell in a box of 0.4 x refine_range, then Nelder-Mead); "
-        "a first frame that estimates the frames' blur takes at least two",
+        "others' newest estimates (first frame: Powell in a box of 0.4 x refine_range, then "
+        "Nelder-Mead; warm frames: Nelder-Mead on the finest level); a first frame that "
+        "estimates the frames' blur takes at least two",
     )
     kpm: bool = True
     global_init: bool = True
@@ -167,8 +176,8 @@ class _Objective:
 
     The soft tissue is deformed by the bones' estimates at the start; the bone carries its
     share of it (``carried``, rendered moved by the bone's motion from its start pose). The
-    similarity is taken over the bone's silhouette at the start pose, dilated (the frame's 2D
-    mask), in a crop of the view around it.
+    similarity is taken over the bone's silhouette at the start pose (and at the ``reach``
+    poses), dilated (the frame's 2D mask), in a crop of the view around it.
     """
 
     def __init__(
@@ -183,8 +192,11 @@ class _Objective:
         dilation_px: int,
         coarse: bool,
         prior: Callable[[np.ndarray], float] | None = None,
+        reach: tuple[np.ndarray, ...] = (),
     ) -> None:
         silhouette = bone.render(view, T0, coarse) > 0.02
+        for T in reach:  # poses the search will visit far from T0: the mask covers them too
+            silhouette |= bone.render(view, T, coarse) > 0.02
         if silhouette.sum() < MIN_SILHOUETTE_PX:
             raise OutOfView(f"bone {bone.name} leaves the field of view")
         mask = binary_dilation(silhouette, iterations=max(1, dilation_px))
@@ -195,17 +207,18 @@ class _Objective:
         self.view = view.cropped(r0, c0, r1 - r0, c1 - c0)
         self.crop = (slice(r0, r1), slice(c0, c1))
         self.mask = mask[self.crop]
+        self.spans = _row_spans(self.mask, math.ceil(4 * sigma_px))
         self.target = target_hp[self.crop]
         self.background = background_hp[self.crop]
         self.bone, self.carried, self.T0 = bone, carried, T0
+        self._T0_inv = np.linalg.inv(T0)
         self.sigma, self.coarse, self.prior = sigma_px, coarse, prior
         self.evaluations = 0
 
     def image(self, T: np.ndarray) -> np.ndarray:
-        moving = self.bone.render(self.view, T, self.coarse)
+        moving = self.bone.render(self.view, T, self.coarse, self.spans)
         if self.carried is not None:
-            moved = self.view.transformed(self.T0 @ np.linalg.inv(T))
-            moving += self.carried.project(Geometry([moved]))[0]
+            moving += self.carried.project_moved(self.view, T @ self._T0_inv, self.spans)
         return self.background + highpass(moving, self.sigma)
 
     def __call__(self, x: np.ndarray) -> float:
@@ -220,6 +233,20 @@ class _Objective:
             return penalty - ncc(self.target, self.image(T), self.mask)
         except ValueError:
             return 1.0 + penalty
+
+
+def _row_spans(mask: np.ndarray, margin_px: int) -> np.ndarray:
+    """Per row, the columns (start, stop) within ``margin_px`` (chessboard) of ``mask``: where
+    the high-pass of a render reaches the mask (the Gaussian's truncation at 4 sigma)."""
+    cols = mask.shape[1]
+    index = np.arange(cols)
+    size = 2 * margin_px + 1
+    lo = minimum_filter1d(np.where(mask, index, cols).min(axis=1), size, mode="nearest")
+    hi = maximum_filter1d(np.where(mask, index + 1, 0).max(axis=1), size, mode="nearest")
+    empty = hi <= lo
+    lo, hi = np.maximum(lo - margin_px, 0), np.minimum(hi + margin_px, cols)
+    lo[empty] = hi[empty] = 0
+    return np.column_stack((lo, hi)).astype(np.int64)
 
 
 def patellofemoral_deviation(
@@ -277,6 +304,14 @@ def kinematic_twist(
     if step_mm > MAX_KPM_STEP[0] or step_deg > MAX_KPM_STEP[1]:
         return None
     return twist
+
+
+def _twist_size(twist: np.ndarray, center_mm: np.ndarray) -> float:
+    """The larger of a twist's step at ``center_mm`` (mm, to first order) and its angle (deg)."""
+    step_mm = np.linalg.norm(twist[:3, :3] @ center_mm + twist[:3, 3])
+    return max(
+        float(step_mm), math.degrees(np.linalg.norm([twist[2, 1], twist[0, 2], twist[1, 0]]))
+    )
 
 
 def predict(
@@ -357,9 +392,16 @@ class Tracker:
         return pixel_at_bone >= 2.0 * bone.volume.voxel_mm()
 
     def _objective(
-        self, frame: int, level: int, name: str, poses: dict[str, np.ndarray], lone: bool = False
+        self,
+        frame: int,
+        level: int,
+        name: str,
+        poses: dict[str, np.ndarray],
+        lone: bool = False,
+        reach: tuple[np.ndarray, ...] = (),
     ):
-        """The objective of bone ``name``, the others at ``poses`` (``lone``: bone alone)."""
+        """The objective of bone ``name``, the others at ``poses`` (``lone``: bone alone),
+        masked to its silhouettes at ``poses`` and ``reach``."""
         view = self._views[level]
         coarse = self._coarse(level, name)
         others = scene(
@@ -382,14 +424,16 @@ class Tracker:
             dilation,
             coarse,
             prior,
+            reach,
         )
 
     def _soft_tissue(
         self, level: int, name: str, poses: dict[str, np.ndarray]
     ) -> tuple[np.ndarray, JosephProjector | None]:
         """The soft tissue deformed by ``poses``: the image at ``level`` of what stays when
-        bone ``name`` moves, and what it carries (registration.drr.SoftTissue.carried;
-        kept for the frame being registered)."""
+        bone ``name`` moves, and what it carries (registration.drr.SoftTissue.carried,
+        averaged over pairs of slices along the rays: rendered every evaluation; kept for the
+        frame being registered)."""
         knee = (poses["femur"].tobytes(), poses["tibia_fibula"].tobytes())
         if knee not in self._deformed:
             T_femur, T_tibia = poses["femur"], poses["tibia_fibula"]
@@ -397,7 +441,8 @@ class Tracker:
         if (knee, name) not in self._split:
             deformed = self._deformed[knee]
             stays, carried = self.soft_tissue.carried(deformed, name)
-            moving = None if carried is None else JosephProjector(carried, deformed[2])
+            axis = int(np.argmax(np.abs(self.view.normal)))  # the rays' main axis
+            moving = None if carried is None else along_axis(carried, deformed[2], axis)
             self._split[knee, name] = (JosephProjector(stays, deformed[2]), moving, {})
         stays, moving, images = self._split[knee, name]
         if level not in images:
@@ -421,14 +466,21 @@ class Tracker:
         return prior
 
     def _refine(
-        self, frame: int, name: str, poses: dict[str, np.ndarray], scale: float = 1.0
+        self,
+        frame: int,
+        name: str,
+        poses: dict[str, np.ndarray],
+        scale: float = 1.0,
+        polish: bool = False,
     ) -> tuple[np.ndarray, int]:
         """Coarse to fine: Powell (bounded about the start by ``scale`` x refine_range) on the
-        coarsest level, Nelder-Mead on the finer ones (on every level without Powell)."""
+        coarsest level, Nelder-Mead on the finer ones (on every level without Powell);
+        ``polish``: Nelder-Mead on the finest level only."""
         s = self.settings
         t_max, r_max = scale * s.refine_range[0], scale * s.refine_range[1]
         evaluations = 0
-        for i, level in enumerate(self.levels):
+        levels = self.levels[-1:] if polish and s.powell else self.levels
+        for i, level in enumerate(levels, start=len(self.levels) - len(levels)):
             objective = self._objective(frame, level, name, poses)
             fine = i == len(self.levels) - 1
             if s.powell and i == 0:
@@ -513,24 +565,39 @@ class Tracker:
         )
 
     def _kpm(self, frame: int, name: str, poses, history) -> tuple[np.ndarray, int]:
-        """Line search along the last frame-to-frame motion (the kinematic direction); a
-        carried bone (:data:`CARRIER`) moves along its last motion relative to its carrier,
-        from the carrier's pose in this frame."""
+        """Line search along the kinematic direction: the last frame-to-frame motion, or at a
+        turning point (the last motion under half the one before it) the one before; a scan
+        of :data:`KPM_LAMBDA` steps, then Brent between the best one's neighbours. A carried
+        bone (:data:`CARRIER`) moves along its motion relative to its carrier, from the
+        carrier's pose in this frame."""
         base = _carrier_pose(name, poses)
-        T1, T2 = (_carried_pose(name, h) for h in history[-2:])
-        twist = kinematic_twist(T1, T2, self.bones[name].centroid_mm)
+        center = self.bones[name].centroid_mm
+        carried = [_carried_pose(name, h) for h in history[-3:]]
+        twist = kinematic_twist(carried[-2], carried[-1], center)
         if twist is None:
-            return base @ T2, 0
-        predicted = {**poses, name: base @ T2 @ expm(twist)}
-        objective = self._objective(frame, self.levels[0], name, predicted)
+            return base @ carried[-1], 0
+        before = kinematic_twist(carried[0], carried[1], center) if len(carried) == 3 else None
+        if before is not None and _twist_size(twist, center) < 0.5 * _twist_size(before, center):
+            twist = before
 
-        def along(lam: float) -> float:
-            return objective.cost(base @ T2 @ expm(lam * twist))
+        def at(lam: float) -> np.ndarray:
+            return base @ carried[-1] @ expm(lam * twist)
 
-        best = minimize_scalar(
-            along, bounds=(-0.5, 2.5), method="bounded", options={"xatol": 0.02, "maxiter": 25}
+        ends = (at(KPM_LAMBDA[0]), at(KPM_LAMBDA[-1]))
+        objective = self._objective(
+            frame, self.levels[0], name, {**poses, name: at(0.0)}, reach=ends
         )
-        return base @ T2 @ expm(best.x * twist), best.nfev
+        costs = [objective.cost(at(lam)) for lam in KPM_LAMBDA]
+        k = int(np.argmin(costs))
+        lo, hi = KPM_LAMBDA[max(k - 1, 0)], KPM_LAMBDA[min(k + 1, len(KPM_LAMBDA) - 1)]
+        best = minimize_scalar(
+            lambda lam: objective.cost(at(lam)),
+            bounds=(lo, hi),
+            method="bounded",
+            options={"xatol": 0.02, "maxiter": 15},
+        )
+        lam = best.x if best.fun < costs[k] else KPM_LAMBDA[k]
+        return at(lam), len(costs) + best.nfev
 
     def register(
         self, frame: int, poses: dict[str, np.ndarray], history: list[dict[str, np.ndarray]]
@@ -583,7 +650,7 @@ class Tracker:
                     continue
                 start = time.perf_counter()
                 try:
-                    pose, n = self._refine(frame, name, poses, scale=0.4)
+                    pose, n = self._refine(frame, name, poses, scale=0.4, polish=bool(history))
                     score, grad = self._score(frame, name, {**poses, name: pose})
                 except OutOfView:  # the refinement walked off the panel: keep the first pass
                     pose, n, score, grad = bone.pose, 0, -math.inf, math.nan

@@ -13,10 +13,12 @@ least twice the voxel size (:class:`RigidVolume`).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
-from scipy.ndimage import distance_transform_edt, map_coordinates
+from scipy.ndimage import distance_transform_edt
 
 from recon.geometry import Geometry, View
 from recon.project import JosephProjector
@@ -48,6 +50,12 @@ def _pooled(
     return blocks.mean(axis=(1, 3, 5), dtype=np.float32), pooled
 
 
+def along_axis(data: np.ndarray, grid: VolumeGrid, axis: int) -> JosephProjector:
+    """A projector of ``data`` averaged over pairs of slices along ``axis`` (0, 1, 2: x, y,
+    z): half the cost for rays near that axis, at full resolution across them."""
+    return JosephProjector(*_pooled(data, grid, tuple(np.eye(3, dtype=int)[axis] + 1)))
+
+
 @dataclass(frozen=True)
 class RigidVolume:
     """Attenuation (1/mm) that moves rigidly, ready to render at two resolutions.
@@ -66,25 +74,25 @@ class RigidVolume:
         """Prepare ``data`` on ``grid``."""
         data = np.asarray(data, dtype=np.float32)
         coarse = JosephProjector(*_pooled(data, grid))
-        along = tuple(
-            JosephProjector(*_pooled(data, grid, tuple(np.eye(3, dtype=int)[k] + 1)))
-            for k in range(3)
-        )
-        return cls(along, coarse)
+        return cls(tuple(along_axis(data, grid, k) for k in range(3)), coarse)
 
     def voxel_mm(self) -> float:
         """The fine level's voxel size across the rays, mm."""
         return float(sorted(self.along[0].grid.spacing_mm)[0])
 
-    def render(self, view: View, T_world: np.ndarray, coarse: bool = False) -> np.ndarray:
-        """Line integrals of the volume moved by ``T_world``, float32 (rows, cols)."""
-        moved = view.transformed(np.linalg.inv(T_world))
+    def render(
+        self,
+        view: View,
+        T_world: np.ndarray,
+        coarse: bool = False,
+        spans: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """Line integrals of the volume moved by ``T_world``, float32 (rows, cols); only over
+        each row's column span (recon.project.JosephProjector.project_moved) if given."""
         if coarse:
-            projector = self.coarse
-        else:
-            axis = int(np.argmax(np.abs(moved.detector_center_mm - moved.source_mm)))
-            projector = self.along[axis]
-        return projector.project(Geometry([moved]))[0]
+            return self.coarse.project_moved(view, T_world, spans)
+        ray = (view.detector_center_mm - view.source_mm) @ T_world[:3, :3]  # in the volume
+        return self.along[int(np.argmax(np.abs(ray)))].project_moved(view, T_world, spans)
 
 
 @dataclass(frozen=True)
@@ -103,9 +111,16 @@ class BoneModel:
     points_mm: np.ndarray
     centroid_mm: np.ndarray
 
-    def render(self, view: View, T_world_bone: np.ndarray, coarse: bool = False) -> np.ndarray:
-        """Line integrals of the bone moved by ``T_world_bone``, float32 (rows, cols)."""
-        return self.volume.render(view, T_world_bone, coarse)
+    def render(
+        self,
+        view: View,
+        T_world_bone: np.ndarray,
+        coarse: bool = False,
+        spans: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """Line integrals of the bone moved by ``T_world_bone``, float32 (rows, cols), over
+        ``spans`` (see :meth:`RigidVolume.render`)."""
+        return self.volume.render(view, T_world_bone, coarse, spans)
 
 
 def _crop(
@@ -186,6 +201,57 @@ def bone_models(
     return models
 
 
+@numba.njit(fastmath=True, cache=True, inline="always")
+def _blend(tibia_row, femur_row, p, share):  # pragma: no cover
+    """One index coordinate of the blended pull-back of point ``p``."""
+    qt = tibia_row[0] * p[0] + tibia_row[1] * p[1] + tibia_row[2] * p[2] + tibia_row[3]
+    qf = femur_row[0] * p[0] + femur_row[1] * p[1] + femur_row[2] * p[2] + femur_row[3]
+    return qt + share * (qf - qt)
+
+
+@numba.njit(parallel=True, fastmath=True, cache=True, error_model="numpy")
+def _pull_back(data, x, y, z, center, slope, tibia, femur, values, w):  # pragma: no cover
+    """:meth:`SoftTissue.deformed`'s inner loop: at each voxel (x[i], y[j], z[k]) of the
+    output, the femur's share ``w`` (smoothstep of ``(p - center) . slope + 1/2``) and ``data``
+    trilinearly interpolated (zero outside) at the blended pull-back ``(1 - w) q_tibia + w
+    q_femur``, each ``q = A p + b`` in ``data``'s voxel indices (x, y, z) from the 3 x 4
+    ``tibia``, ``femur``."""
+    nz, ny, nx = values.shape
+    dz, dy, dx = data.shape
+    for k in numba.prange(nz):
+        for j in range(ny):
+            for i in range(nx):
+                p = (x[i], y[j], z[k])
+                t = 0.5
+                for a in range(3):
+                    t += (p[a] - center[a]) * slope[a]
+                t = min(max(t, 0.0), 1.0)
+                share = t * t * (3.0 - 2.0 * t)
+                w[k, j, i] = share
+                qx = _blend(tibia[0], femur[0], p, share)
+                qy = _blend(tibia[1], femur[1], p, share)
+                qz = _blend(tibia[2], femur[2], p, share)
+                ix, iy, iz = math.floor(qx), math.floor(qy), math.floor(qz)
+                fx, fy, fz = qx - ix, qy - iy, qz - iz
+                total = 0.0
+                for cz in range(2):
+                    zz = iz + cz
+                    if zz < 0 or zz >= dz:
+                        continue
+                    wz = fz if cz else 1.0 - fz
+                    for cy in range(2):
+                        yy = iy + cy
+                        if yy < 0 or yy >= dy:
+                            continue
+                        wy = fy if cy else 1.0 - fy
+                        for cx in range(2):
+                            xx = ix + cx
+                            if xx < 0 or xx >= dx:
+                                continue
+                            total += wz * wy * (fx if cx else 1.0 - fx) * data[zz, yy, xx]
+                values[k, j, i] = total
+
+
 @dataclass(frozen=True, eq=False)
 class SoftTissue:
     """The soft tissue (every bone voxel filled with the soft tissue's attenuation, every rim
@@ -263,40 +329,23 @@ class SoftTissue:
         origin = np.asarray(self.grid.origin_mm) + first * spacing
         shape = tuple(int(n) for n in np.maximum(last - first + 1, 1)[::-1])
         grid = VolumeGrid(shape, tuple(spacing), tuple(origin))
-        x, y, z = (a.astype(np.float32) for a in grid.axes_mm())
         normal = T_femur[:3, :3] @ self.axes[0] + T_tibia[:3, :3] @ self.axes[1]
         normal /= np.linalg.norm(normal)
         center = 0.5 * (T_femur[:3, :3] @ self.joint_mm + T_femur[:3, 3])
         center += 0.5 * (T_tibia[:3, :3] @ self.joint_mm + T_tibia[:3, 3])
-        slope = (normal / self.blend_mm).astype(np.float32)
-        center = center.astype(np.float32)
-        t = (
-            (z[:, None, None] - center[2]) * slope[2]
-            + (y[None, :, None] - center[1]) * slope[1]
-            + (x[None, None, :] - center[0]) * slope[0]
-            + np.float32(0.5)
-        )
-        t = np.clip(t, 0.0, 1.0)
-        w = t * t * (3.0 - 2.0 * t)
         # each bone's pull-back straight to the scan's voxel indices: (x - origin) / spacing
-        to_index = []
+        pull = []
         for T in (T_tibia, T_femur):
             inv = np.linalg.inv(T)
-            A = (inv[:3, :3] / spacing[:, None]).astype(np.float32)
-            b = ((inv[:3, 3] - np.asarray(self.grid.origin_mm)) / spacing).astype(np.float32)
-            to_index.append((A, b))
-        index = []
-        for k in (2, 1, 0):  # map_coordinates takes (z, y, x)
-            qt, qf = (
-                A[k, 0] * x[None, None, :]
-                + A[k, 1] * y[None, :, None]
-                + A[k, 2] * z[:, None, None]
-                + b[k]
-                for A, b in to_index
+            pull.append(
+                np.column_stack(
+                    (inv[:3, :3] / spacing[:, None], (inv[:3, 3] - self.grid.origin_mm) / spacing)
+                )
             )
-            index.append(qt + w * (qf - qt))
-        values = map_coordinates(self.data, index, order=1, mode="grid-constant", prefilter=False)
-        return values.astype(np.float32, copy=False), w.astype(np.float32, copy=False), grid
+        values = np.empty(shape, dtype=np.float32)
+        w = np.empty(shape, dtype=np.float32)
+        _pull_back(self.data, *grid.axes_mm(), center, normal / self.blend_mm, *pull, values, w)
+        return values, w, grid
 
     def carried(
         self, deformed: tuple[np.ndarray, np.ndarray, VolumeGrid], name: str

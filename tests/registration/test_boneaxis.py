@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.ndimage import gaussian_filter
+from scipy.ndimage import gaussian_filter, map_coordinates
 
 from recon.geometry import Geometry
 from recon.project import forward_project
@@ -88,6 +88,19 @@ def test_soft_tissue_bends_with_the_knee_and_moves_rigidly_with_the_leg(knee_cas
     # bending the knee: what each bone carries and what stays add up to the deformed tissue
     bent = {**rest, "femur": c.truth[-1]["femur"], "tibia_fibula": c.truth[-1]["tibia_fibula"]}
     deformed = soft.deformed(bent["femur"], bent["tibia_fibula"], view)
+    # every voxel is the scan trilinearly interpolated (scipy) at the blend of its pull-backs
+    x, y, z = np.meshgrid(*deformed[2].axes_mm(), indexing="ij")
+    points = np.stack((x, y, z), axis=-1).transpose(2, 1, 0, 3)  # (z, y, x, 3) like the data
+    pulled = [
+        (points - T[:3, 3]) @ T[:3, :3] for T in (bent["tibia_fibula"], bent["femur"])
+    ]  # inv(T) p
+    share = deformed[1][..., None]
+    blend = (1.0 - share) * pulled[0] + share * pulled[1]
+    index = (blend - soft.grid.origin_mm) / soft.grid.spacing_mm
+    expected = map_coordinates(
+        soft.data, list(index[..., ::-1].transpose(3, 0, 1, 2)), order=1, mode="grid-constant"
+    )
+    np.testing.assert_allclose(deformed[0], expected, atol=1e-4 * soft.data.max())
     for name in ("femur", "tibia_fibula"):
         stays, carried = soft.carried(deformed, name)
         np.testing.assert_allclose(stays + carried, deformed[0], atol=1e-6)
