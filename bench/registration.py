@@ -10,6 +10,10 @@ Two regimes (SYSTEM.md, issue "4D virtual imaging"):
   resolution with beam hardening, scatter, detector blur, distortion, Poisson + readout noise
   and soft tissue that deforms non-rigidly and is displaced by the bones.
 
+In both regimes the frames are dewarped first (calibration.distortion), with the warp fitted to
+one exposure of the dewarp grid through the same image model as the frames (``--no-dewarp``
+registers the distorted frames as they are); ``dewarp_rms_px`` is the fit's residual.
+
 Per regime, every method runs the same sequences (squat motions with different seeds), from the
 same start perturbation of the first frame: ``boneaxis_kpm`` (PCA + differential evolution on
 the first frame, KPM prediction and line search, Powell + Nelder-Mead coarse to fine),
@@ -20,7 +24,7 @@ TRUE poses on three noise realisations, without and with the distortion, i.e. th
 noise and uncorrected distortion alone leave. Prints one JSON object ``{"regimes": [...]}``.
 
 Usage: ``python bench/registration.py [--sequences 3] [--frames 30] [--panel 512]
-[--max-flexion 90] [--methods ...] [--regimes ...] [--ablation-sequences N]``;
+[--max-flexion 90] [--methods ...] [--regimes ...] [--ablation-sequences N] [--no-dewarp]``;
 ``--quick`` runs 1 sequence of 12 frames of a 40 degree squat per regime.
 """
 
@@ -38,7 +42,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from calibration.distortion import DewarpGridSpec, fit_distortion  # noqa: E402
 from recon.config import load_protocol  # noqa: E402
+from recon.distortion import Distortion  # noqa: E402
 from recon.fdk import fdk_reconstruct  # noqa: E402
 from recon.geometry import DetectorSpec  # noqa: E402
 from recon.volume import Volume, VolumeGrid  # noqa: E402
@@ -46,7 +52,14 @@ from registration.boneaxis import Settings, Tracker, compose  # noqa: E402
 from registration.drr import SoftTissue, bone_models, scene  # noqa: E402
 from registration.metrics import pose_error, summarize  # noqa: E402
 from registration.segment import segment_bones  # noqa: E402
-from sim.fluoro import add_fluoro_noise, distort, lateral_view, simulate_fluoroscopy  # noqa: E402
+from sim.fluoro import (  # noqa: E402
+    DISTORTION_MAX_PX,
+    add_fluoro_noise,
+    distort,
+    lateral_view,
+    simulate_dewarp_grid,
+    simulate_fluoroscopy,
+)
 from sim.motion import squat_motion  # noqa: E402
 from sim.phantoms.knee import KneePhantomSpec, rasterize_knee  # noqa: E402
 from sim.scan import simulate_knee_scan  # noqa: E402
@@ -132,17 +145,39 @@ def run(method: str, view, frames, models, soft, motion, start) -> dict:
     return {"errors": errors, "first": first, "warm": warm}
 
 
-def optimum_spread(view, models, soft, motion, photons: float, distortion_px: float) -> dict:
+def matched_frames(clean: np.ndarray, photons: float, rng) -> np.ndarray:
+    """The matched regime's image model: quantum and readout noise, the panel's distortion."""
+    return distort(add_fluoro_noise(clean, photons, rng)[1], DISTORTION_MAX_PX)
+
+
+def dewarp_of(regime: str, view, photons: float) -> Distortion:
+    """The panel's warp, fitted to one exposure of the dewarp grid through the regime's image
+    model (calibration.distortion)."""
+    grid = DewarpGridSpec()
+    if regime == "matched":
+        ideal = simulate_dewarp_grid(grid, view, realism="ideal")
+        image = matched_frames(ideal, photons, np.random.default_rng(900))
+    else:
+        image = simulate_dewarp_grid(grid, view, seed=900)
+    return fit_distortion(image, view, grid)
+
+
+def optimum_spread(
+    view, models, soft, motion, photons: float, distorted: bool, dewarp: Distortion | None
+) -> dict:
     """The matched regime's floor: register frame 0 starting AT the truth (refinement only)
-    on 3 noise realisations; the TRE reached measures what noise (and uncorrected distortion)
-    alone allow."""
+    on 3 noise realisations; the TRE reached measures what noise (and distortion, dewarped or
+    not) alone allow."""
     truth = truth_of(motion, 0)
     clean = scene(view, models, truth, soft)[None]
     errors = []
     for seed in range(3):
-        frame = add_fluoro_noise(clean, photons, np.random.default_rng(500 + seed))[1]
-        if distortion_px:
-            frame = distort(frame, distortion_px)
+        rng = np.random.default_rng(500 + seed)
+        if distorted:
+            frame = matched_frames(clean, photons, rng)
+            frame = frame if dewarp is None else dewarp.undistort(frame)
+        else:
+            frame = add_fluoro_noise(clean, photons, rng)[1]
         settings = Settings(kpm=False, global_init=False, powell=True)
         result = Tracker(view, frame, models, settings, soft).register(0, truth, [])
         errors += [
@@ -150,7 +185,8 @@ def optimum_spread(view, models, soft, motion, photons: float, distortion_px: fl
             for b, r in result.bones.items()
         ]
     return {
-        "distortion_px": distortion_px,
+        "distortion_px": DISTORTION_MAX_PX if distorted else 0.0,
+        "dewarped": dewarp is not None,
         "tre_mm": float(np.mean([e.tre_mm for e in errors])),
         "in_plane_mm_median": float(np.median([e.in_plane_mm for e in errors])),
         "out_of_plane_mm_median": float(np.median([e.out_of_plane_mm for e in errors])),
@@ -188,6 +224,9 @@ def main() -> None:
     parser.add_argument("--regimes", nargs="+", default=["matched", "independent"])
     parser.add_argument("--max-flexion", type=float, default=90.0, help="peak flexion, deg")
     parser.add_argument("--quick", action="store_true")
+    parser.add_argument(
+        "--no-dewarp", action="store_true", help="register the distorted frames as they are"
+    )
     args = parser.parse_args()
     if args.quick:
         args.sequences, args.frames, args.max_flexion = 1, 12, 40.0
@@ -203,10 +242,17 @@ def main() -> None:
         drr_ms = drr_ms_256(models, view)
         runs = {m: {"errors": [], "first": [], "warm": []} for m in args.methods}
         photons = 2.0e4 * (detector.pixel_pitch_mm / 0.3) ** 2
+        dewarp = None if args.no_dewarp else dewarp_of(regime, view, photons)
+        if dewarp is not None:
+            log(f"dewarp: {dewarp.summary()}")
         floor = []
         if regime == "matched":
             motion = squat_motion(spec, frames=2, seed=0)
-            floor = [optimum_spread(view, models, soft, motion, photons, d) for d in (0.0, 1.0)]
+            floor = [
+                optimum_spread(view, models, soft, motion, photons, distorted, warp)
+                for distorted, warp in ((False, None), (True, dewarp), (True, None))
+                if distorted or dewarp is not None
+            ]
             log(f"matched floor (start at truth): {floor}")
         for seq in range(args.sequences):
             motion = squat_motion(
@@ -218,9 +264,11 @@ def main() -> None:
                 clean = np.stack(
                     [scene(view, models, truth_of(motion, k), soft) for k in range(args.frames)]
                 )
-                frames = distort(add_fluoro_noise(clean, photons, rng)[1], 1.0)
+                frames = matched_frames(clean, photons, rng)
             else:
                 frames = simulate_fluoroscopy(spec, motion, view, seed=seq).frames
+            if dewarp is not None:
+                frames = dewarp.undistort(frames)
             start = perturbed(truth_of(motion, 0), models, np.random.default_rng(seq))
             for method in args.methods:
                 if method != "boneaxis_kpm" and seq >= (args.ablation_sequences or args.sequences):
@@ -233,6 +281,7 @@ def main() -> None:
             entry = {"regime": regime, "method": method}
             entry |= summarize(data["errors"], data["warm"], float(np.mean(data["first"])))
             entry["drr_ms_256"] = round(drr_ms, 2)
+            entry["dewarp_rms_px"] = None if dewarp is None else round(dewarp.rms_px, 4)
             entry["sequences"] = len(data["first"])
             entry["frames"] = args.frames
             if floor:

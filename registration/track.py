@@ -2,20 +2,24 @@
 
 Inputs are the static scan (attenuation volume and its bone labels), the frames (an RTK
 projection stack of line integrals, or DICOM) and their view (RTK geometry XML: one view, or
-one identical view per frame; the scanner holds still during fluoroscopy). Outputs go to a new
-folder: ``poses.csv`` (registration.poses), ``registration.json`` (per bone and frame: NCC,
-gradient NCC, seconds, evaluations, failure flag; the settings) and, given the true poses,
-``metrics.json`` (registration.metrics.summarize and per-frame errors).
+one identical view per frame; the scanner holds still during fluoroscopy) and, optionally, the
+panel's distortion (calibration.distortion: the frames are dewarped before anything else).
+Outputs go to a new folder: ``poses.csv`` (registration.poses), ``registration.json`` (per bone
+and frame: NCC, gradient NCC, seconds, evaluations, failure flag; the settings; the dewarp's
+fit), ``distortion.json`` (when dewarped) and, given the true poses, ``metrics.json``
+(registration.metrics.summarize and per-frame errors).
 """
 
 from __future__ import annotations
 
 import json
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
+from recon.distortion import Distortion
 from recon.geometry import DetectorSpec, View
 from recon.io import read_volume
 from recon.rtk_xml import read_rtk_geometry
@@ -27,15 +31,16 @@ from registration.metrics import as_rows, pose_error, summarize
 from registration.poses import BonePose, poses_by_frame, read_poses, write_poses
 
 
-def fluoroscopy_view(geometry_path: Path, frames: Frames) -> View:
-    """The one view of a fluoroscopy sequence (ValueError if its views differ)."""
+def fluoroscopy_view(geometry_path: Path, frames: Frames, any_count: bool = False) -> View:
+    """The one view of a fluoroscopy sequence (ValueError if its views differ, or unless
+    ``any_count``, if there are neither one nor one per frame)."""
     count, rows, cols = frames.data.shape
     pitch_u, pitch_v = frames.pixel_pitch_mm
     if abs(pitch_u - pitch_v) > 1e-6 * pitch_u:
         raise ValueError(f"frames: pixels must be square, got {pitch_u} x {pitch_v} mm")
     detector = DetectorSpec(rows=rows, cols=cols, pixel_pitch_mm=pitch_u)
     geometry = read_rtk_geometry(geometry_path, detector)
-    if len(geometry) not in (1, count):
+    if len(geometry) not in (1, count) and not any_count:
         raise ValueError(
             f"{geometry_path}: {len(geometry)} views for {count} frames; give one view or one "
             "per frame"
@@ -78,30 +83,36 @@ def register_files(
     truth_path: Path | None = None,
     initial_path: Path | None = None,
     pixel_pitch_mm: float | None = None,
+    distortion: Distortion | None = None,
     settings: Settings | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> list[FrameResult]:
     """``cbct register``: track every bone through every frame and write the results.
 
     Every input is read and checked before the (long) registration starts; ``out`` must not
-    exist and is written only at the end.
+    exist and is written only at the end. ``distortion``: the panel's warp, the frames are
+    dewarped with it first (ValueError if it belongs to another panel size).
     """
     if out.exists():
         raise FileExistsError(f"{out} exists: choose a new output folder")
     volume, labels = load_inputs(volume_path, labels_path)
     frames = read_frames(frames_path, pixel_pitch_mm)
     view = fluoroscopy_view(geometry_path, frames)
+    if distortion is not None:
+        frames = replace(frames, data=distortion.undistort(frames.data))
     truth = None if truth_path is None else _truth(truth_path, len(frames.data))
     start = _initial(initial_path)
     models = bone_models(volume, labels)
     tracker = Tracker(view, frames.data, models, settings, SoftTissue.of(volume, labels))
     results = tracker.track(start, progress=progress)
-    _write(out, results, models, view, tracker, truth)
+    _write(out, results, models, view, tracker, truth, distortion)
     return results
 
 
-def _write(out, results, models, view, tracker: Tracker, truth) -> None:
+def _write(out, results, models, view, tracker: Tracker, truth, distortion) -> None:
     out.mkdir(parents=True)
+    if distortion is not None:
+        distortion.write(out / "distortion.json")
     centroids = {name: model.centroid_mm for name, model in models.items()}
     poses = [
         BonePose(r.frame, name, b.pose, b.ncc, b.seconds)
@@ -125,6 +136,7 @@ def _write(out, results, models, view, tracker: Tracker, truth) -> None:
     report = {
         "settings": tracker.settings.model_dump(),
         "frame_blur_mm": tracker.frame_blur_mm,
+        "dewarp": None if distortion is None else distortion.summary(),
         "frames": per_frame,
     }
     (out / "registration.json").write_text(json.dumps(report, indent=1), encoding="utf-8")

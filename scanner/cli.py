@@ -3,6 +3,7 @@
 Commands today: ``plan`` (checked, timed robot motion for a protocol), ``scan`` (a scan on the
 simulated or the UR backend into a study folder, resumable), ``simulate-scan`` (scan
 the digital knee phantom with a protocol), ``recon`` (weighted FDK of RTK-format inputs),
+``calibrate-fluoro`` (the fluoroscopy panel's distortion from a dewarp grid's image),
 ``register`` (track the bones through a fluoroscopy sequence), ``assess`` (knee kinematics
 report from bone poses), ``demo`` (the chain that exists, on the
 simulated scanner) and ``batch`` (the derived stages of many studies on dask.distributed, and a
@@ -27,6 +28,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, Ti
 from rich.table import Table
 
 from recon.config import load_config
+from recon.distortion import Distortion
 from registration.boneaxis import Settings
 from registration.track import register_files
 from scanner import batch as batch_job
@@ -231,6 +233,37 @@ def calibrate(
         )
 
 
+@app.command("calibrate-fluoro")
+def calibrate_fluoro(
+    grid: Annotated[Path, typer.Option(help="one exposure of the dewarp grid (.mha, DICOM)")],
+    geometry: Annotated[Path, typer.Option(help="the fluoroscopy view, RTK geometry XML")],
+    out: Annotated[Path, typer.Option(help="new distortion file (.json)")],
+    grid_config: Annotated[Path, typer.Option(help="dewarp grid YAML")] = CONFIGS
+    / "phantoms"
+    / "dewarp_grid.yaml",
+    degree: Annotated[int, typer.Option(help="degree of the warp polynomial (1-9)")] = 5,
+    pixel_pitch_mm: Annotated[
+        float | None, typer.Option(help="panel pitch for DICOM images without one, mm")
+    ] = None,
+) -> None:
+    """The fluoroscopy panel's distortion from an image of the dewarp grid alone: the warp
+    ``cbct register --distortion`` removes from every frame."""
+    if out.exists():
+        fail(f"{out} exists: choose a new file (nothing is overwritten)")
+    try:
+        distortion = jobs.fit_fluoro_distortion(grid, geometry, grid_config, degree, pixel_pitch_mm)
+        distortion.write(out)
+    except (ValueError, OSError) as err:
+        fail(str(err))
+    console.print(
+        f"[green]wrote[/] {out}: {distortion.balls} balls, residual RMS "
+        f"{distortion.rms_px:.3f} px (max {distortion.max_px:.3f}), largest displacement "
+        f"{distortion.max_displacement_px:.2f} px",
+        soft_wrap=True,
+        highlight=False,
+    )
+
+
 @app.command()
 def recon(
     projections: Annotated[Path, typer.Option(help="projection stack .mha (line integrals)")],
@@ -330,6 +363,9 @@ def register(
     pixel_pitch_mm: Annotated[
         float | None, typer.Option(help="panel pitch for DICOM frames without one, mm")
     ] = None,
+    distortion: Annotated[
+        Path | None, typer.Option(help="the panel's distortion (cbct calibrate-fluoro)")
+    ] = None,
     settings: Annotated[Path, typer.Option(help="registration settings YAML")] = CONFIGS
     / "registration.yaml",
 ) -> None:
@@ -338,6 +374,7 @@ def register(
         fail(f"{out} exists: choose a new output folder (nothing is overwritten)")
     try:
         chosen = load_config(settings, Settings)
+        warp = None if distortion is None else Distortion.read(distortion)
         bar = Progress(
             TextColumn("BoneAxis-Reg"),
             BarColumn(),
@@ -357,6 +394,7 @@ def register(
                 truth_path=truth,
                 initial_path=initial,
                 pixel_pitch_mm=pixel_pitch_mm,
+                distortion=warp,
                 settings=chosen,
                 progress=lambda done, total: bar.update(task, completed=done, total=total),
             )

@@ -4,10 +4,12 @@
    steel-ball phantom on the vibrating mock arms;
 2. calibrate every view;
 3. scan the standing knee phantom on the same plan;
-4. simulate lateral fluoroscopy of a flexion-extension with a varus imbalance mid-motion;
+4. simulate lateral fluoroscopy of a flexion-extension with a varus imbalance mid-motion, and
+   one exposure of the dewarp grid (the panel's distortion);
 5. weighted FDK with the calibrated geometry (NIfTI, MetaImage, DICOM series, preview);
 6. segment femur, tibia-fibula and patella (labels, meshes);
-7. track the bones with BoneAxis-Reg, scored against the simulation's truth;
+7. dewarp the frames, track the bones with BoneAxis-Reg, scored against the simulation's
+   truth;
 8. assess the registered motion (report, plots, metrics, 4D series);
 9. merge every stage's rerun recording into ``recording.rrd``.
 
@@ -25,10 +27,13 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+import yaml
+
 from calibration.calibrate import calibrate
+from calibration.distortion import DewarpGridSpec
 from recon.config import ScanProtocol, load_config, load_protocol
 from recon.fdk import Progress
-from recon.io import read_projections
+from recon.io import read_projections, write_projections
 from registration.boneaxis import Settings
 from scanner.jobs import Status
 from scanner.recording import merge_recordings
@@ -44,7 +49,7 @@ from scanner.stages import (
 )
 from scanner.study import Study, StudyError
 from sim.backend import SimBackendSpec
-from sim.fluoro import lateral_view, save_sequence, simulate_fluoroscopy
+from sim.fluoro import lateral_view, save_sequence, simulate_dewarp_grid, simulate_fluoroscopy
 from sim.motion import flexion_extension
 from sim.phantoms.bb import BBPhantomSpec
 from sim.phantoms.knee import KneePhantomSpec
@@ -191,13 +196,17 @@ def acquire(
             knee, motion, view, voxel_mm=size["fluoro_voxel_mm"], seed=seed, status=say
         )
         save_sequence(sequence, folder)
+        grid = load_config(configs / "phantoms" / "dewarp_grid.yaml", DewarpGridSpec)
+        image = simulate_dewarp_grid(grid, view, seed=seed + 1)
+        write_projections(folder / "dewarp_grid.mha", image[None], view.pitch_u_mm)
+        (folder / "dewarp_grid.yaml").write_text(yaml.safe_dump(grid.model_dump()))
         return {"frames": n, "max_flexion_deg": size["max_flexion_deg"], "varus_deg": varus_deg}
 
     run_stage(
         study,
         "fluoro",
         lambda: derived_folder(study, "fluoro", fluoro),
-        stage("fluoro", "lateral fluoroscopy of a flexion-extension"),
+        stage("fluoro", "lateral fluoroscopy of a flexion-extension, and the dewarp grid"),
     )
 
 

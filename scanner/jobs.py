@@ -16,14 +16,18 @@ from assessment.knee import BONE_LABELS, KneeAssessment, assess_knee
 from assessment.report import write_report
 from assessment.series import bone_mesh, export_series, record_series
 from calibration.calibrate import Calibration, calibrate, corrected_geometry
+from calibration.distortion import DewarpGridSpec, fit_distortion
 from recon.config import load_config, load_protocol
+from recon.distortion import Distortion
 from recon.fdk import FDKResult, Progress, default_grid, fdk_reconstruct
 from recon.geometry import Geometry
 from recon.io import read_projections, read_volume, write_projections, write_volume
 from recon.preview import save_orthogonal_slices
 from recon.rtk_xml import read_rtk_geometry, write_rtk_geometry
 from recon.volume import Volume, VolumeGrid
+from registration.frames import read_frames
 from registration.poses import BonePose, poses_by_frame, read_poses
+from registration.track import fluoroscopy_view
 from scanner.study import sha256, software_version
 from sim.phantoms.bb import BBPhantomSpec, project_bb
 from sim.phantoms.knee import KneePhantomSpec
@@ -279,3 +283,21 @@ def calibrate_to_study(
     calibration = calibrate(stack.data, planned, phantom, protocol, progress=progress)
     calibration.save(folder)
     return calibration
+
+
+def fit_fluoro_distortion(
+    grid_image: Path,
+    geometry: Path,
+    grid_config: Path,
+    degree: int = 5,
+    pixel_pitch_mm: float | None = None,
+) -> Distortion:
+    """The fluoroscopy panel's warp (calibration.distortion) from one exposure of the dewarp
+    grid (``grid_image``: .mha or DICOM) through the static view in ``geometry`` (RTK XML, e.g.
+    the frames' own)."""
+    spec = load_config(grid_config, DewarpGridSpec)
+    image = read_frames(grid_image, pixel_pitch_mm)
+    if len(image.data) != 1:
+        raise ValueError(f"{grid_image}: {len(image.data)} images; the grid needs exactly one")
+    view = fluoroscopy_view(geometry, image, any_count=True)
+    return fit_distortion(image.data[0], view, spec, degree)

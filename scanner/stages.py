@@ -30,7 +30,7 @@ from registration.labels import BONE_UNITS, LABELS
 from registration.poses import read_poses
 from registration.segment import bone_surfaces, segment_bones
 from registration.track import register_files
-from scanner.jobs import write_assessment
+from scanner.jobs import fit_fluoro_distortion, write_assessment
 from scanner.recording import record_volume
 from scanner.study import Study, StudyError
 from sim.phantoms.knee import KneePhantomSpec, attenuation_per_mm, rasterize_knee
@@ -183,13 +183,25 @@ def segmentation_stage(study: Study, say: Say = print) -> bool:
 
 def registration_stage(study: Study, settings: Settings | None = None, say: Say = print) -> bool:
     """BoneAxis-Reg of ``fluoro/`` against the segmented volume -> ``registration/``
-    (metrics.json when the sequence has ground truth)."""
+    (metrics.json when the sequence has ground truth); the frames are dewarped first when
+    ``fluoro/`` holds an exposure of the dewarp grid (``dewarp_grid.mha`` and its
+    ``dewarp_grid.yaml``)."""
 
     def work() -> dict:
         target = study.path / "registration"
         if target.exists():
             shutil.rmtree(target)  # an interrupted earlier attempt: derived data, made again
-        truth = study.path / "fluoro" / "poses.csv"
+        fluoro = study.path / "fluoro"
+        truth = fluoro / "poses.csv"
+        distortion = None
+        if (fluoro / "dewarp_grid.mha").exists():
+            distortion = fit_fluoro_distortion(
+                fluoro / "dewarp_grid.mha", fluoro / "view.xml", fluoro / "dewarp_grid.yaml"
+            )
+            say(
+                f"dewarp: {distortion.balls} grid balls, residual RMS {distortion.rms_px:.3f} "
+                f"px, largest displacement {distortion.max_displacement_px:.2f} px"
+            )
         register_files(
             study.path / "recon" / "volume.nii.gz",
             study.path / "segmentation" / "labels.nii.gz",
@@ -197,6 +209,7 @@ def registration_stage(study: Study, settings: Settings | None = None, say: Say 
             study.path / "fluoro" / "view.xml",
             target,
             truth_path=truth if truth.exists() else None,
+            distortion=distortion,
             settings=settings,
             progress=lambda done, total: say(f"registered frame {done}/{total}"),
         )

@@ -49,6 +49,7 @@ import numba
 import numpy as np
 from scipy import ndimage
 
+from calibration.distortion import DewarpGridSpec
 from recon.config import ExposureSpec
 from recon.geometry import DetectorSpec, Geometry, View
 from recon.io import write_projections
@@ -625,6 +626,53 @@ def simulate_fluoroscopy(
         photons_per_pixel=float(photons),
         realism=realism,
     )
+
+
+def simulate_dewarp_grid(
+    grid: DewarpGridSpec,
+    view: View,
+    *,
+    photons_per_pixel: float | None = None,
+    realism: Realism = "independent",
+    seed: int = 0,
+    supersample: int = 3,
+) -> np.ndarray:
+    """One exposure of the dewarp grid alone (calibration.distortion) through ``view``:
+    line integrals (rows, cols), float32, through the same image model as the frames of
+    :func:`simulate_fluoroscopy` (``realism``, including its distortion).
+
+    The plate is a slab (its chord through each pixel's ray); each ball's chord is exact,
+    averaged over ``supersample`` x ``supersample`` rays per pixel around its shadow."""
+    if supersample < 1:
+        raise ValueError(f"supersample must be >= 1, got {supersample}")
+    rows, cols = view.rows, view.cols
+    v, u = np.mgrid[0:rows, 0:cols]
+    rays = view.pixel_to_world(u, v) - view.source_mm
+    cosine = np.abs(rays @ view.normal) / np.linalg.norm(rays, axis=-1)
+    ideal = grid.plate_mu_per_mm * grid.plate_thickness_mm / cosine
+    radius_mm = 0.5 * grid.ball_diameter_mm
+    reach = math.ceil(grid.ball_radius_px(view) + 2)
+    offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
+    balls = grid.balls_mm(view)
+    for centre, (bu, bv) in zip(balls, view.project(balls), strict=True):
+        r0, c0 = max(0, round(bv) - reach), max(0, round(bu) - reach)
+        r1, c1 = min(rows, round(bv) + reach + 1), min(cols, round(bu) + reach + 1)
+        pv, pu = np.mgrid[r0:r1, c0:c1]
+        su = (pu[..., None, None] + offsets[None, :]).reshape(*pu.shape, -1)
+        sv = (pv[..., None, None] + offsets[:, None]).reshape(*pv.shape, -1)
+        direction = view.pixel_to_world(su, sv) - view.source_mm
+        direction /= np.linalg.norm(direction, axis=-1, keepdims=True)
+        to_centre = centre - view.source_mm
+        along = direction @ to_centre
+        miss = to_centre @ to_centre - along**2
+        chord = 2.0 * np.sqrt(np.maximum(radius_mm**2 - miss, 0.0))
+        ideal[r0:r1, c0:c1] += grid.ball_mu_per_mm * chord.mean(axis=-1)
+    if realism == "ideal":
+        return ideal.astype(np.float32)
+    if realism != "independent":
+        raise ValueError(f"realism must be 'independent' or 'ideal', got {realism!r}")
+    photons = default_photons_per_pixel(view) if photons_per_pixel is None else photons_per_pixel
+    return _realistic(ideal[None], view, photons, np.random.default_rng(seed))[1][0]
 
 
 # -- files -----------------------------------------------------------------------------------------

@@ -206,20 +206,22 @@ def test_bad_models_are_refused(knee_case) -> None:
 
 
 def test_patellofemoral_deviation_counts_only_out_of_plane_motion() -> None:
-    """Lateral view along x: flexing the patella about any medial-lateral axis and sliding it
-    in the sagittal plane deviate nothing; a medial-lateral shift and a tilt about the
-    anterior-posterior axis are counted in full, also with the femur moved."""
-    ray, center = np.array([1.0, 0.0, 0.0]), np.array([0.0, -40.0, 520.0])
-    femur = compose(np.array([3.0, -2.0, 5.0, 20.0, 0.0, 0.0]), np.eye(4), np.zeros(3))
-    flexed = compose(np.array([0.0, 6.0, -4.0, 25.0, 0.0, 0.0]), femur, center)
-    assert patellofemoral_deviation(femur, flexed, center, femur[:3, :3] @ ray) == pytest.approx(
+    """Medial-lateral axis x at the static scan: flexing the patella about any line along the
+    femur's own x and sliding it in the femur's sagittal plane deviate nothing, however the
+    femur has turned and leaned in the world; a shift along the femur's x and a tilt about
+    its anterior-posterior axis are counted in full."""
+    axis, center = np.array([1.0, 0.0, 0.0]), np.array([0.0, -40.0, 520.0])
+    femur = compose(np.array([3.0, -2.0, 5.0, 20.0, 4.0, -6.0]), np.eye(4), np.zeros(3))
+    about_tea = compose(np.array([0.0, 0.0, 0.0, 60.0, 0.0, 0.0]), np.eye(4), [0, 0, 500.0])
+    slid = compose(np.array([0.0, 6.0, -4.0, 0.0, 0.0, 0.0]), np.eye(4), center)
+    flexed = femur @ slid @ about_tea
+    assert patellofemoral_deviation(femur, flexed, center, axis) == pytest.approx(
         (0.0, 0.0), abs=1e-9
     )
     shifted = femur @ compose(np.array([2.5, 0.0, 0.0, 0.0, 0.0, 0.0]), np.eye(4), center)
     tilted = femur @ compose(np.array([0.0, 0.0, 0.0, 0.0, 4.0, 0.0]), np.eye(4), center)
-    on_ray = femur[:3, :3] @ ray
-    assert patellofemoral_deviation(femur, shifted, center, on_ray) == pytest.approx((2.5, 0.0))
-    assert patellofemoral_deviation(femur, tilted, center, on_ray) == pytest.approx((0.0, 4.0))
+    assert patellofemoral_deviation(femur, shifted, center, axis) == pytest.approx((2.5, 0.0))
+    assert patellofemoral_deviation(femur, tilted, center, axis) == pytest.approx((0.0, 4.0))
 
 
 def test_resolution_matching_recovers_the_scan_blur_and_removes_its_depth_bias(

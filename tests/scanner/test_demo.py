@@ -45,6 +45,8 @@ def test_every_stage_is_complete_and_every_file_checked(demo: Path):
         "segmentation/labels.nii.gz",
         "segmentation/femur.stl",
         "fluoro/frames.mha",
+        "fluoro/dewarp_grid.mha",
+        "registration/distortion.json",
         "registration/poses.csv",
         "registration/metrics.json",
         "assessment/report.html",
