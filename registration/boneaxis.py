@@ -40,10 +40,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, NonNegativeFloat, PositiveFloat, PositiveInt
-from scipy.linalg import expm, logm
 from scipy.ndimage import binary_dilation, gaussian_filter, maximum_filter1d, minimum_filter1d
 from scipy.optimize import differential_evolution, minimize, minimize_scalar
-from scipy.spatial.transform import Rotation
+from scipy.spatial.transform import RigidTransform, Rotation
+from threadpoolctl import threadpool_limits
 
 from recon.geometry import Geometry, View
 from recon.project import JosephProjector
@@ -298,32 +298,35 @@ def principal_axes(points_mm: np.ndarray) -> np.ndarray:
 def kinematic_twist(
     T_before: np.ndarray, T_last: np.ndarray, center_mm: np.ndarray
 ) -> np.ndarray | None:
-    """The last frame-to-frame motion as a 4x4 twist in the bone's frame (``T_last =
-    T_before expm(S)``), or None when it is too large to be motion (MAX_KPM_STEP, measured
-    at the bone's reference centroid ``center_mm``)."""
-    twist = np.real(logm(np.linalg.inv(T_before) @ T_last))
+    """The last frame-to-frame motion in the bone's frame as exponential coordinates
+    ``(rotation vector rad, v mm)`` (``T_last = T_before exp(xi)``, scipy's RigidTransform),
+    or None when it is too large to be motion (MAX_KPM_STEP, measured at the bone's reference
+    centroid ``center_mm``)."""
+    xi = RigidTransform.from_matrix(np.linalg.inv(T_before) @ T_last).as_exp_coords()
     c = np.append(center_mm, 1.0)
     step_mm = np.linalg.norm((T_last @ c - T_before @ c)[:3])
-    step_deg = math.degrees(np.linalg.norm([twist[2, 1], twist[0, 2], twist[1, 0]]))
-    if step_mm > MAX_KPM_STEP[0] or step_deg > MAX_KPM_STEP[1]:
+    if step_mm > MAX_KPM_STEP[0] or math.degrees(np.linalg.norm(xi[:3])) > MAX_KPM_STEP[1]:
         return None
-    return twist
+    return xi
 
 
-def _twist_size(twist: np.ndarray, center_mm: np.ndarray) -> float:
+def _twist_size(xi: np.ndarray, center_mm: np.ndarray) -> float:
     """The larger of a twist's step at ``center_mm`` (mm, to first order) and its angle (deg)."""
-    step_mm = np.linalg.norm(twist[:3, :3] @ center_mm + twist[:3, 3])
-    return max(
-        float(step_mm), math.degrees(np.linalg.norm([twist[2, 1], twist[0, 2], twist[1, 0]]))
-    )
+    step_mm = np.linalg.norm(np.cross(xi[:3], center_mm) + xi[3:])
+    return max(float(step_mm), math.degrees(np.linalg.norm(xi[:3])))
+
+
+def _exp(xi: np.ndarray) -> np.ndarray:
+    """``exp(xi)`` as 4x4 matrices, for exponential coordinates (..., 6)."""
+    return RigidTransform.from_exp_coords(xi).as_matrix()
 
 
 def predict(
     T_before: np.ndarray, T_last: np.ndarray, center_mm: np.ndarray, lam: float = 1.0
 ) -> np.ndarray:
-    """The KPM prediction ``T_last expm(lam S)``: constant velocity for ``lam = 1``."""
-    twist = kinematic_twist(T_before, T_last, center_mm)
-    return T_last if twist is None else T_last @ expm(lam * twist)
+    """The KPM prediction ``T_last exp(lam xi)``: constant velocity for ``lam = 1``."""
+    xi = kinematic_twist(T_before, T_last, center_mm)
+    return T_last if xi is None else T_last @ _exp(lam * xi)
 
 
 class Tracker:
@@ -578,21 +581,22 @@ class Tracker:
         base = _carrier_pose(name, poses)
         center = self.bones[name].centroid_mm
         carried = [_carried_pose(name, h) for h in history[-3:]]
-        twist = kinematic_twist(carried[-2], carried[-1], center)
-        if twist is None:
+        xi = kinematic_twist(carried[-2], carried[-1], center)
+        if xi is None:
             return base @ carried[-1], 0
         before = kinematic_twist(carried[0], carried[1], center) if len(carried) == 3 else None
-        if before is not None and _twist_size(twist, center) < 0.5 * _twist_size(before, center):
-            twist = before
+        if before is not None and _twist_size(xi, center) < 0.5 * _twist_size(before, center):
+            xi = before
+        start = base @ carried[-1]
 
         def at(lam: float) -> np.ndarray:
-            return base @ carried[-1] @ expm(lam * twist)
+            return start @ _exp(lam * xi)
 
-        ends = (at(KPM_LAMBDA[0]), at(KPM_LAMBDA[-1]))
+        line = start @ _exp(KPM_LAMBDA[:, None] * xi)
         objective = self._objective(
-            frame, self.levels[0], name, {**poses, name: at(0.0)}, reach=ends
+            frame, self.levels[0], name, {**poses, name: start}, reach=(line[0], line[-1])
         )
-        costs = [objective.cost(at(lam)) for lam in KPM_LAMBDA]
+        costs = [objective.cost(T) for T in line]
         k = int(np.argmin(costs))
         lo, hi = KPM_LAMBDA[max(k - 1, 0)], KPM_LAMBDA[min(k + 1, len(KPM_LAMBDA) - 1)]
         best = minimize_scalar(
@@ -601,8 +605,7 @@ class Tracker:
             method="bounded",
             options={"xatol": 0.02, "maxiter": 15},
         )
-        lam = best.x if best.fun < costs[k] else KPM_LAMBDA[k]
-        return at(lam), len(costs) + best.nfev
+        return (at(best.x) if best.fun < costs[k] else line[k]), len(costs) + best.nfev
 
     def register(
         self, frame: int, poses: dict[str, np.ndarray], history: list[dict[str, np.ndarray]]
@@ -616,7 +619,17 @@ class Tracker:
         starting estimate), the patella, small and overlapped by the femoral condyles, against
         the long bones' new estimates; then every bone is refined against the others' global
         estimates (bone by bone alternation).
+
+        BLAS runs single-threaded meanwhile: the similarity's dot products over ~10^4 pixels
+        woke OpenBLAS's threads, which then fought numba's renderer threads for the two cores
+        (a femur evaluation at 256^2 took 8 ms instead of 1.5).
         """
+        with threadpool_limits(limits=1, user_api="blas"):
+            return self._register(frame, poses, history)
+
+    def _register(
+        self, frame: int, poses: dict[str, np.ndarray], history: list[dict[str, np.ndarray]]
+    ) -> FrameResult:
         s = self.settings
         result = FrameResult(frame)
         poses = dict(poses)

@@ -39,15 +39,20 @@ the skin and fat outline, which the high-pass similarity sees at a few mm)."""
 def _pooled(
     data: np.ndarray, grid: VolumeGrid, factor_xyz: tuple[int, int, int] = (2, 2, 2)
 ) -> tuple[np.ndarray, VolumeGrid]:
-    """Mean over blocks of ``factor_xyz`` voxels (x, y, z); trailing partial blocks are dropped."""
+    """Mean over blocks of ``factor_xyz`` voxels (x, y, z); trailing partial blocks are dropped.
+    Float32; summed axis by axis over strided slices (a reshape's strided mean over x took
+    ten times longer)."""
     factor = np.asarray(factor_xyz, dtype=int)
-    fz, fy, fx = factor[::-1]
-    nz, ny, nx = (n // f for n, f in zip(data.shape, (fz, fy, fx), strict=True))
-    blocks = data[: fz * nz, : fy * ny, : fx * nx].reshape(nz, fz, ny, fy, nx, fx)
+    out = np.asarray(data, dtype=np.float32)
+    for axis, f in enumerate(factor[::-1]):  # array axes z, y, x
+        if f > 1:
+            n = out.shape[axis] // f
+            parts = [out[(slice(None),) * axis + (slice(k, n * f, f),)] for k in range(f)]
+            out = sum(parts[1:], parts[0]) / np.float32(f)
     spacing = np.asarray(grid.spacing_mm)
     origin = np.asarray(grid.origin_mm) + 0.5 * (factor - 1) * spacing
-    pooled = VolumeGrid((nz, ny, nx), tuple(factor * spacing), tuple(origin))
-    return blocks.mean(axis=(1, 3, 5), dtype=np.float32), pooled
+    pooled = VolumeGrid(out.shape, tuple(factor * spacing), tuple(origin))
+    return out, pooled
 
 
 def along_axis(data: np.ndarray, grid: VolumeGrid, axis: int) -> JosephProjector:
