@@ -45,7 +45,7 @@ from scipy.optimize import differential_evolution, minimize, minimize_scalar
 from scipy.spatial.transform import RigidTransform, Rotation
 from threadpoolctl import threadpool_limits
 
-from recon.geometry import Geometry, View
+from recon.geometry import View
 from recon.project import JosephProjector
 from registration.drr import BoneModel, SoftTissue, along_axis, scene
 from registration.similarity import gradient_ncc, highpass, ncc
@@ -108,6 +108,12 @@ class Settings(BaseModel):
     de_popsize: PositiveInt = 10
     de_maxiter: PositiveInt = 30
     powell_maxfev: PositiveInt = 400
+    powell_xtol: PositiveFloat = Field(
+        0.05,
+        description="Powell's tolerance on the coarsest level, mm and deg (Nelder-Mead on the "
+        "finer levels refines further; 0.01 cost a fifth more time per warm frame for the same "
+        "accuracy)",
+    )
     nelder_mead_maxfev: PositiveInt = 120
     passes: PositiveInt = Field(
         2,
@@ -181,14 +187,16 @@ class _Objective:
     The soft tissue is deformed by the bones' estimates at the start; the bone carries its
     share of it (``carried``, rendered moved by the bone's motion from its start pose). The
     similarity is taken over the bone's silhouette at the start pose (and at the ``reach``
-    poses), dilated (the frame's 2D mask), in a crop of the view around it.
+    poses), dilated (the frame's 2D mask), in a crop of the view around it; the fixed rest of
+    the scene (``background``: its line integrals through a view) is rendered once, over the
+    crop and the reach of the high-pass filter around it.
     """
 
     def __init__(
         self,
         view: View,
         target_hp: np.ndarray,
-        background_hp: np.ndarray,
+        background: Callable[[View], np.ndarray],
         bone: BoneModel,
         carried: JosephProjector | None,
         T0: np.ndarray,
@@ -213,7 +221,11 @@ class _Objective:
         self.mask = mask[self.crop]
         self.spans = _row_spans(self.mask, math.ceil(4 * sigma_px))
         self.target = target_hp[self.crop]
-        self.background = background_hp[self.crop]
+        halo = int(4 * sigma_px + 0.5) + 1  # scipy's Gaussian reaches 4 sigma: exact in the crop
+        h0, g0 = max(0, r0 - halo), max(0, c0 - halo)
+        outer = view.cropped(h0, g0, min(view.rows, r1 + halo) - h0, min(view.cols, c1 + halo) - g0)
+        inner = (slice(r0 - h0, r1 - h0), slice(c0 - g0, c1 - g0))
+        self.background = highpass(background(outer), sigma_px)[inner]
         self.bone, self.carried, self.T0 = bone, carried, T0
         self._T0_inv = np.linalg.inv(T0)
         self.sigma, self.coarse, self.prior = sigma_px, coarse, prior
@@ -356,7 +368,7 @@ class Tracker:
         self._deformed: dict[tuple, tuple] = {}
         """Per (femur, tibia) pose pair of the frame: the deformed soft tissue."""
         self._split: dict[tuple, tuple] = {}
-        """Per pose pair and bone: what stays, what the bone carries, the stays' images."""
+        """Per pose pair and bone: what stays, what the bone carries."""
         self.settings = settings or Settings()
         self.levels = tuple(
             dict.fromkeys(max(1, round(mm / view.pitch_u_mm)) for mm in self.settings.pyramid_mm)
@@ -410,37 +422,37 @@ class Tracker:
         """The objective of bone ``name``, the others at ``poses`` (``lone``: bone alone),
         masked to its silhouettes at ``poses`` and ``reach``."""
         view = self._views[level]
-        coarse = self._coarse(level, name)
-        others = scene(
-            view, {} if lone else {b: m for b, m in self.bones.items() if b != name}, poses
-        )
-        carried = None
+        others = {} if lone else {b: m for b, m in self.bones.items() if b != name}
+        stays = carried = None
         if not lone and self.soft_tissue is not None:
-            stays, carried = self._soft_tissue(level, name, poses)
-            others += stays
-        dilation = round(self.settings.mask_dilation_mm / view.pitch_u_mm)
-        prior = None if lone else self._prior(name, poses)
+            stays, carried = self._soft_tissue(name, poses)
+
+        def background(part: View) -> np.ndarray:
+            image = scene(part, others, poses)
+            if stays is not None:
+                image += stays.project_moved(part, np.eye(4))
+            return image
+
         return _Objective(
             view,
             self._target(frame, level, self.frame_blur_mm[name]),
-            highpass(others, self._sigma_px(level)),
+            background,
             self.bones[name],
             carried,
             poses[name],
             self._sigma_px(level),
-            dilation,
-            coarse,
-            prior,
+            round(self.settings.mask_dilation_mm / view.pitch_u_mm),
+            self._coarse(level, name),
+            None if lone else self._prior(name, poses),
             reach,
         )
 
     def _soft_tissue(
-        self, level: int, name: str, poses: dict[str, np.ndarray]
-    ) -> tuple[np.ndarray, JosephProjector | None]:
-        """The soft tissue deformed by ``poses``: the image at ``level`` of what stays when
-        bone ``name`` moves, and what it carries (registration.drr.SoftTissue.carried,
-        averaged over pairs of slices along the rays: rendered every evaluation; kept for the
-        frame being registered)."""
+        self, name: str, poses: dict[str, np.ndarray]
+    ) -> tuple[JosephProjector, JosephProjector | None]:
+        """The soft tissue deformed by ``poses``: what stays when bone ``name`` moves, and
+        what it carries (registration.drr.SoftTissue.carried, averaged over pairs of slices
+        along the rays: rendered every evaluation); kept for the frame being registered."""
         knee = (poses["femur"].tobytes(), poses["tibia_fibula"].tobytes())
         if knee not in self._deformed:
             T_femur, T_tibia = poses["femur"], poses["tibia_fibula"]
@@ -450,11 +462,8 @@ class Tracker:
             stays, carried = self.soft_tissue.carried(deformed, name)
             axis = int(np.argmax(np.abs(self.view.normal)))  # the rays' main axis
             moving = None if carried is None else along_axis(carried, deformed[2], axis)
-            self._split[knee, name] = (JosephProjector(stays, deformed[2]), moving, {})
-        stays, moving, images = self._split[knee, name]
-        if level not in images:
-            images[level] = stays.project(Geometry([self._views[level]]))[0]
-        return images[level], moving
+            self._split[knee, name] = (JosephProjector(stays, deformed[2]), moving)
+        return self._split[knee, name]
 
     def _prior(self, name: str, poses: dict[str, np.ndarray]) -> Callable | None:
         """The patellofemoral prior of a carried bone (the patella, :data:`CARRIER`) against
@@ -497,7 +506,7 @@ class Tracker:
                     np.zeros(6),
                     method="Powell",
                     bounds=[(-t_max, t_max)] * 3 + [(-r_max, r_max)] * 3,
-                    options={"maxfev": s.powell_maxfev, "xtol": 1e-2, "ftol": 1e-5},
+                    options={"maxfev": s.powell_maxfev, "xtol": s.powell_xtol, "ftol": 1e-5},
                 ).x
             if not (s.powell and i == 0) or len(self.levels) == 1:
                 x0 = np.zeros(6) if not (s.powell and i == 0) else x
