@@ -4,7 +4,8 @@ Two regimes (SYSTEM.md, issue "4D virtual imaging"):
 
 - ``matched``: the paper's setting. Bone models come from the phantom itself (its attenuation
   and labels); targets are our own scene DRRs of those models at the true poses (the same
-  renderer family), with quantum and readout noise and 1 px of pincushion distortion.
+  renderer family), with quantum and readout noise and the panel's pincushion (0.6 mm at the
+  corners: 1 px at 512^2).
 - ``independent``: bones segmented from the RECONSTRUCTED volume of a simulated CBCT scan of
   the phantom; targets rendered by sim.fluoro from the rasterised phantom at full detector
   resolution with beam hardening, scatter, detector blur, distortion, Poisson + readout noise
@@ -12,7 +13,7 @@ Two regimes (SYSTEM.md, issue "4D virtual imaging"):
 
 In both regimes the frames are dewarped first (calibration.distortion), with the warp fitted to
 one exposure of the dewarp grid through the same image model as the frames (``--no-dewarp``
-registers the distorted frames as they are); ``dewarp_rms_px`` is the fit's residual.
+registers the distorted frames as they are); ``dewarp_rms_mm`` is the fit's residual.
 
 Per regime, every method runs the same sequences (squat motions with different seeds), from the
 same start perturbation of the first frame: ``boneaxis_kpm`` (PCA + differential evolution on
@@ -53,7 +54,7 @@ from registration.drr import SoftTissue, bone_models, scene  # noqa: E402
 from registration.metrics import pose_error, summarize  # noqa: E402
 from registration.segment import segment_bones  # noqa: E402
 from sim.fluoro import (  # noqa: E402
-    DISTORTION_MAX_PX,
+    DISTORTION_MAX_MM,
     add_fluoro_noise,
     distort,
     lateral_view,
@@ -145,21 +146,24 @@ def run(method: str, view, frames, models, soft, motion, start) -> dict:
     return {"errors": errors, "first": first, "warm": warm}
 
 
-def matched_frames(clean: np.ndarray, photons: float, rng) -> np.ndarray:
+def matched_frames(clean: np.ndarray, view, photons: float, rng) -> np.ndarray:
     """The matched regime's image model: quantum and readout noise, the panel's distortion."""
-    return distort(add_fluoro_noise(clean, photons, rng)[1], DISTORTION_MAX_PX)
+    noisy = add_fluoro_noise(clean, photons, rng)[1]
+    return distort(noisy, DISTORTION_MAX_MM / view.pitch_u_mm)
 
 
-def dewarp_of(regime: str, view, photons: float) -> Distortion:
-    """The panel's warp, fitted to one exposure of the dewarp grid through the regime's image
-    model (calibration.distortion)."""
+def dewarp_of(regime: str, spec: KneePhantomSpec) -> Distortion:
+    """The panel's warp, fitted to one exposure of the dewarp grid at the panel's native pitch
+    (1024 pixels of 0.3 mm) through the regime's image model (calibration.distortion)."""
     grid = DewarpGridSpec()
+    native = lateral_view(spec, DetectorSpec(rows=1024, cols=1024, pixel_pitch_mm=0.3))
     if regime == "matched":
-        ideal = simulate_dewarp_grid(grid, view, realism="ideal")
-        image = matched_frames(ideal, photons, np.random.default_rng(900))
+        ideal = simulate_dewarp_grid(grid, native, realism="ideal")
+        photons = 2.0e4  # per 0.3 mm pixel, as the frames
+        image = matched_frames(ideal, native, photons, np.random.default_rng(900))
     else:
-        image = simulate_dewarp_grid(grid, view, seed=900)
-    return fit_distortion(image, view, grid)
+        image = simulate_dewarp_grid(grid, native, seed=900)
+    return fit_distortion(image, native, grid)
 
 
 def optimum_spread(
@@ -174,8 +178,8 @@ def optimum_spread(
     for seed in range(3):
         rng = np.random.default_rng(500 + seed)
         if distorted:
-            frame = matched_frames(clean, photons, rng)
-            frame = frame if dewarp is None else dewarp.undistort(frame)
+            frame = matched_frames(clean, view, photons, rng)
+            frame = frame if dewarp is None else dewarp.undistort(frame, view.pitch_u_mm)
         else:
             frame = add_fluoro_noise(clean, photons, rng)[1]
         settings = Settings(kpm=False, global_init=False, powell=True)
@@ -185,7 +189,7 @@ def optimum_spread(
             for b, r in result.bones.items()
         ]
     return {
-        "distortion_px": DISTORTION_MAX_PX if distorted else 0.0,
+        "distortion_mm": DISTORTION_MAX_MM if distorted else 0.0,
         "dewarped": dewarp is not None,
         "tre_mm": float(np.mean([e.tre_mm for e in errors])),
         "in_plane_mm_median": float(np.median([e.in_plane_mm for e in errors])),
@@ -242,7 +246,7 @@ def main() -> None:
         drr_ms = drr_ms_256(models, view)
         runs = {m: {"errors": [], "first": [], "warm": []} for m in args.methods}
         photons = 2.0e4 * (detector.pixel_pitch_mm / 0.3) ** 2
-        dewarp = None if args.no_dewarp else dewarp_of(regime, view, photons)
+        dewarp = None if args.no_dewarp else dewarp_of(regime, spec)
         if dewarp is not None:
             log(f"dewarp: {dewarp.summary()}")
         floor = []
@@ -264,11 +268,11 @@ def main() -> None:
                 clean = np.stack(
                     [scene(view, models, truth_of(motion, k), soft) for k in range(args.frames)]
                 )
-                frames = matched_frames(clean, photons, rng)
+                frames = matched_frames(clean, view, photons, rng)
             else:
                 frames = simulate_fluoroscopy(spec, motion, view, seed=seq).frames
             if dewarp is not None:
-                frames = dewarp.undistort(frames)
+                frames = dewarp.undistort(frames, view.pitch_u_mm)
             start = perturbed(truth_of(motion, 0), models, np.random.default_rng(seq))
             for method in args.methods:
                 if method != "boneaxis_kpm" and seq >= (args.ablation_sequences or args.sequences):
@@ -281,7 +285,7 @@ def main() -> None:
             entry = {"regime": regime, "method": method}
             entry |= summarize(data["errors"], data["warm"], float(np.mean(data["first"])))
             entry["drr_ms_256"] = round(drr_ms, 2)
-            entry["dewarp_rms_px"] = None if dewarp is None else round(dewarp.rms_px, 4)
+            entry["dewarp_rms_mm"] = None if dewarp is None else round(dewarp.rms_mm, 4)
             entry["sequences"] = len(data["first"])
             entry["frames"] = args.frames
             if floor:

@@ -26,7 +26,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from calibration.detect import detect_balls
-from recon.distortion import Distortion, monomials
+from recon.distortion import Distortion, panel_mm
 from recon.geometry import View
 
 MATCH_FRACTION = 0.3
@@ -78,13 +78,14 @@ class DewarpGridSpec(BaseModel):
 def fit_distortion(
     image: np.ndarray, view: View, grid: DewarpGridSpec, degree: int = 5
 ) -> Distortion:
-    """The panel's warp from one image (line integrals [v, u]) of ``grid`` through ``view``.
+    """The panel's warp from one image (line integrals [v, u]) of ``grid`` through ``view``
+    (best at the panel's native pitch: the warp then serves every binned read-out).
 
     Balls are detected (calibration.detect.detect_balls) and matched to the lattice from
     the identity outwards: each round fits a polynomial (degree 1, 3, then ``degree``) to
     the matches so far and matches again within :data:`MATCH_FRACTION` of the pitch of its
-    prediction. ValueError if the image does not match the view, too few balls are found
-    for the degree, or the residual RMS exceeds :data:`MAX_RMS_PX`.
+    prediction. ValueError if the image does not match the view, its pixels are not square,
+    too few balls are found for the degree, or the residual RMS exceeds :data:`MAX_RMS_PX`.
     """
     image = np.asarray(image, dtype=np.float64)
     if image.shape != (view.rows, view.cols):
@@ -92,16 +93,22 @@ def fit_distortion(
             f"grid image of shape {image.shape} does not match the view's panel "
             f"({view.rows} rows x {view.cols} cols)"
         )
+    if not math.isclose(view.pitch_u_mm, view.pitch_v_mm, rel_tol=1e-6):
+        raise ValueError(f"pixels must be square, got {view.pitch_u_mm} x {view.pitch_v_mm} mm")
     if not 1 <= degree <= 9:
         raise ValueError(f"degree must be 1..9, got {degree}")
-    ideal = view.project(grid.balls_mm(view))
+    pitch = view.pitch_u_mm
+    ideal = np.column_stack(
+        panel_mm(*view.project(grid.balls_mm(view)).T, view.rows, view.cols, pitch)
+    )
     radius = grid.ball_radius_px(view)
     found = detect_balls(image, 1.5 * radius + 1.0, threshold=0.02).uv
+    found = np.column_stack(panel_mm(*found.T, view.rows, view.cols, pitch)).reshape(-1, 2)
     magnification = view.sdd_mm / (view.sdd_mm - grid.gap_mm)
-    reach = MATCH_FRACTION * grid.pitch_mm * magnification / view.pitch_u_mm
+    reach = MATCH_FRACTION * grid.pitch_mm * magnification
     terms = (degree + 1) * (degree + 2) // 2
-    shape = (view.rows, view.cols)
-    warp = _fit(ideal, ideal, shape, 1)  # the identity
+    extent = (view.cols * pitch, view.rows * pitch)
+    warp = _fit(ideal, ideal, extent, 1)  # the identity
     for d in (1, 3, degree):
         d = min(d, degree)
         predicted = np.column_stack(warp.warp(ideal[:, 0], ideal[:, 1]))
@@ -111,22 +118,23 @@ def fit_distortion(
                 f"dewarp grid: {len(pairs)} of {len(ideal)} balls found, need at least "
                 f"{3 * terms} for degree {degree} (is it the grid's image through this view?)"
             )
-        warp = _fit(ideal[pairs[:, 0]], found[pairs[:, 1]], shape, d)
-    if warp.rms_px > MAX_RMS_PX:
+        warp = _fit(ideal[pairs[:, 0]], found[pairs[:, 1]], extent, d)
+    if warp.rms_mm > MAX_RMS_PX * pitch:
         raise ValueError(
-            f"dewarp grid: residual RMS {warp.rms_px:.2f} px above the limit {MAX_RMS_PX} px"
+            f"dewarp grid: residual RMS {warp.rms_mm / pitch:.2f} px above the limit "
+            f"{MAX_RMS_PX} px"
         )
     return warp
 
 
-def _match(predicted: np.ndarray, found: np.ndarray, reach_px: float) -> np.ndarray:
-    """(ball, detection) index pairs: each ball's nearest detection within ``reach_px``, each
+def _match(predicted: np.ndarray, found: np.ndarray, reach_mm: float) -> np.ndarray:
+    """(ball, detection) index pairs: each ball's nearest detection within ``reach_mm``, each
     detection used once (the nearer ball keeps it)."""
     if len(found) == 0:
         return np.zeros((0, 2), dtype=int)
     distance = np.linalg.norm(predicted[:, None, :] - found[None, :, :], axis=2)
     nearest = distance.argmin(axis=1)
-    close = distance[np.arange(len(predicted)), nearest] < reach_px
+    close = distance[np.arange(len(predicted)), nearest] < reach_mm
     pairs = {}
     for ball in np.nonzero(close)[0]:
         det = int(nearest[ball])
@@ -136,26 +144,24 @@ def _match(predicted: np.ndarray, found: np.ndarray, reach_px: float) -> np.ndar
 
 
 def _fit(
-    ideal: np.ndarray, measured: np.ndarray, shape: tuple[int, int], degree: int
+    ideal: np.ndarray, measured: np.ndarray, extent_mm: tuple[float, float], degree: int
 ) -> Distortion:
-    """The least-squares polynomial of ``degree`` from ideal to measured positions (N, 2)."""
-    rows, cols = shape
-    blank = Distortion(rows, cols, degree, np.zeros((2, 1)), 0.0, 0.0, 0, 0.0)
-    x, y = blank.normalised(ideal[:, 0], ideal[:, 1])
-    basis = monomials(x, y, degree)
+    """The least-squares polynomial of ``degree`` from ideal to measured panel positions
+    (N, 2), mm, on a panel of ``extent_mm`` (width, height)."""
+    blank = Distortion(*extent_mm, degree, np.zeros((2, 1)))
+    basis = blank.basis(ideal[:, 0], ideal[:, 1])
     coefficients, *_ = np.linalg.lstsq(basis, measured, rcond=None)
     residual = np.linalg.norm(basis @ coefficients - measured, axis=1)
-    fitted = Distortion(rows, cols, degree, coefficients.T, 0.0, 0.0, 0, 0.0)
-    v, u = np.mgrid[0:rows:8, 0:cols:8]
-    wu, wv = fitted.warp(u, v)
-    shift = float(np.hypot(wu - u, wv - v).max())
+    fitted = Distortion(*extent_mm, degree, coefficients.T)
+    y, x = np.mgrid[-0.5:0.5:65j, -0.5:0.5:65j]
+    x, y = x * extent_mm[0], y * extent_mm[1]
+    wx, wy = fitted.warp(x, y)
     return Distortion(
-        rows,
-        cols,
+        *extent_mm,
         degree,
         coefficients.T,
         float(np.sqrt(np.mean(residual**2))),
         float(residual.max()),
         len(ideal),
-        shift,
+        float(np.hypot(wx - x, wy - y).max()),
     )

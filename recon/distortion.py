@@ -1,20 +1,27 @@
 """A fluoroscopy panel's geometric distortion as a polynomial warp, and dewarping frames with it.
 
-Where the panel images each ideal pixel position (the view's projection of a point) is
-``(u', v') = poly(u, v)``, a bivariate polynomial of the position normalised to [-1, 1] across
-the panel (any smooth warp: pincushion, S-distortion). Dewarping samples a frame at the warp
-of every pixel, so the result is what the view's matrix describes. calibration.distortion
-estimates the warp from an image of a dewarp grid.
+Where the panel images each ideal point (the view's projection of a world point) is
+``(x', y') = poly(x, y)``: panel coordinates in mm from the panel's centre along its u and v
+axes, the polynomial of their values normalised by half the panel's larger side (any smooth
+warp: pincushion, S-distortion). Millimetres, not pixels: the warp belongs to the panel, so a
+grid imaged at the native pitch dewarps frames read out binned. Dewarping samples a frame at
+the warp of every pixel centre, so the result is what the view's matrix describes.
+calibration.distortion estimates the warp from an image of a dewarp grid.
 """
 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+import math
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 from scipy import ndimage
+
+EXTENT_TOLERANCE = 1e-3
+"""Frames whose panel extent (pixels x pitch) differs from the warp's by more than this
+fraction are refused: another panel."""
 
 
 def monomials(x: np.ndarray, y: np.ndarray, degree: int) -> np.ndarray:
@@ -22,72 +29,86 @@ def monomials(x: np.ndarray, y: np.ndarray, degree: int) -> np.ndarray:
     return np.column_stack([x**i * y ** (d - i) for d in range(degree + 1) for i in range(d + 1)])
 
 
+def panel_mm(
+    u: np.ndarray, v: np.ndarray, rows: int, cols: int, pitch_mm: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Panel coordinates (mm from the panel's centre) of pixel positions (u, v) of a read-out
+    of ``rows`` x ``cols`` square pixels of ``pitch_mm``."""
+    return (
+        (np.asarray(u, np.float64) - 0.5 * (cols - 1)) * pitch_mm,
+        (np.asarray(v, np.float64) - 0.5 * (rows - 1)) * pitch_mm,
+    )
+
+
 @dataclass(frozen=True)
 class Distortion:
-    """Where the panel images each ideal pixel position: ``(u', v') = poly(u, v)``.
+    """Where the panel images each ideal point: ``(x', y') = poly(x, y)``, panel mm.
 
     Attributes:
-        rows, cols: the panel the warp belongs to, pixels.
+        width_mm, height_mm: the panel's extent (along u, along v).
         degree: total degree of the polynomial.
-        coefficients: (2, terms) for u' and v', of :func:`monomials` of the ideal pixel
-            position normalised to [-1, 1] across the panel.
-        rms_px, max_px: residuals of the fit at the balls, pixels.
+        coefficients: (2, terms) for x' and y', of :func:`monomials` of (x, y) divided by
+            half the panel's larger side.
+        rms_mm, max_mm: residuals of the fit at the balls, mm.
         balls: balls matched and fitted.
-        max_displacement_px: the largest |warp - identity| over the panel, pixels.
+        max_displacement_mm: the largest |warp - identity| over the panel, mm.
     """
 
-    rows: int
-    cols: int
+    width_mm: float
+    height_mm: float
     degree: int
     coefficients: np.ndarray
-    rms_px: float
-    max_px: float
-    balls: int
-    max_displacement_px: float
+    rms_mm: float = 0.0
+    max_mm: float = 0.0
+    balls: int = 0
+    max_displacement_mm: float = 0.0
 
-    def normalised(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Pixel positions normalised to [-1, 1] across the panel (the polynomial's argument)."""
-        cu, cv = 0.5 * (self.cols - 1), 0.5 * (self.rows - 1)
-        scale = 0.5 * max(self.cols, self.rows)
-        return (np.asarray(u, np.float64) - cu) / scale, (np.asarray(v, np.float64) - cv) / scale
+    def basis(self, x_mm: np.ndarray, y_mm: np.ndarray) -> np.ndarray:
+        """The polynomial's terms at panel points (mm), (N, terms)."""
+        scale = 0.5 * max(self.width_mm, self.height_mm)
+        x, y = np.ravel(x_mm) / scale, np.ravel(y_mm) / scale
+        return monomials(x, y, self.degree)
 
-    def warp(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Measured pixel positions (u', v') of ideal ones (u, v), pixels."""
-        x, y = self.normalised(u, v)
-        basis = monomials(x.ravel(), y.ravel(), self.degree)
-        warped = basis @ self.coefficients.T
-        return warped[:, 0].reshape(np.shape(u)), warped[:, 1].reshape(np.shape(u))
+    def warp(self, x_mm: np.ndarray, y_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Measured panel positions of ideal ones, mm (same shapes)."""
+        warped = self.basis(x_mm, y_mm) @ self.coefficients.T
+        shape = np.shape(x_mm)
+        return warped[:, 0].reshape(shape), warped[:, 1].reshape(shape)
 
-    def undistort(self, frames: np.ndarray) -> np.ndarray:
-        """Frames as the view's matrix sees them: each (rows, cols) or (F, rows, cols) image
-        sampled at the warp of every pixel (cubic B-spline, edges extended), float32."""
+    def undistort(self, frames: np.ndarray, pitch_mm: float) -> np.ndarray:
+        """Frames as the view's matrix sees them: each (rows, cols) or (F, rows, cols) image of
+        square pixels of ``pitch_mm`` (any read-out of this panel) sampled at the warp of every
+        pixel centre (cubic B-spline, edges extended), float32."""
         arr = np.asarray(frames, dtype=np.float32)
-        if arr.ndim not in (2, 3) or arr.shape[-2:] != (self.rows, self.cols):
+        if arr.ndim not in (2, 3):
+            raise ValueError(f"frames must be (rows, cols) or (F, rows, cols), got {arr.shape}")
+        rows, cols = arr.shape[-2:]
+        extent = (cols * pitch_mm, rows * pitch_mm)
+        if not all(
+            math.isclose(a, b, rel_tol=EXTENT_TOLERANCE)
+            for a, b in zip(extent, (self.width_mm, self.height_mm), strict=True)
+        ):
             raise ValueError(
-                f"frames of shape {arr.shape} do not match the distortion's panel "
-                f"({self.rows} rows x {self.cols} cols)"
+                f"frames of {cols} x {rows} pixels of {pitch_mm} mm ({extent[0]:.1f} x "
+                f"{extent[1]:.1f} mm) do not match the distortion's panel "
+                f"({self.width_mm:.1f} x {self.height_mm:.1f} mm)"
             )
-        v, u = np.mgrid[0 : self.rows, 0 : self.cols]
-        wu, wv = self.warp(u, v)
-        coords = np.stack((wv, wu))
-        flat = arr.reshape(-1, self.rows, self.cols)
+        v, u = np.mgrid[0:rows, 0:cols]
+        wx, wy = self.warp(*panel_mm(u, v, rows, cols, pitch_mm))
+        coords = np.stack((wy / pitch_mm + 0.5 * (rows - 1), wx / pitch_mm + 0.5 * (cols - 1)))
+        flat = arr.reshape(-1, rows, cols)
         out = [ndimage.map_coordinates(f, coords, order=3, mode="nearest") for f in flat]
         return np.stack(out).reshape(arr.shape).astype(np.float32)
 
     def summary(self) -> dict:
-        """The fit's figures (pixels), for reports."""
-        return {
-            "degree": self.degree,
-            "balls": self.balls,
-            "rms_px": self.rms_px,
-            "max_px": self.max_px,
-            "max_displacement_px": self.max_displacement_px,
-        }
+        """The fit's figures (mm), for reports."""
+        data = asdict(self)
+        del data["coefficients"]
+        return data
 
     def write(self, path: Path) -> Path:
         """Write the warp as JSON (read back by :meth:`read`)."""
-        data = {"rows": self.rows, "cols": self.cols, **self.summary()}
-        data["coefficients"] = self.coefficients.tolist()
+        data = self.summary() | {"coefficients": self.coefficients.tolist()}
         Path(path).write_text(json.dumps(data, indent=1), encoding="utf-8")
         return Path(path)
 
@@ -96,20 +117,11 @@ class Distortion:
         """A distortion written by :meth:`write` (ValueError naming the file if malformed)."""
         try:
             data = json.loads(Path(path).read_text(encoding="utf-8"))
-            coefficients = np.asarray(data["coefficients"], dtype=np.float64)
-            degree = int(data["degree"])
-            terms = (degree + 1) * (degree + 2) // 2
-            if coefficients.shape != (2, terms):
-                raise ValueError(f"coefficients {coefficients.shape}, need (2, {terms})")
-            return cls(
-                int(data["rows"]),
-                int(data["cols"]),
-                degree,
-                coefficients,
-                float(data["rms_px"]),
-                float(data["max_px"]),
-                int(data["balls"]),
-                float(data["max_displacement_px"]),
-            )
+            data["coefficients"] = np.asarray(data["coefficients"], dtype=np.float64)
+            distortion = cls(**data)
+            terms = (distortion.degree + 1) * (distortion.degree + 2) // 2
+            if distortion.coefficients.shape != (2, terms):
+                raise ValueError(f"coefficients {distortion.coefficients.shape}, need (2, {terms})")
+            return distortion
         except (KeyError, TypeError, ValueError, json.JSONDecodeError) as err:
             raise ValueError(f"{path}: not a distortion file ({err})") from err

@@ -91,7 +91,7 @@ def register_files(
 
     Every input is read and checked before the (long) registration starts; ``out`` must not
     exist and is written only at the end. ``distortion``: the panel's warp, the frames are
-    dewarped with it first (ValueError if it belongs to another panel size).
+    dewarped with it first (ValueError if it belongs to a panel of another size).
     """
     if out.exists():
         raise FileExistsError(f"{out} exists: choose a new output folder")
@@ -99,7 +99,7 @@ def register_files(
     frames = read_frames(frames_path, pixel_pitch_mm)
     view = fluoroscopy_view(geometry_path, frames)
     if distortion is not None:
-        frames = replace(frames, data=distortion.undistort(frames.data))
+        frames = replace(frames, data=distortion.undistort(frames.data, view.pitch_u_mm))
     truth = None if truth_path is None else _truth(truth_path, len(frames.data))
     start = _initial(initial_path)
     models = bone_models(volume, labels)

@@ -257,8 +257,8 @@ def calibrate_fluoro(
         fail(str(err))
     console.print(
         f"[green]wrote[/] {out}: {distortion.balls} balls, residual RMS "
-        f"{distortion.rms_px:.3f} px (max {distortion.max_px:.3f}), largest displacement "
-        f"{distortion.max_displacement_px:.2f} px",
+        f"{distortion.rms_mm:.3f} mm (max {distortion.max_mm:.3f}), largest displacement "
+        f"{distortion.max_displacement_mm:.2f} mm",
         soft_wrap=True,
         highlight=False,
     )

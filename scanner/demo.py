@@ -71,7 +71,7 @@ QUICK = {
     "calibration_panel": 512,
     "phantom_voxel_mm": 1.0,
     "recon_voxel_mm": 1.0,
-    "fluoro_panel": 256,
+    "fluoro_panel": 512,
     "fluoro_voxel_mm": 1.0,
     "frames": 8,
     "max_flexion_deg": 40.0,
@@ -80,6 +80,9 @@ VARUS_DEG = 3.0
 """Varus tilt built into the fluoroscopy motion (frames 40-60 % of the way through)."""
 FLUORO_PANEL_MM = 307.2
 """Fluoroscopy panel width (the 0.3 mm x 1024 panel), read out binned."""
+FLUORO_NATIVE_PIXELS = 1024
+"""The dewarp grid is imaged unbinned: its 2 mm balls need the native 0.3 mm pixels, and the
+warp (in mm) serves every read-out of the panel."""
 STAGES = (
     "calibration_scan",
     "calibration",
@@ -197,8 +200,15 @@ def acquire(
         )
         save_sequence(sequence, folder)
         grid = load_config(configs / "phantoms" / "dewarp_grid.yaml", DewarpGridSpec)
-        image = simulate_dewarp_grid(grid, view, seed=seed + 1)
-        write_projections(folder / "dewarp_grid.mha", image[None], view.pitch_u_mm)
+        native = panel.model_copy(
+            update={
+                "rows": FLUORO_NATIVE_PIXELS,
+                "cols": FLUORO_NATIVE_PIXELS,
+                "pixel_pitch_mm": FLUORO_PANEL_MM / FLUORO_NATIVE_PIXELS,
+            }
+        )
+        image = simulate_dewarp_grid(grid, lateral_view(knee, native), seed=seed + 1)
+        write_projections(folder / "dewarp_grid.mha", image[None], native.pixel_pitch_mm)
         (folder / "dewarp_grid.yaml").write_text(yaml.safe_dump(grid.model_dump()))
         return {"frames": n, "max_flexion_deg": size["max_flexion_deg"], "varus_deg": varus_deg}
 

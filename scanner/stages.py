@@ -199,8 +199,8 @@ def registration_stage(study: Study, settings: Settings | None = None, say: Say 
                 fluoro / "dewarp_grid.mha", fluoro / "view.xml", fluoro / "dewarp_grid.yaml"
             )
             say(
-                f"dewarp: {distortion.balls} grid balls, residual RMS {distortion.rms_px:.3f} "
-                f"px, largest displacement {distortion.max_displacement_px:.2f} px"
+                f"dewarp: {distortion.balls} grid balls, residual RMS {distortion.rms_mm:.3f} "
+                f"mm, largest displacement {distortion.max_displacement_mm:.2f} mm"
             )
         register_files(
             study.path / "recon" / "volume.nii.gz",

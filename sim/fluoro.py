@@ -26,7 +26,7 @@ move (:mod:`sim.motion`). Rendering (:func:`simulate_fluoroscopy`):
    proportional to the fluence the object removes from the primary beam, Gaussian-blurred
    (:data:`SCATTER_SIGMA_MM` at the detector, :data:`SCATTER_PER_ATTENUATED`); detector blur
    (:data:`DETECTOR_BLUR_PX`); radial pincushion distortion (:func:`distort`,
-   :data:`DISTORTION_MAX_PX` at the panel corners); Poisson quantum noise plus Gaussian
+   :data:`DISTORTION_MAX_MM` at the panel corners); Poisson quantum noise plus Gaussian
    readout noise (:func:`add_fluoro_noise`).
 
 Cost: rasterising dominates (~20 s at 0.5 mm for a 90-degree squat, whose thigh sweeps
@@ -94,8 +94,9 @@ SCATTER_SIGMA_MM = 30.0
 DETECTOR_BLUR_PX = 0.6
 """Gaussian detector blur (scintillator spread), pixels (sigma)."""
 
-DISTORTION_MAX_PX = 1.0
-"""Radial pincushion displacement at the panel corners, pixels."""
+DISTORTION_MAX_MM = 0.6
+"""Radial pincushion displacement at the panel corners, mm (a property of the panel: 1 pixel
+of a 512^2 read-out of the 307 mm panel, 2 pixels at its native 0.3 mm pitch)."""
 
 JOINT_BLEND_WIDTH_MM = 30.0
 """Soft tissue follows the tibia below and the femur above the joint line; the weight of the
@@ -224,7 +225,7 @@ def add_fluoro_noise(
     return add_noise(np.asarray(line_integrals), photons, rng)
 
 
-def distort(images: np.ndarray, max_px: float = DISTORTION_MAX_PX) -> np.ndarray:
+def distort(images: np.ndarray, max_px: float) -> np.ndarray:
     """Radial pincushion distortion about the panel centre, applied by resampling.
 
     A point at radius r pixels from the panel centre (((cols - 1) / 2, (rows - 1) / 2)) is
@@ -281,7 +282,7 @@ def _realistic(
     detected = ndimage.gaussian_filter(
         primary + scatter, (0.0, DETECTOR_BLUR_PX, DETECTOR_BLUR_PX), mode="nearest"
     )
-    detected = distort(detected, DISTORTION_MAX_PX)
+    detected = distort(detected, DISTORTION_MAX_MM / view.pitch_u_mm)
     return add_fluoro_noise(-np.log(detected), photons, rng)
 
 

@@ -12,17 +12,19 @@ from typer.testing import CliRunner
 
 from calibration.distortion import DewarpGridSpec
 from recon.config import ConfigError, load_config
-from recon.geometry import Geometry
+from recon.geometry import DetectorSpec, Geometry
 from recon.io import write_projections, write_volume
 from recon.rtk_xml import write_rtk_geometry
 from recon.volume import Volume, VolumeGrid
 from registration.boneaxis import TRACK_ORDER, Settings, compose
 from registration.poses import BonePose, read_poses, write_poses
 from scanner.cli import app
-from sim.fluoro import distort, simulate_dewarp_grid
+from sim.fluoro import DISTORTION_MAX_MM, distort, lateral_view, simulate_dewarp_grid
+from sim.phantoms.knee import KneePhantomSpec
 
 runner = CliRunner()
 FRAMES = 3
+SPEC = KneePhantomSpec()
 
 
 @pytest.fixture(scope="module")
@@ -112,38 +114,40 @@ def test_the_settings_file_holds_the_defaults_and_bad_fields_are_named(tmp_path)
 
 
 def test_the_panel_distortion_is_fitted_and_removed(inputs, knee_case) -> None:
-    """``cbct calibrate-fluoro`` fits the simulated panel's 1 px pincushion from one grid
-    exposure; ``cbct register --distortion`` dewarps distorted frames and registers them as
-    well as the undistorted ones (sub-voxel); a warp of another panel is refused first."""
+    """``cbct calibrate-fluoro`` fits the simulated panel's pincushion (0.6 mm at the corners)
+    from one exposure of the grid at a finer read-out of the same panel (480 pixels of
+    0.64 mm); ``cbct register --distortion`` dewarps distorted frames of the 160-pixel
+    read-out and registers them to sub-voxel; a warp of another panel is refused first."""
     folder, paths = inputs
     view = knee_case.view
-    grid = DewarpGridSpec(pitch_mm=24.0, ball_diameter_mm=6.0)  # 1.9 mm pixels: big balls
+    grid = DewarpGridSpec()
     config = folder / "grid.yaml"
     config.write_text(yaml.safe_dump(grid.model_dump()), encoding="utf-8")
-    image = simulate_dewarp_grid(grid, view, seed=4)[None]
-    grid_path = write_projections(folder / "grid.mha", image, view.pitch_u_mm)
+    fine = DetectorSpec(rows=480, cols=480, pixel_pitch_mm=view.pitch_u_mm * view.cols / 480)
+    image = simulate_dewarp_grid(grid, lateral_view(SPEC, fine), seed=4)[None]
+    grid_path = write_projections(folder / "grid.mha", image, fine.pixel_pitch_mm)
     warp = folder / "distortion.json"
     args = ["calibrate-fluoro", "--grid", str(grid_path), "--geometry", str(paths["geometry"])]
     args += ["--grid-config", str(config), "--out", str(warp)]
     result = runner.invoke(app, args)
     assert result.exit_code == 0, result.output
     fit = json.loads(warp.read_text())
-    assert fit["rms_px"] < 0.1 and fit["max_displacement_px"] == pytest.approx(1.0, abs=0.2)
+    assert fit["rms_mm"] < 0.05
+    assert fit["max_displacement_mm"] == pytest.approx(DISTORTION_MAX_MM, abs=0.1)
     again = runner.invoke(app, args)
     assert again.exit_code == 2 and "exists" in again.output
 
-    distorted = write_projections(
-        folder / "distorted.mha", distort(knee_case.frames[:FRAMES], 1.0), view.pitch_u_mm
-    )
+    distorted = distort(knee_case.frames[:FRAMES], DISTORTION_MAX_MM / view.pitch_u_mm)
+    frames = write_projections(folder / "distorted.mha", distorted, view.pitch_u_mm)
     out = folder / "dewarped"
-    given = {"frames": distorted, "truth": paths["truth"], "initial": paths["initial"]}
+    given = {"frames": frames, "truth": paths["truth"], "initial": paths["initial"]}
     result = runner.invoke(app, [*_args(paths, out, **given), "--distortion", str(warp)])
     assert result.exit_code == 0, result.output
     assert json.loads((out / "metrics.json").read_text())["tre_mm_median"] < 1.0
     report = json.loads((out / "registration.json").read_text())
     assert report["dewarp"]["balls"] == fit["balls"] and (out / "distortion.json").exists()
 
-    other = {**fit, "rows": 2 * view.rows}
+    other = {**fit, "width_mm": 2 * fit["width_mm"]}
     (folder / "other.json").write_text(json.dumps(other), encoding="utf-8")
     bad = folder / "bad-warp"
     result = runner.invoke(app, [*_args(paths, bad), "--distortion", str(folder / "other.json")])
