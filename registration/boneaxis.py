@@ -48,7 +48,7 @@ from threadpoolctl import threadpool_limits
 from recon.geometry import View
 from recon.project import JosephProjector
 from registration.drr import BoneModel, SoftTissue, along_axis, scene
-from registration.similarity import gradient_ncc, highpass, ncc
+from registration.similarity import gradient_ncc, highpass, ncc, turned_gaussian
 
 TRACK_ORDER = ("tibia_fibula", "femur", "patella")
 """Bones are registered in this order each frame (largest and slowest first)."""
@@ -375,25 +375,41 @@ class Tracker:
         )
         """Binning factors of the pyramid, coarse to fine."""
         self._views = {b: view.binned(b) for b in self.levels}
-        self._targets: dict[tuple[int, int, float], np.ndarray] = {}
+        self._targets: dict[tuple, np.ndarray] = {}
         blur = self.settings.frame_blur_mm or (0.0, 0.0)
         self.frame_blur_mm = {name: tuple(blur) for name in bones}
         """Per bone: the frames' matching blur along (u, v), panel mm (estimated on the first
-        frame when the settings leave it open)."""
+        frame when the settings leave it open), at the bone's :attr:`_blur_rotation`."""
+        self._blur_rotation = {name: np.eye(3) for name in bones}
+        """Per bone: its rotation when its blur was estimated (the static scan's, identity,
+        for a blur given in the settings). The blur is the CBCT's, so it turns with the bone."""
         self._last_ncc: dict[str, float] = {}
 
     def _sigma_px(self, level: int) -> float:
         return self.settings.highpass_mm / self._views[level].pitch_u_mm
 
-    def _target(self, frame: int, level: int, blur_mm: tuple[float, float]) -> np.ndarray:
-        """The frame blurred by ``blur_mm`` (Gaussian sigmas along u, v at the panel, mm),
-        binned to ``level``, high-passed."""
-        key = (frame, level, blur_mm)
+    def _blur_turn_deg(self, name: str, T: np.ndarray) -> int:
+        """How far bone ``name`` at pose ``T`` has turned in the panel's plane since its blur
+        was estimated (the turn of the panel's u axis carried by the bone, projected), whole
+        degrees."""
+        turned = T[:3, :3] @ self._blur_rotation[name].T @ self.view.e_u
+        return round(math.degrees(math.atan2(turned @ self.view.e_v, turned @ self.view.e_u)))
+
+    def _target(
+        self, frame: int, level: int, blur_mm: tuple[float, float], turn_deg: int = 0
+    ) -> np.ndarray:
+        """The frame blurred by ``blur_mm`` (Gaussian sigmas along u, v at the panel, mm; the
+        axes turned by ``turn_deg`` towards +v), binned to ``level``, high-passed."""
+        if blur_mm[0] == blur_mm[1]:
+            turn_deg = 0  # a round blur does not turn
+        key = (frame, level, blur_mm, turn_deg)
         if key not in self._targets:
             image = self.frames[frame]
-            if any(blur_mm):
-                sigma_px = (blur_mm[1] / self.view.pitch_v_mm, blur_mm[0] / self.view.pitch_u_mm)
-                image = gaussian_filter(image, sigma_px, mode="nearest")
+            sigma_px = (blur_mm[0] / self.view.pitch_u_mm, blur_mm[1] / self.view.pitch_v_mm)
+            if turn_deg:
+                image = turned_gaussian(image, sigma_px, math.radians(turn_deg))
+            elif any(blur_mm):
+                image = gaussian_filter(image, sigma_px[::-1], mode="nearest")
             if level > 1:
                 rows, cols = self._views[level].rows, self._views[level].cols
                 image = (
@@ -435,7 +451,9 @@ class Tracker:
 
         return _Objective(
             view,
-            self._target(frame, level, self.frame_blur_mm[name]),
+            self._target(
+                frame, level, self.frame_blur_mm[name], self._blur_turn_deg(name, poses[name])
+            ),
             background,
             self.bones[name],
             carried,
@@ -644,6 +662,7 @@ class Tracker:
         poses = dict(poses)
         self._deformed.clear()
         self._split.clear()
+        self._targets = {k: t for k, t in self._targets.items() if k[0] == frame}
         if s.kpm and len(history) >= 2:  # every bone at its constant-velocity prediction first
             poses = {
                 b: predict(history[-2][b], history[-1][b], self.bones[b].centroid_mm)
@@ -710,6 +729,7 @@ class Tracker:
                 ]
             ).reshape(len(grid), len(grid))
             best = np.unravel_index(np.argmax(scores), scores.shape)
+            self._blur_rotation[name] = poses[name][:3, :3].copy()
             self.frame_blur_mm[name] = tuple(
                 _parabola_peak(grid, np.take(scores, best[1 - axis], axis=1 - axis), best[axis])
                 for axis in (0, 1)

@@ -18,6 +18,24 @@ def highpass(image: np.ndarray, sigma_px: float) -> np.ndarray:
     return image - gaussian_filter(image, sigma_px, mode="nearest")
 
 
+def turned_gaussian(
+    image: np.ndarray, sigma_px: tuple[float, float], angle_rad: float
+) -> np.ndarray:
+    """``image`` (rows, cols) blurred by a Gaussian whose sigmas ``(s_u, s_v)`` (pixels) lie
+    along the image's u and v axes turned by ``angle_rad`` (towards +v); edges extended.
+    By FFT over the image padded by 4 sigma, float32."""
+    s_u, s_v = sigma_px
+    pad = int(4.0 * max(s_u, s_v)) + 1
+    padded = np.pad(np.asarray(image, dtype=np.float64), pad, mode="edge")
+    f_v = np.fft.fftfreq(padded.shape[0])[:, None]
+    f_u = np.fft.rfftfreq(padded.shape[1])[None, :]
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    along, across = c * f_u + s * f_v, -s * f_u + c * f_v
+    gain = np.exp(-2.0 * np.pi**2 * ((s_u * along) ** 2 + (s_v * across) ** 2))
+    blurred = np.fft.irfft2(np.fft.rfft2(padded) * gain, s=padded.shape)
+    return blurred[pad:-pad, pad:-pad].astype(np.float32)
+
+
 def ncc(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
     """Normalised cross-correlation of ``a`` and ``b`` over ``mask`` (all pixels if None);
     0 when either is constant there."""

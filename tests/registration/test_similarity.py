@@ -1,11 +1,12 @@
-"""Tests of registration.similarity: NCC, gradient NCC, the high-pass filter."""
+"""Tests of registration.similarity: NCC, gradient NCC, the high-pass filter, the turned blur."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.ndimage import gaussian_filter
 
-from registration.similarity import gradient_ncc, highpass, ncc
+from registration.similarity import gradient_ncc, highpass, ncc, turned_gaussian
 
 
 @pytest.fixture
@@ -54,3 +55,30 @@ def test_highpass_removes_smooth_backgrounds_and_keeps_edges() -> None:
     out = highpass(step, 4.0)
     assert out[64, 60:69].max() > 0.3  # the edge survives
     assert np.abs(out[64, :40]).max() < 1e-3  # far from it, nothing
+
+
+def test_turned_gaussian_is_the_axis_aligned_blur_at_0_and_90_degrees(image) -> None:
+    s_u, s_v = 2.5, 1.0
+    axis_aligned = gaussian_filter(image, (s_v, s_u), mode="nearest")  # (rows = v, cols = u)
+    inner = np.s_[12:-12, 12:-12]  # away from the edges, where the two extend differently
+    assert np.abs(turned_gaussian(image, (s_u, s_v), 0.0) - axis_aligned)[inner].max() < 1e-3
+    turned = turned_gaussian(image, (s_v, s_u), np.pi / 2)  # u's sigma now lies along v
+    assert np.abs(turned - axis_aligned)[inner].max() < 1e-3
+
+
+def test_turned_gaussian_spreads_a_point_along_the_turned_axis() -> None:
+    """A point's blur has covariance R diag(s_u^2, s_v^2) R^T, R the turn in the (u, v) plane."""
+    impulse = np.zeros((97, 97), dtype=np.float32)
+    impulse[48, 48] = 1.0
+    s_u, s_v, angle = 4.0, 1.5, np.radians(30.0)
+    psf = turned_gaussian(impulse, (s_u, s_v), angle).astype(np.float64)
+    v, u = np.mgrid[:97, :97] - 48.0
+    total = psf.sum()
+    moments = np.array(
+        [[(psf * u * u).sum(), (psf * u * v).sum()], [(psf * u * v).sum(), (psf * v * v).sum()]]
+    )
+    c, s = np.cos(angle), np.sin(angle)
+    turn = np.array([[c, -s], [s, c]])
+    expected = turn @ np.diag([s_u**2, s_v**2]) @ turn.T
+    assert total == pytest.approx(1.0, abs=1e-4)  # the blur keeps the intensity
+    np.testing.assert_allclose(moments / total, expected, atol=0.02)
