@@ -25,7 +25,8 @@ lint: $(STAMP)
 	$(BIN)/ruff check .
 
 bench: $(STAMP)
-	$(BIN)/python bench/recon.py
+	$(BIN)/python bench/all.py
+	$(BIN)/python bench/table.py
 
 clean:
 	rm -rf $(VENV) $(DEMO_OUT)
