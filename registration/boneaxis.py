@@ -375,7 +375,8 @@ class Tracker:
         )
         """Binning factors of the pyramid, coarse to fine."""
         self._views = {b: view.binned(b) for b in self.levels}
-        self._targets: dict[tuple, np.ndarray] = {}
+        self._targets: dict[tuple[int, int, tuple[float, float], int], np.ndarray] = {}
+        """High-passed frames by (frame, level, blur_mm, turn_deg) (:meth:`_target`)."""
         blur = self.settings.frame_blur_mm or (0.0, 0.0)
         self.frame_blur_mm = {name: tuple(blur) for name in bones}
         """Per bone: the frames' matching blur along (u, v), panel mm (estimated on the first
