@@ -110,7 +110,7 @@ def worker(toolkit: str, folder: Path, case: str) -> None:
     from recon.rtk_peer import rtk_fdk
 
     stack = read_projections(folder / "projections.mha")
-    geometry = read_rtk_geometry(folder / "geometry.xml", stack.detector, stack.origin_uv_mm)
+    geometry = read_rtk_geometry(folder / "geometry.xml", stack.header)
     grid_spec = json.loads((folder / "grid.json").read_text())
     grid = VolumeGrid(
         tuple(grid_spec["shape"]), tuple(grid_spec["spacing_mm"]), tuple(grid_spec["origin_mm"])

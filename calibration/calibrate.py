@@ -30,7 +30,7 @@ from calibration.fit import Prior, fit_phantom_pose, fit_view
 from calibration.identify import identify
 from recon.config import ScanProtocol
 from recon.geometry import Geometry
-from recon.rtk_xml import read_rtk_geometry, write_rtk_geometry
+from recon.rtk_xml import PanelHeader, read_rtk_geometry, write_rtk_geometry
 from sim.phantoms.bb import BBPhantomSpec
 
 MIN_BALLS = 8
@@ -288,4 +288,7 @@ def corrected_geometry(folder: Path, protocol: ScanProtocol) -> Geometry:
             f"{folder}: calibration was made for another plan of {protocol.name!r} (plan "
             "hash differs): recalibrate after changing the protocol"
         )
-    return read_rtk_geometry(folder / "geometry.xml", protocol.detector)
+    d = protocol.detector
+    return read_rtk_geometry(
+        folder / "geometry.xml", PanelHeader.centered(d.rows, d.cols, d.pixel_pitch_mm)
+    )

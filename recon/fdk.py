@@ -4,8 +4,10 @@ The classic FDK steps on per-view projection matrices:
 
 1. cosine weighting of each pixel (angle between its ray and the detector normal) and, for a
    short scan, Parker-like smooth redundancy weights along the fan;
-2. ramp filtering along detector rows with zero padding and a window (Ram-Lak, Shepp-Logan,
-   cosine, Hann);
+2. ramp filtering along the orbit's direction of motion as seen on the panel, with zero
+   padding and a window (Ram-Lak, Shepp-Logan, cosine, Hann): along detector rows for panels
+   held upright, after resampling onto a virtual panel whose rows run that way for panels
+   turned in their plane (recon.turned_panel);
 3. voxel-driven backprojection through P with the distance weight ``1 / w^2``.
 
 Uneven sampling (short scans, helices whose ends see fewer views, reverse-spiral passes) is
@@ -19,8 +21,8 @@ pixels so the count is smooth, and voxels whose count falls below ``min_coverage
 masked (set to 0 and flagged), not invented.
 
 The rotation axis, isocentre, source-to-axis distances and view angles are read off the
-geometry itself: the axis is the direction the detector normals avoid, the isocentre the centre
-of the circle through the sources.
+geometry itself: the axis is the direction the detector normals avoid (oriented along the panel
+axis nearest it), the isocentre the centre of the circle through the sources.
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ import scipy.fft
 
 from recon.geometry import Geometry
 from recon.project import COUNT_WEIGHT, FDK_WEIGHT, backproject_weighted, check_in_front
+from recon.turned_panel import AlignedPanels, align_to_motion
 from recon.volume import Volume, VolumeGrid
 
 Window = Literal["ram-lak", "shepp-logan", "cosine", "hann"]
@@ -50,7 +53,8 @@ class Orbit:
     """What FDK needs to know about a trajectory, estimated from its views.
 
     Attributes:
-        axis: unit rotation axis (world), oriented along the mean detector e_v.
+        axis: unit rotation axis (world), oriented along the mean detector e_v (along the
+            mean e_u for panels turned a quarter, whose e_v lies across it).
         isocenter_mm: a point on the axis (centre of the circle through the sources).
         sod_mm: per-view source distance from the axis, (N,).
         beta_rad: per-view unwrapped angle about the axis, (N,).
@@ -103,7 +107,8 @@ def estimate_orbit(geometry: Geometry) -> Orbit:
     normals = np.stack([v.normal for v in geometry])
     _, vecs = np.linalg.eigh(normals.T @ normals)
     axis = vecs[:, 0]
-    if np.dot(axis, np.mean([v.e_v for v in geometry], axis=0)) < 0:
+    mean_axes = [np.mean([getattr(v, e) for v in geometry], axis=0) @ axis for e in ("e_v", "e_u")]
+    if mean_axes[int(abs(mean_axes[1]) > abs(mean_axes[0]))] < 0:
         axis = -axis
     b1, b2 = _plane_basis(axis)
     src = np.asarray(geometry.sources_mm)
@@ -241,6 +246,37 @@ class FDKResult:
     orbit: Orbit
 
 
+CORNER_FRACTION = 0.1
+"""An axis projecting within this fraction of the panel's size from two adjacent edges at once
+sits in a corner: what a stack origin that does not belong to its geometry produces (RTK's
+default Origin (0, 0) under a geometry written for a centred panel puts it on pixel (0, 0)); an
+offset (half-fan) panel is off centre along one axis only."""
+
+
+def check_axis_on_panel(geometry: Geometry, where: str = "the geometry") -> None:
+    """ValueError unless the orbit's rotation axis projects onto the panel, away from its
+    corners (:data:`CORNER_FRACTION`), in every view (at each view's source height): FDK's data
+    are complete nowhere else, and a panel placed so says that the projections' header (its
+    origin) or the geometry is wrong. ``where`` names the inputs in the message."""
+    orbit = estimate_orbit(geometry)
+    for i, view in enumerate(geometry):
+        height = (view.source_mm - orbit.isocenter_mm) @ orbit.axis
+        u, v = view.project(orbit.isocenter_mm + height * orbit.axis)[0]
+        off = not (-0.5 <= u <= view.cols - 0.5 and -0.5 <= v <= view.rows - 0.5)
+        near_u = min(u, view.cols - 1 - u) < CORNER_FRACTION * view.cols
+        near_v = min(v, view.rows - 1 - v) < CORNER_FRACTION * view.rows
+        if off or (near_u and near_v):
+            place = "off" if off else "in a corner of"
+            raise ValueError(
+                f"{where}: the orbit's rotation axis projects at pixel ({u:.1f}, {v:.1f}) in "
+                f"view {i}, {place} the {view.cols} x {view.rows} panel; FDK needs it well "
+                "inside. Does the projection stack's header (Origin, Spacing, Direction) "
+                "belong to this geometry? (A stack written for a centred panel has Origin "
+                f"({-0.5 * (view.cols - 1) * view.pitch_u_mm:g}, "
+                f"{-0.5 * (view.rows - 1) * view.pitch_v_mm:g}) mm; RTK's default is (0, 0).)"
+            )
+
+
 def _grid_seen(geometry: Geometry, grid: VolumeGrid) -> None:
     corners = grid.corners_mm()
     for view in geometry:
@@ -305,9 +341,18 @@ def fdk_reconstruct(
         raise ValueError(f"redundancy must be 'auto', 'parker' or 'none', got {redundancy!r}")
     check_in_front(geometry, grid)
     _grid_seen(geometry, grid)
+    check_axis_on_panel(geometry)
+    # the detector edge fades in over edge_taper_px on the real panel; off it, nothing counts
+    taper = np.outer(
+        _taper(geometry.rows, edge_taper_px), _taper(geometry.cols, edge_taper_px)
+    ).astype(np.float32)
+    aligned = motion_aligned(geometry)
+    geometry = aligned.geometry
     orbit = estimate_orbit(geometry)
     n_fft = scipy.fft.next_fast_len(2 * geometry.cols)
-    ramp = ramp_filter_response(n_fft, 1.0, window, cutoff).astype(np.complex64)  # per pixel
+    # per virtual pixel; an oversampled virtual panel keeps the real panel's band (cycles/mm)
+    band = cutoff / aligned.oversample
+    ramp = ramp_filter_response(n_fft, 1.0, window, band).astype(np.complex64)
     use_parker = redundancy == "parker" or (
         redundancy == "auto"
         and len(orbit.passes) == 1
@@ -315,20 +360,18 @@ def fdk_reconstruct(
         and orbit.span_deg < 359.0
     )
     R = parker_weights(geometry, orbit) if use_parker else np.ones((n_views, geometry.cols))
-    # pre-filter weights: Parker along u and the row taper (filtering along u commutes with
-    # it); the column taper multiplies after filtering, where it is a plain view weight
-    taper_v = _taper(geometry.rows, edge_taper_px).astype(np.float32)[:, None]
-    taper_u = _taper(geometry.cols, edge_taper_px)
     coarse = _coarse_grid(grid, coverage_subsample)
     num = np.zeros(grid.shape, dtype=np.float32)
     count = np.zeros(coarse.shape, dtype=np.float32)
     for start in range(0, n_views, batch_views):
         views = geometry[start : min(start + batch_views, n_views)]
         index = range(start, start + len(views))
-        pre = R[start : start + len(views), None, :].astype(np.float32) * taper_v
-        weights = pre * taper_u.astype(np.float32)
+        # Parker weights before filtering (along u); the edge taper after, where it is a plain
+        # per-pixel view weight that the views' weighted count carries as well
+        pre = R[start : start + len(views), None, :].astype(np.float32)
+        support = aligned.images(np.broadcast_to(taper, (len(views), *taper.shape)), start)
         batch = np.stack([_cosine_weights(v) for v in views]).astype(np.float32) * pre
-        batch *= proj[start : start + len(views)]
+        batch *= aligned.images(proj[start : start + len(views)], start)
         spec = scipy.fft.rfft(batch, n=n_fft, axis=2, workers=-1)
         spec *= ramp
         filtered = scipy.fft.irfft(spec, n=n_fft, axis=2, workers=-1)[:, :, : geometry.cols]
@@ -340,7 +383,7 @@ def fdk_reconstruct(
                 for i, v in zip(index, views, strict=True)
             ]
         )
-        filtered *= (scale[:, None] * taper_u[None, :])[:, None, :].astype(np.float32)
+        filtered *= scale[:, None, None].astype(np.float32) * support
         backproject_weighted(filtered, views, grid, FDK_WEIGHT, num)
         # the views' weighted count: dbeta * SOD * SDD * w / L_perp^2, in degrees
         jac = np.array(
@@ -349,7 +392,7 @@ def fdk_reconstruct(
                 for i, v in zip(index, views, strict=True)
             ]
         )
-        weights *= jac[:, None, None].astype(np.float32)
+        weights = pre * support * jac[:, None, None].astype(np.float32)
         backproject_weighted(weights, views, coarse, COUNT_WEIGHT, count, axis=orbit.axis)
         if progress is not None:
             progress(start + len(views), n_views)
@@ -360,6 +403,12 @@ def fdk_reconstruct(
     np.divide(num, coverage, out=volume, where=mask)
     volume *= 180.0  # pi * num / count, with the count in degrees
     return FDKResult(Volume(volume, grid, "1/mm"), coverage, mask, orbit)
+
+
+def motion_aligned(geometry: Geometry) -> AlignedPanels:
+    """The views on virtual panels whose rows run along the orbit's motion (recon.turned_panel;
+    upright panels come back as they are)."""
+    return align_to_motion(geometry, estimate_orbit(geometry).axis)
 
 
 def _cosine_weights(view) -> np.ndarray:
@@ -409,8 +458,10 @@ def default_grid(
     The transaxial field is the cylinder every view's fan covers; its axial extent spans the
     sources' travel plus the panel height at the isocentre. The default spacing is the pixel
     pitch at the isocentre (pitch / magnification). Explicit ``size_xyz`` overrides the
-    extent; sizes are capped at ``max_size`` voxels per axis unless given.
+    extent; sizes are capped at ``max_size`` voxels per axis unless given. A panel turned in
+    its plane counts its extent along the motion as its width (:func:`motion_aligned`).
     """
+    geometry = motion_aligned(geometry).geometry
     orbit = estimate_orbit(geometry)
     sdd = np.array([v.sdd_mm for v in geometry])
     magnification = float(np.median(sdd / orbit.sod_mm))

@@ -18,8 +18,10 @@ MetaImage 3-D images the way RTK reads them: size (cols, rows, views), spacing
 (pitch_u, pitch_v, 1) and origin (u0, v0, 0), where (u0, v0) mm is the centre of pixel
 (row 0, col 0) in the detector plane. RTK places its detector frame origin on the panel's
 centre for centred panels, hence the default origin ``u0 = -(cols - 1) / 2 * pitch``,
-``v0 = -(rows - 1) / 2 * pitch``. NIfTI is refused for projections: its RAS flip would negate
-the (u, v) origin.
+``v0 = -(rows - 1) / 2 * pitch``. Stacks from elsewhere are read with whatever origin,
+spacing and in-plane direction their header states (:class:`~recon.rtk_xml.PanelHeader`:
+RTK's default origin is (0, 0), not centred), never assuming a centred panel. NIfTI is
+refused for projections: its RAS flip would negate the (u, v) origin.
 
 Every failure raises before any long work, with the file path and what is wrong:
 :class:`FileNotFoundError` for a missing file, :class:`ImageFileError` (an :class:`OSError`)
@@ -40,8 +42,7 @@ from pathlib import Path
 import numpy as np
 import SimpleITK as sitk
 
-from recon.geometry import DetectorSpec
-from recon.rtk_xml import centered_origin_uv_mm
+from recon.rtk_xml import PanelHeader, centered_origin_uv_mm
 from recon.volume import Unit, Volume, VolumeGrid
 
 VOLUME_SUFFIXES = (".nii.gz", ".nii", ".mha", ".mhd")
@@ -246,14 +247,11 @@ class ProjectionStack:
     Attributes:
         data: line integrals -ln(I/I0), float32, shape (views, rows, cols), indexed
             [view, v, u].
-        pixel_pitch_mm: pixel pitch (u, v) = (along columns, along rows), mm.
-        origin_uv_mm: (u, v) mm of the centre of pixel (row 0, col 0) in RTK's detector
-            frame; centred panels have ``-(n - 1) / 2 * pitch`` on each axis.
+        header: where the pixels lie in RTK's projection plane (origin, spacing, direction).
     """
 
     data: np.ndarray
-    pixel_pitch_mm: tuple[float, float]
-    origin_uv_mm: tuple[float, float]
+    header: PanelHeader
 
     def __post_init__(self) -> None:
         if self.data.ndim != 3 or self.data.dtype != np.float32:
@@ -263,13 +261,9 @@ class ProjectionStack:
             )
 
     @property
-    def detector(self) -> DetectorSpec:
-        """The panel as a :class:`DetectorSpec` (square pixels only)."""
-        pitch_u, pitch_v = self.pixel_pitch_mm
-        if not math.isclose(pitch_u, pitch_v, rel_tol=1e-9):
-            raise ValueError(f"pixels are not square: pitch (u, v) = {self.pixel_pitch_mm} mm")
-        _, rows, cols = self.data.shape
-        return DetectorSpec(rows=rows, cols=cols, pixel_pitch_mm=pitch_u)
+    def pixel_pitch_mm(self) -> tuple[float, float]:
+        """Pixel pitch (u, v) = (along columns, along rows), mm."""
+        return self.header.spacing_mm
 
 
 def write_projections(
@@ -322,21 +316,54 @@ def write_projections(
     return path
 
 
-def read_projections(path: str | Path) -> ProjectionStack:
-    """Read a projection stack written by :func:`write_projections` or by RTK.
+def read_stack_header(path: str | Path) -> PanelHeader:
+    """The panel of a projection stack's header (origin, spacing, direction), without reading
+    its pixels: what :func:`recon.rtk_xml.read_rtk_geometry` needs to place them.
 
     Raises:
         FileNotFoundError: ``path`` does not exist.
         ImageFileError: not an image, truncated, or unreadable.
-        ValueError: not a scalar 3-D image, or a non-identity direction.
+        ValueError: not a scalar 3-D image, or a direction that mixes the panel's axes with
+            the projection index (the file, the field and its value named).
+    """
+    path = _check_suffix(Path(path), PROJECTION_SUFFIXES, "projection stack")
+    return _stack_header(_open_image(path), path)
+
+
+def _stack_header(reader: sitk.ImageFileReader, path: Path) -> PanelHeader:
+    direction = np.reshape(reader.GetDirection(), (3, 3))
+    if np.abs(direction[2, :2]).max() > _DIRECTION_ATOL or np.abs(direction[:2, 2]).max() > (
+        _DIRECTION_ATOL
+    ):
+        raise ValueError(
+            f"{path}: Direction {np.round(direction, 6).tolist()} mixes the panel's axes with "
+            "the projection index (third axis): a stack's projections must share one panel"
+        )
+    cols, rows, _ = reader.GetSize()
+    spacing, origin = reader.GetSpacing(), reader.GetOrigin()
+    return PanelHeader(
+        rows,
+        cols,
+        (float(spacing[0]), float(spacing[1])),
+        (float(origin[0]), float(origin[1])),
+        tuple(tuple(float(x) for x in row[:2]) for row in direction[:2]),
+        source=str(path),
+    )
+
+
+def read_projections(path: str | Path) -> ProjectionStack:
+    """Read a projection stack written by :func:`write_projections` or by RTK (any origin,
+    spacing and in-plane direction; see :func:`read_stack_header`).
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        ImageFileError: not an image, truncated, or unreadable.
+        ValueError: not a scalar 3-D image, or a direction that mixes the panel's axes with
+            the projection index.
     """
     path = _check_suffix(Path(path), PROJECTION_SUFFIXES, "projection stack")
     reader = _open_image(path)
-    if not np.allclose(reader.GetDirection(), np.eye(3).ravel(), atol=_DIRECTION_ATOL):
-        raise ValueError(
-            f"{path}: projection stack must have identity direction, "
-            f"got {np.round(reader.GetDirection(), 6).tolist()}"
-        )
+    header = _stack_header(reader, path)
     cols, rows, views = reader.GetSize()
     data = np.empty((views, rows, cols), dtype=np.float32)
     reader.SetOutputPixelType(sitk.sitkFloat32)
@@ -351,12 +378,7 @@ def read_projections(path: str | Path) -> ProjectionStack:
         reader.SetExtractSize((cols, rows, n))
         slab = _execute(reader, path)  # the view below borrows its buffer: keep it alive
         data[start : start + n] = sitk.GetArrayViewFromImage(slab)
-    spacing, origin = reader.GetSpacing(), reader.GetOrigin()
-    return ProjectionStack(
-        data=data,
-        pixel_pitch_mm=(float(spacing[0]), float(spacing[1])),
-        origin_uv_mm=(float(origin[0]), float(origin[1])),
-    )
+    return ProjectionStack(data=data, header=header)
 
 
 # -- shared file checks -----------------------------------------------------------------------

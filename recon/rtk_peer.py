@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from recon.geometry import Geometry
-from recon.rtk_xml import centered_origin_uv_mm, rtk_parameters
+from recon.rtk_xml import PanelHeader, rtk_parameters
 from recon.volume import VolumeGrid
 
 _PARAMETER_ORDER = (
@@ -44,14 +44,19 @@ def _itk() -> tuple[Any, Any]:
     return itk, RTK
 
 
+def _header(geometry: Geometry) -> PanelHeader:
+    """The centred panel every stack handed to RTK here is written on."""
+    view0 = geometry[0]
+    return PanelHeader.centered(geometry.rows, geometry.cols, view0.pitch_u_mm, view0.pitch_v_mm)
+
+
 def rtk_geometry(geometry: Geometry) -> Any:
     """An ``rtk.ThreeDCircularProjectionGeometry`` with our views (centred stack origin)."""
     _, rtk = _itk()
-    view0 = geometry[0]
-    origin = centered_origin_uv_mm(geometry.rows, geometry.cols, view0.pitch_u_mm, view0.pitch_v_mm)
+    header = _header(geometry)
     out = rtk.ThreeDCircularProjectionGeometry.New()
     for view in geometry:
-        params = rtk_parameters(view, origin)
+        params = rtk_parameters(view, header)
         out.AddProjection(*[float(params[name]) for name in _PARAMETER_ORDER])
     return out
 
@@ -110,11 +115,10 @@ def _volume_image(array: np.ndarray, grid: VolumeGrid) -> Any:
 
 def _stack_image(array: np.ndarray, geometry: Geometry) -> Any:
     itk, _ = _itk()
-    view0 = geometry[0]
-    ou, ov = centered_origin_uv_mm(geometry.rows, geometry.cols, view0.pitch_u_mm, view0.pitch_v_mm)
+    header = _header(geometry)
     image = itk.image_from_array(np.ascontiguousarray(array, dtype=np.float32))
-    image.SetSpacing((view0.pitch_u_mm, view0.pitch_v_mm, 1.0))
-    image.SetOrigin((ou, ov, 0.0))
+    image.SetSpacing((*header.spacing_mm, 1.0))
+    image.SetOrigin((*header.origin_mm, 0.0))
     return image
 
 

@@ -4,26 +4,37 @@ RTK describes each view by nine parameters in a frame rotated by ``M_R = Rz(-in_
 Rx(-out_of_plane) Ry(-gantry)``: the source at ``(SourceOffsetX, SourceOffsetY,
 SourceToIsocenterDistance)`` and the detector's projection coordinate ``(a, b)`` at
 ``(a + ProjectionOffsetX, b + ProjectionOffsetY, SID - SDD)``. Its matrices map world mm to
-the projection image's physical mm (with ``w < 0`` in front of the source); the projection
-image's origin and spacing turn those into pixel indices. That image lives beside the XML (an
-``.mha`` stack), so reading and writing take the panel and its origin explicitly. By default
-the origin is centred: ``(-(cols-1)/2 * pitch_u, -(rows-1)/2 * pitch_v)`` (see recon.io).
+the projection image's physical mm; the projection image's header (origin, spacing and
+direction: :class:`PanelHeader`) turns those into pixel indices. That image lives beside the
+XML (an ``.mha`` stack), so reading and writing take its header explicitly; RTK's own
+projectors honour all three fields, and so does :func:`read_rtk_geometry`, the one place a
+header becomes a panel.
 
-Any view with orthonormal detector axes is expressible; ``e_u x e_v`` pointing back at the
-source keeps RTK's distances positive (our orbits do, see recon.geometry).
+Signs. The rotated frame's z axis is the panel's normal ``row x column``. When it points back
+at the source (our orbits, recon.geometry), SID and SDD are positive and RTK's matrices have
+``w < 0`` in front of the source; when it points towards the panel (a panel turned or
+mirrored in its plane, e.g. rows along the rotation axis, as RTK's
+``AddProjection(source, detector, row, column)`` builds it), SID and SDD are negative and
+``w > 0`` in front. The detector lies at ``w = -SDD``, so a matrix read from RTK is scaled by
+``-sign(SDD)``: ``w > 0`` between source and panel, always (DESIGN.md).
+
+RTK can express every view with orthogonal pixel axes on a flat panel; skewed axes, parallel
+beams (SDD 0) and cylindrical detectors are refused with the file, projection and field named.
 """
 
 from __future__ import annotations
 
 import math
+import sys
 import warnings
 import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from recon.geometry import DetectorSpec, Geometry, View
+from recon.geometry import Geometry, View
 
 _ANGLES = ("GantryAngle", "OutOfPlaneAngle", "InPlaneAngle")
 _DISTANCES = (
@@ -37,6 +48,7 @@ _DISTANCES = (
 _DEFAULTS = {name: 0.0 for name in (*_ANGLES, *_DISTANCES)} | {"RadiusCylindricalDetector": 0.0}
 _IGNORED = {"CollimationUInf", "CollimationUSup", "CollimationVInf", "CollimationVSup"}
 _MATRIX_RTOL = 1e-6
+_ORTHONORMAL_ATOL = 1e-6
 
 
 def centered_origin_uv_mm(rows: int, cols: int, pitch_u_mm: float, pitch_v_mm: float):
@@ -44,16 +56,115 @@ def centered_origin_uv_mm(rows: int, cols: int, pitch_u_mm: float, pitch_v_mm: f
     return (-0.5 * (cols - 1) * pitch_u_mm, -0.5 * (rows - 1) * pitch_v_mm)
 
 
-def rtk_parameters(view: View, origin_uv_mm: tuple[float, float]) -> dict[str, float]:
-    """RTK's nine parameters (mm, degrees in [0, 360)) of one view."""
+@dataclass(frozen=True)
+class PanelHeader:
+    """Where a projection stack's pixels lie in RTK's projection plane: its image header.
+
+    Pixel (col i, row j) sits at ``origin_mm + direction @ (i * spacing_u, j * spacing_v)``
+    in RTK's projection coordinates (mm), as ITK places image indices.
+
+    Attributes:
+        rows, cols: panel size in pixels.
+        spacing_mm: pixel pitch (u, v) = (along the image's i axis, along its j axis), mm.
+        origin_mm: physical position of pixel (0, 0), mm; ``None`` centres the panel.
+        direction: 2x2, columns the image's i and j axes in projection coordinates
+            (orthonormal: a rotation or a reflection of the plane).
+        source: what the header was read from, for error messages.
+    """
+
+    rows: int
+    cols: int
+    spacing_mm: tuple[float, float]
+    origin_mm: tuple[float, float] | None = None
+    direction: tuple[tuple[float, float], tuple[float, float]] = ((1.0, 0.0), (0.0, 1.0))
+    source: str = field(default="the projection stack", compare=False)
+
+    def __post_init__(self) -> None:
+        for name in ("rows", "cols"):
+            value = getattr(self, name)
+            if int(value) != value or value <= 0:
+                raise ValueError(f"{self.source}: {name} must be a positive integer, got {value!r}")
+        spacing = tuple(float(x) for x in self.spacing_mm)
+        if len(spacing) != 2 or not all(math.isfinite(x) and x > 0 for x in spacing):
+            raise ValueError(
+                f"{self.source}: Spacing must be 2 finite pitches > 0 mm, got {self.spacing_mm!r}"
+            )
+        object.__setattr__(self, "spacing_mm", spacing)
+        origin = self.origin_mm
+        if origin is None:
+            origin = centered_origin_uv_mm(self.rows, self.cols, *spacing)
+        origin = tuple(float(x) for x in origin)
+        if len(origin) != 2 or not all(math.isfinite(x) for x in origin):
+            raise ValueError(f"{self.source}: Origin must be 2 finite numbers, got {origin!r}")
+        object.__setattr__(self, "origin_mm", origin)
+        d = np.asarray(self.direction, dtype=np.float64)
+        if d.shape != (2, 2) or not np.allclose(d.T @ d, np.eye(2), atol=_ORTHONORMAL_ATOL):
+            raise ValueError(
+                f"{self.source}: Direction {np.round(d, 6).tolist()} of the panel's axes is not "
+                "orthonormal: RTK's detector has orthogonal pixel axes of the given spacing"
+            )
+        object.__setattr__(self, "direction", tuple(tuple(float(x) for x in row) for row in d))
+
+    @classmethod
+    def centered(
+        cls,
+        rows: int,
+        cols: int,
+        pitch_u_mm: float,
+        pitch_v_mm: float | None = None,
+        source: str = "the projection stack",
+    ) -> PanelHeader:
+        """A panel centred on RTK's detector origin with identity direction."""
+        pitch_v = pitch_u_mm if pitch_v_mm is None else pitch_v_mm
+        return cls(rows, cols, (pitch_u_mm, pitch_v), source=source)
+
+    @property
+    def to_index(self) -> np.ndarray:
+        """3x3 homogeneous map: projection coordinates (mm) -> pixel indices (u, v)."""
+        d = np.asarray(self.direction)
+        inv = np.diag(1.0 / np.asarray(self.spacing_mm)) @ d.T
+        out = np.eye(3)
+        out[:2, :2] = inv
+        out[:2, 2] = -inv @ np.asarray(self.origin_mm)
+        return out
+
+    def check_views(self, geometry: Geometry, where: str) -> None:
+        """ValueError unless ``geometry`` is a stack of this panel (size and pitch)."""
+        if (geometry.rows, geometry.cols) != (self.rows, self.cols):
+            raise ValueError(
+                f"{where}: the geometry's panel has {geometry.rows} x {geometry.cols} pixels, "
+                f"{self.source}'s header {self.rows} x {self.cols}"
+            )
+        for i, view in enumerate(geometry):
+            pitch = (view.pitch_u_mm, view.pitch_v_mm)
+            if not np.allclose(pitch, self.spacing_mm, rtol=1e-9, atol=0.0):
+                raise ValueError(
+                    f"{where}: view {i} has pitch {pitch} mm, {self.source}'s header Spacing "
+                    f"{self.spacing_mm} mm: an RTK projection stack has one pixel spacing"
+                )
+
+
+def rtk_parameters(view: View, header: PanelHeader) -> dict[str, float]:
+    """RTK's nine parameters (mm, degrees in [0, 360)) of one view of a stack with ``header``.
+
+    SID and SDD come out negative when the panel's ``row x column`` normal points away from
+    the source (module docstring). Raises ValueError for skewed pixel axes.
+    """
     if abs(float(np.dot(view.e_u, view.e_v))) > 1e-9:
-        raise ValueError("RTK geometry needs orthogonal detector axes; this view is skewed")
-    R = np.vstack((view.e_u, view.e_v, np.cross(view.e_u, view.e_v)))  # world -> rotated
+        raise ValueError(
+            "RTK geometry needs orthogonal detector axes; this view's e_u . e_v = "
+            f"{float(np.dot(view.e_u, view.e_v)):.3g}"
+        )
+    d = np.asarray(header.direction)
+    axes = np.column_stack((view.e_u, view.e_v)) @ d.T  # RTK's row and column axes, world
+    row, col = axes[:, 0], axes[:, 1]
+    origin = view.detector_origin_mm - axes @ np.asarray(header.origin_mm)  # (0, 0) mm
+    R = np.vstack((row, col, np.cross(row, col)))  # world -> rotated
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # gimbal lock at 90 deg out of plane
         gantry, out_of_plane, in_plane = Rotation.from_matrix(R.T).as_euler("YXZ", degrees=True)
     sx, sy, sid = R @ view.source_mm
-    dx, dy, dz = R @ view.detector_origin_mm
+    dx, dy, dz = R @ origin
     return {
         "GantryAngle": float(gantry % 360.0),
         "OutOfPlaneAngle": float(out_of_plane % 360.0),
@@ -62,8 +173,8 @@ def rtk_parameters(view: View, origin_uv_mm: tuple[float, float]) -> dict[str, f
         "SourceOffsetX": float(sx),
         "SourceOffsetY": float(sy),
         "SourceToDetectorDistance": float(sid - dz),
-        "ProjectionOffsetX": float(dx - origin_uv_mm[0]),
-        "ProjectionOffsetY": float(dy - origin_uv_mm[1]),
+        "ProjectionOffsetX": float(dx),
+        "ProjectionOffsetY": float(dy),
     }
 
 
@@ -86,51 +197,44 @@ def rtk_matrix(params: dict[str, float]) -> np.ndarray:
     return shift @ magnify @ to_source @ M_R
 
 
-def _mm_to_index(pitch_u_mm: float, pitch_v_mm: float, origin_uv_mm) -> np.ndarray:
-    return np.array(
-        [
-            [1.0 / pitch_u_mm, 0.0, -origin_uv_mm[0] / pitch_u_mm],
-            [0.0, 1.0 / pitch_v_mm, -origin_uv_mm[1] / pitch_v_mm],
-            [0.0, 0.0, 1.0],
-        ]
-    )
+def pixel_matrix(rtk: np.ndarray, sdd_mm: float, header: PanelHeader) -> np.ndarray:
+    """Our 3x4 matrix (world mm -> pixel indices, ``w > 0`` in front of the source) of RTK's
+    matrix ``rtk`` of a view with SourceToDetectorDistance ``sdd_mm`` on ``header``'s panel."""
+    return -math.copysign(1.0, sdd_mm) * (header.to_index @ rtk)
 
 
 def _format(x: float) -> str:
-    return repr(float(x))
+    """Shortest round-trip text; subnormal numbers (below 2.2e-308, which RTK's reader
+    cannot parse) as 0."""
+    x = float(x)
+    return repr(x if abs(x) >= sys.float_info.min else 0.0)
 
 
 def write_rtk_geometry(
-    path: str | Path, geometry: Geometry, origin_uv_mm: tuple[float, float] | None = None
+    path: str | Path, geometry: Geometry, header: PanelHeader | None = None
 ) -> Path:
     """Write ``geometry`` as RTK XML (version 3), every parameter per projection.
 
-    ``origin_uv_mm`` is the projection image's origin (mm) that the stack is written with;
-    ``None`` means centred. All views must share the pixel pitch (one stack, one spacing).
+    ``header`` is the projection stack's header that the geometry belongs to (its origin,
+    spacing and direction); ``None`` means a centred panel with the views' pitch. Raises
+    ValueError for views RTK cannot express (skewed axes) and for a header that contradicts
+    the views (panel size, pitch).
     """
     path = Path(path)
     pu, pv = geometry[0].pitch_u_mm, geometry[0].pitch_v_mm
-    for i, view in enumerate(geometry):
-        if not (math.isclose(view.pitch_u_mm, pu) and math.isclose(view.pitch_v_mm, pv)):
-            raise ValueError(
-                f"view {i} has pitch ({view.pitch_u_mm}, {view.pitch_v_mm}) mm, view 0 has "
-                f"({pu}, {pv}) mm: an RTK projection stack has one pixel spacing"
-            )
-    if origin_uv_mm is None:
-        origin_uv_mm = centered_origin_uv_mm(geometry.rows, geometry.cols, pu, pv)
-    to_index = _mm_to_index(pu, pv, origin_uv_mm)
+    if header is None:
+        header = PanelHeader.centered(geometry.rows, geometry.cols, pu, pv)
+    header.check_views(geometry, str(path))
     root = ET.Element("RTKThreeDCircularGeometry", version="3")
     for i, view in enumerate(geometry):
         try:
-            params = rtk_parameters(view, origin_uv_mm)
+            params = rtk_parameters(view, header)
         except ValueError as err:
-            raise ValueError(f"view {i}: {err}") from None
+            raise ValueError(f"{path}: view {i}: {err}") from None
         mat = rtk_matrix(params)
-        ours = -to_index @ mat
-        scale = np.linalg.norm(view.matrix) / np.linalg.norm(ours)
-        if not np.allclose(
-            ours * scale, view.matrix, rtol=0, atol=1e-9 * np.abs(view.matrix).max()
-        ):
+        ours = pixel_matrix(mat, params["SourceToDetectorDistance"], header)
+        ours *= np.linalg.norm(view.matrix) / np.linalg.norm(ours)
+        if not np.allclose(ours, view.matrix, rtol=0, atol=1e-9 * np.abs(view.matrix).max()):
             raise AssertionError(f"view {i}: RTK parameters do not reproduce the view")
         proj = ET.SubElement(root, "Projection")
         for name, value in params.items():
@@ -202,9 +306,16 @@ def read_rtk_matrices(path: str | Path) -> tuple[list[dict[str, float]], np.ndar
             elif child.tag not in _IGNORED:
                 raise ValueError(f"{path}: projection {i}: unknown element <{child.tag}>")
         if params["RadiusCylindricalDetector"] != 0.0:
-            raise ValueError(f"{path}: projection {i}: cylindrical detectors are not supported")
+            raise ValueError(
+                f"{path}: projection {i}: RadiusCylindricalDetector = "
+                f"{params['RadiusCylindricalDetector']!r}: cylindrical detectors are not "
+                "supported (flat panels only, radius 0)"
+            )
         if params["SourceToDetectorDistance"] == 0.0:
-            raise ValueError(f"{path}: projection {i}: parallel-beam geometry is not supported")
+            raise ValueError(
+                f"{path}: projection {i}: SourceToDetectorDistance = 0 is RTK's parallel "
+                "beam, which is not supported (cone beam only)"
+            )
         mat = rtk_matrix(params)
         if stored is not None and not np.allclose(
             stored, mat, rtol=0, atol=_MATRIX_RTOL * np.abs(mat).max()
@@ -217,19 +328,18 @@ def read_rtk_matrices(path: str | Path) -> tuple[list[dict[str, float]], np.ndar
     return all_params, np.stack(matrices)
 
 
-def read_rtk_geometry(
-    path: str | Path,
-    detector: DetectorSpec,
-    origin_uv_mm: tuple[float, float] | None = None,
-) -> Geometry:
-    """Read RTK XML as a :class:`Geometry` for a panel of ``detector`` pixels.
-
-    ``origin_uv_mm`` is the origin of the projection stack the XML belongs to (read it from
-    the stack's header, see recon.io.read_projections); ``None`` means centred.
-    """
-    _, matrices = read_rtk_matrices(path)
-    p = detector.pixel_pitch_mm
-    if origin_uv_mm is None:
-        origin_uv_mm = centered_origin_uv_mm(detector.rows, detector.cols, p, p)
-    to_index = _mm_to_index(p, p, origin_uv_mm)
-    return Geometry.from_matrices(-(to_index @ matrices), detector)
+def read_rtk_geometry(path: str | Path, header: PanelHeader) -> Geometry:
+    """Read RTK XML as the :class:`Geometry` of the projection stack whose header is
+    ``header`` (recon.io.read_projections, read_stack_header; PanelHeader.centered for images
+    without one): RTK's matrices (projection mm) through the header's origin, spacing and
+    direction to pixel indices, each view's sign chosen so that ``w > 0`` in front of its
+    source. ValueError names the file and projection of a view that has no source."""
+    params, matrices = read_rtk_matrices(path)
+    views = []
+    for i, (p, m) in enumerate(zip(params, matrices, strict=True)):
+        P = pixel_matrix(m, p["SourceToDetectorDistance"], header)
+        try:
+            views.append(View.from_matrix(P, header.spacing_mm[0], header.rows, header.cols))
+        except ValueError as err:
+            raise ValueError(f"{path}: projection {i}: {err}") from None
+    return Geometry(views)

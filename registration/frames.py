@@ -13,7 +13,10 @@ the one place where DICOM pixels become registration frames:
   percentiles;
 - pixel spacing from Imager Pixel Spacing (0018,1164), else Pixel Spacing (0028,0030), else
   the caller's ``pixel_pitch_mm`` (a clear error when neither exists);
-- frame times from Frame Time (0018,1063) or the Frame Time Vector (0018,1065), in seconds.
+- frame times from Frame Time (0018,1063) or the Frame Time Vector (0018,1065), in seconds;
+- the panel: a DICOM radiograph does not place its pixels in RTK's projection plane, so its
+  geometry is read for a centred panel (recon.rtk_xml.PanelHeader.centered); an .mha stack's
+  own header (origin, spacing, direction) places them.
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from recon.io import ImageFileError, read_projections
+from recon.rtk_xml import PanelHeader
 
 
 @dataclass(frozen=True)
@@ -33,15 +37,20 @@ class Frames:
 
     Attributes:
         data: float32 (F, rows, cols), line integrals (or their normalised stand-in).
-        pixel_pitch_mm: panel pitch (u, v), mm.
+        header: where the pixels lie in RTK's projection plane (pitch, origin, direction).
         times_s: frame times (F,) or None.
         photometric: "line integrals", "MONOCHROME1" or "MONOCHROME2".
     """
 
     data: np.ndarray
-    pixel_pitch_mm: tuple[float, float]
+    header: PanelHeader
     times_s: np.ndarray | None
     photometric: str
+
+    @property
+    def pixel_pitch_mm(self) -> tuple[float, float]:
+        """Panel pitch (u, v), mm."""
+        return self.header.spacing_mm
 
 
 def _tag(reader, key: str) -> str | None:
@@ -66,7 +75,7 @@ def read_frames(path: str | Path, pixel_pitch_mm: float | None = None) -> Frames
         raise FileNotFoundError(f"{path}: no such file or folder")
     if path.suffix.lower() in (".mha", ".mhd"):
         stack = read_projections(path)
-        return Frames(stack.data, stack.pixel_pitch_mm, None, "line integrals")
+        return Frames(stack.data, stack.header, None, "line integrals")
     files = _dicom_files(path)
     arrays, times, spacing, photometric = [], [], None, None
     for name in files:
@@ -102,7 +111,8 @@ def read_frames(path: str | Path, pixel_pitch_mm: float | None = None) -> Frames
     low, high = np.percentile(data, (0.5, 99.5))
     normalised = ((data - low) / max(high - low, 1e-12)).astype(np.float32)
     times_s = np.array(times) if len(times) == len(data) and None not in times else None
-    return Frames(normalised, spacing, times_s, photometric)
+    header = PanelHeader.centered(data.shape[1], data.shape[2], *spacing, source=str(path))
+    return Frames(normalised, header, times_s, photometric)
 
 
 def _spacing(reader) -> tuple[float, float] | None:

@@ -20,7 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from recon.distortion import Distortion
-from recon.geometry import DetectorSpec, View
+from recon.fdk import CORNER_FRACTION
+from recon.geometry import View
 from recon.io import read_volume
 from recon.rtk_xml import read_rtk_geometry
 from recon.volume import Volume
@@ -34,12 +35,14 @@ from registration.poses import BonePose, poses_by_frame, read_poses, write_poses
 def fluoroscopy_view(geometry_path: Path, frames: Frames, any_count: bool = False) -> View:
     """The one view of a fluoroscopy sequence (ValueError if its views differ, or unless
     ``any_count``, if there are neither one nor one per frame)."""
-    count, rows, cols = frames.data.shape
+    count = len(frames.data)
     pitch_u, pitch_v = frames.pixel_pitch_mm
     if abs(pitch_u - pitch_v) > 1e-6 * pitch_u:
-        raise ValueError(f"frames: pixels must be square, got {pitch_u} x {pitch_v} mm")
-    detector = DetectorSpec(rows=rows, cols=cols, pixel_pitch_mm=pitch_u)
-    geometry = read_rtk_geometry(geometry_path, detector)
+        raise ValueError(
+            f"{frames.header.source}: pixels must be square for registration, got Spacing "
+            f"{pitch_u} x {pitch_v} mm"
+        )
+    geometry = read_rtk_geometry(geometry_path, frames.header)
     if len(geometry) not in (1, count) and not any_count:
         raise ValueError(
             f"{geometry_path}: {len(geometry)} views for {count} frames; give one view or one "
@@ -103,10 +106,31 @@ def register_files(
     truth = None if truth_path is None else _truth(truth_path, len(frames.data))
     start = _initial(initial_path)
     models = bone_models(volume, labels)
+    _check_in_view(view, models, start, f"{frames.header.source} with {geometry_path}")
     tracker = Tracker(view, frames.data, models, settings, SoftTissue.of(volume, labels))
     results = tracker.track(start, progress=progress)
     _write(out, results, models, view, tracker, truth, distortion)
     return results
+
+
+def _check_in_view(view: View, models: dict, start: dict, where: str) -> None:
+    """ValueError unless the knee (the mean of the bones' centroids at their starting poses)
+    projects onto the panel away from its corners (recon.fdk.CORNER_FRACTION): otherwise the
+    frames' header (origin, spacing, direction) and the geometry do not belong together, or
+    the view does not look at the knee (frames at Origin (0, 0) under a view written for a
+    centred panel put the knee on pixel (0, 0))."""
+    centroids = [T[:3, :3] @ models[b].centroid_mm + T[:3, 3] for b, T in start.items()]
+    u, v = view.project(np.mean(centroids, axis=0))[0]
+    on = -0.5 <= u <= view.cols - 0.5 and -0.5 <= v <= view.rows - 0.5
+    near_u = min(u, view.cols - 1 - u) < CORNER_FRACTION * view.cols
+    near_v = min(v, view.rows - 1 - v) < CORNER_FRACTION * view.rows
+    if not on or (near_u and near_v):
+        raise ValueError(
+            f"{where}: the knee of the static scan projects at pixel ({u:.0f}, {v:.0f}), "
+            f"{'in a corner of' if on else 'off'} the {view.cols} x {view.rows} panel: do the "
+            "frames' header (Origin, Spacing, Direction) and the geometry belong together, and "
+            "does the view look at the knee?"
+        )
 
 
 def _write(out, results, models, view, tracker: Tracker, truth, distortion) -> None:

@@ -19,7 +19,7 @@ from calibration.calibrate import Calibration, calibrate, corrected_geometry
 from calibration.distortion import DewarpGridSpec, fit_distortion
 from recon.config import load_config, load_protocol
 from recon.distortion import Distortion
-from recon.fdk import FDKResult, Progress, default_grid, fdk_reconstruct
+from recon.fdk import FDKResult, Progress, check_axis_on_panel, default_grid, fdk_reconstruct
 from recon.geometry import Geometry
 from recon.io import read_projections, read_volume, write_projections, write_volume
 from recon.preview import save_orthogonal_slices
@@ -175,7 +175,7 @@ def reconstruct_files(
         if path is not None and path.exists():
             raise FileExistsError(f"{path} exists: nothing is overwritten")
     stack = read_projections(projections_path)
-    geometry = read_rtk_geometry(geometry_path, stack.detector, stack.origin_uv_mm)
+    geometry = read_rtk_geometry(geometry_path, stack.header)
     if calibration is not None:
         if protocol_path is None:
             raise ValueError("--calibration needs --protocol (the scan's protocol)")
@@ -188,6 +188,7 @@ def reconstruct_files(
             f"{projections_path} holds {stack.data.shape[0]} projections but {geometry_path} "
             f"describes {len(geometry)} views"
         )
+    check_axis_on_panel(geometry, f"{projections_path} with {geometry_path}")
     if origin_mm is not None and size_xyz is None:
         raise ValueError("--origin-mm needs --size (the grid's voxel counts)")
     grid = default_grid(geometry, spacing_mm, size_xyz)
@@ -274,7 +275,7 @@ def calibrate_to_study(
     protocol = load_protocol(protocol_path)
     phantom = load_config(phantom_path, BBPhantomSpec)
     stack = read_projections(projections_path)
-    planned = read_rtk_geometry(geometry_path, stack.detector, stack.origin_uv_mm)
+    planned = read_rtk_geometry(geometry_path, stack.header)
     if planned != protocol.orbit.geometry(protocol.detector):
         raise ValueError(
             f"{geometry_path} is not the plan of protocol {protocol.name!r}: "

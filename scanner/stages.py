@@ -119,7 +119,7 @@ def recon_stage(
     def fill(folder: Path) -> dict:
         protocol = scan_protocol(study)
         stack = read_projections(study.path / "scan" / "projections.mha")
-        recorded = read_rtk_geometry(study.path / "scan" / "geometry.xml", protocol.detector)
+        recorded = read_rtk_geometry(study.path / "scan" / "geometry.xml", stack.header)
         calibrated = study.stage("calibration").get("status") == "complete"
         geometry = (
             corrected_geometry(study.path / "calibration", protocol) if calibrated else recorded
@@ -143,7 +143,7 @@ def recon_stage(
             others = {"recorded": recorded}
             true_path = study.path / "scan" / "true_geometry.xml"
             if true_path.exists():
-                others["true"] = read_rtk_geometry(true_path, protocol.detector)
+                others["true"] = read_rtk_geometry(true_path, stack.header)
             for name, other in others.items():
                 if name not in rmse:
                     data = fdk_reconstruct(stack.data, other, grid).volume.data

@@ -334,17 +334,18 @@ def test_projection_round_trip_with_centred_default_origin(tmp_path):
     stack = read_projections(path)
     np.testing.assert_array_equal(stack.data, data)
     assert stack.pixel_pitch_mm == (0.2, 0.2)
-    np.testing.assert_allclose(stack.origin_uv_mm, (-0.5, -0.3), atol=1e-12)
-    assert stack.detector.rows == 4 and stack.detector.cols == 6
+    np.testing.assert_allclose(stack.header.origin_mm, (-0.5, -0.3), atol=1e-12)
+    assert (stack.header.rows, stack.header.cols) == (4, 6)
+    assert stack.header.direction == ((1.0, 0.0), (0.0, 1.0))
 
 
 def test_projection_explicit_origin_and_mhd(tmp_path):
     path = write_projections(tmp_path / "p.mhd", _projections(), 0.5, origin_uv_mm=(-7.0, 2.5))
     stack = read_projections(path)
-    assert stack.origin_uv_mm == (-7.0, 2.5)
+    assert stack.header.origin_mm == (-7.0, 2.5)
     assert stack.pixel_pitch_mm == (0.5, 0.5)
     with pytest.raises(ValueError, match="data must be float32"):
-        ProjectionStack(stack.data.astype(np.float64), (0.5, 0.5), (0.0, 0.0))
+        ProjectionStack(stack.data.astype(np.float64), stack.header)
 
 
 @pytest.mark.filterwarnings("ignore::DeprecationWarning")  # SWIG types in itk's wrapping

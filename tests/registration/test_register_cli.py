@@ -7,17 +7,20 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import SimpleITK as sitk
 import yaml
 from typer.testing import CliRunner
 
 from calibration.distortion import DewarpGridSpec
 from recon.config import ConfigError, load_config
-from recon.geometry import DetectorSpec, Geometry
+from recon.geometry import DetectorSpec, Geometry, View
 from recon.io import write_projections, write_volume
-from recon.rtk_xml import write_rtk_geometry
+from recon.rtk_xml import PanelHeader, write_rtk_geometry
 from recon.volume import Volume, VolumeGrid
 from registration.boneaxis import TRACK_ORDER, Settings, compose
+from registration.frames import read_frames
 from registration.poses import BonePose, read_poses, write_poses
+from registration.track import fluoroscopy_view
 from scanner.cli import app
 from sim.fluoro import DISTORTION_MAX_MM, distort, lateral_view, simulate_dewarp_grid
 from sim.phantoms.knee import KneePhantomSpec
@@ -97,6 +100,54 @@ def test_register_refuses_bad_inputs_before_work(inputs, knee_case) -> None:
         assert not out.exists()
     result = runner.invoke(app, _args(paths, out, geometry=two_views))
     assert result.exit_code == 2 and "2 views for 3 frames" in result.output
+    assert not out.exists()
+
+
+def _stack_with_header(path: Path, frames: np.ndarray, pitch: float, origin, direction) -> Path:
+    """Frames written by SimpleITK with the given header, as another toolkit would."""
+    image = sitk.GetImageFromArray(frames.astype(np.float32))
+    image.SetSpacing((pitch, pitch, 1.0))
+    image.SetOrigin((*origin, 0.0))
+    image.SetDirection(np.diag([*direction, 1.0]).ravel().tolist())
+    sitk.WriteImage(image, str(path))
+    return path
+
+
+def test_the_frames_header_places_the_panel(inputs, knee_case) -> None:
+    """Frames stored bottom-up (Direction diag(1, -1)) at RTK's default Origin (0, 0), with a
+    geometry written for that header, give the same view of the same pixels; under the
+    geometry of a centred panel the same frames are refused before any work, the header
+    named."""
+    folder, paths = inputs
+    view, frames = knee_case.view, knee_case.frames[:FRAMES]
+    pitch, rows = view.pitch_u_mm, view.rows
+    flipped = _stack_with_header(
+        folder / "flipped.mha", frames[:, ::-1], pitch, (0.0, 0.0), (1.0, -1.0)
+    )
+    header = PanelHeader(rows, view.cols, (pitch, pitch), (0.0, 0.0), ((1.0, 0.0), (0.0, -1.0)))
+    bottom_up = View(
+        view.source_mm,
+        view.pixel_to_world(0.0, rows - 1.0),
+        view.e_u,
+        -view.e_v,
+        pitch,
+        pitch,
+        rows,
+        view.cols,
+    )
+    geometry = write_rtk_geometry(folder / "flipped.xml", Geometry([bottom_up] * FRAMES), header)
+    read = read_frames(flipped)
+    np.testing.assert_array_equal(read.data, frames[:, ::-1])
+    seen = fluoroscopy_view(geometry, read)
+    points = knee_case.models["femur"].points_mm[::500]
+    expected = view.project(points) * [1, -1] + [0, rows - 1]
+    np.testing.assert_allclose(seen.project(points), expected, atol=1e-9)
+
+    out = folder / "cornered"
+    result = runner.invoke(app, _args(paths, out, frames=flipped))  # the centred view.xml
+    assert result.exit_code == 2
+    assert "the knee of the static scan projects at pixel" in result.output
+    assert "flipped.mha" in result.output and "Origin" in result.output
     assert not out.exists()
 
 

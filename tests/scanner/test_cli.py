@@ -12,8 +12,10 @@ import yaml
 from typer.testing import CliRunner
 
 from recon.config import load_protocol
+from recon.fdk import fdk_reconstruct
+from recon.geometry import DetectorSpec
 from recon.io import read_projections, read_volume, write_projections
-from recon.rtk_xml import read_rtk_geometry, write_rtk_geometry
+from recon.rtk_xml import PanelHeader, read_rtk_geometry, write_rtk_geometry
 from scanner.cli import CONFIGS, app
 from sim.phantoms.knee import KneePhantomSpec, rasterize_knee
 
@@ -55,7 +57,7 @@ def test_simulate_scan_writes_a_checksummed_rtk_readable_scan(scan_folder):
     for name, digest in manifest["files"].items():
         assert hashlib.sha256((scan_folder / name).read_bytes()).hexdigest() == digest
     stack = read_projections(scan_folder / "projections.mha")
-    geometry = read_rtk_geometry(scan_folder / "geometry.xml", stack.detector, stack.origin_uv_mm)
+    geometry = read_rtk_geometry(scan_folder / "geometry.xml", stack.header)
     assert stack.data.shape == (60, 64, 64) and len(geometry) == 60
     counts = read_projections(scan_folder / "counts.mha").data
     photons = manifest["photons_per_pixel"]
@@ -118,7 +120,7 @@ def test_recon_reconstructs_the_scan_and_refuses_to_overwrite(scan_folder, tmp_p
 
 def test_recon_refuses_mismatched_and_broken_inputs(scan_folder, tmp_path):
     stack = read_projections(scan_folder / "projections.mha")
-    geometry = read_rtk_geometry(scan_folder / "geometry.xml", stack.detector)
+    geometry = read_rtk_geometry(scan_folder / "geometry.xml", stack.header)
     fewer = write_rtk_geometry(tmp_path / "fewer.xml", geometry[:50])
     result = runner.invoke(
         app,
@@ -156,6 +158,95 @@ def test_recon_refuses_mismatched_and_broken_inputs(scan_folder, tmp_path):
     assert not list(tmp_path.glob("*.nii.gz")) and not (tmp_path / "v.mha").exists()
 
 
+def _rtk_turned_scan(folder: Path, views: int, panel: int, pitch: float) -> tuple[Path, Path]:
+    """A scan made by RTK alone (data made elsewhere): a circular orbit about world z whose
+    panel is turned a quarter (rows along the axis) and read out bottom-up (Direction
+    diag(1, -1)), its pixel (0, 0) at RTK's default Origin (0, 0); RTK's XML writer and its
+    analytic Shepp-Logan projections, written by ITK."""
+    import itk
+    from itk import RTK as rtk
+
+    geometry = rtk.ThreeDCircularProjectionGeometry.New()
+    for beta in np.radians(np.arange(views) * 360.0 / views):
+        toward = np.array([np.sin(beta), -np.cos(beta), 0.0])
+        row, col = np.array([0.0, 0.0, 1.0]), np.array([np.cos(beta), np.sin(beta), 0.0])
+        center = -400.0 * toward
+        corner = center - 0.5 * (panel - 1) * pitch * (row - col)  # pixel (0, 0), v reversed
+        geometry.AddProjection(
+            itk.Point[itk.D, 3]((600.0 * toward).tolist()),
+            itk.Point[itk.D, 3](corner.tolist()),
+            itk.Vector[itk.D, 3](row.tolist()),
+            itk.Vector[itk.D, 3](col.tolist()),
+        )
+    writer = rtk.ThreeDCircularProjectionGeometryXMLFileWriter.New()
+    writer.SetFilename(str(folder / "rtk.xml"))
+    writer.SetObject(geometry)
+    writer.WriteFile()
+    image_type = itk.Image[itk.F, 3]
+    stack = itk.image_from_array(np.zeros((views, panel, panel), np.float32))
+    stack.SetSpacing([pitch, pitch, 1.0])
+    stack.SetDirection(itk.matrix_from_array(np.diag([1.0, -1.0, 1.0])))
+    phantom = rtk.SheppLoganPhantomFilter[image_type, image_type].New()
+    phantom.SetInput(stack)
+    phantom.SetGeometry(geometry)
+    phantom.SetPhantomScale(28.0)
+    phantom.Update()
+    itk.imwrite(phantom.GetOutput(), str(folder / "rtk.mha"))
+    return folder / "rtk.mha", folder / "rtk.xml"
+
+
+def test_recon_reads_an_rtk_scan_of_a_turned_panel_by_its_own_header(tmp_path):
+    """RTK's scan of a turned, bottom-up panel at Origin (0, 0) reconstructs as well as the
+    same orbit with an upright, centred panel (its header read, its negative SID honoured, its
+    rows filtered along the motion); the same file with its Origin rewritten (centred) no
+    longer belongs to its geometry and is refused with the Origin named."""
+    from recon.geometry import circular_orbit
+    from recon.rtk_peer import rtk_shepp_logan
+
+    projections, geometry = _rtk_turned_scan(tmp_path, 90, 96, 1.6)
+    out = tmp_path / "turned.mha"
+    args = ["recon", "--projections", str(projections), "--geometry", str(geometry)]
+    grid_args = ["--spacing-mm", "1", "--size", "64", "64", "64", "--filter", "ram-lak"]
+    result = runner.invoke(app, [*args, "--out", str(out), *grid_args])
+    assert result.exit_code == 0, result.output
+    turned = read_volume(out)
+    grid = turned.grid
+    np.testing.assert_allclose(grid.center_mm, (0.0, 0.0, 0.0), atol=1e-9)  # the orbit's
+    upright = circular_orbit(90, 600, 1000, DetectorSpec(rows=96, cols=96, pixel_pitch_mm=1.6))
+    data, truth = rtk_shepp_logan(upright, grid, 28.0)
+    reference = fdk_reconstruct(data, upright, grid, window="ram-lak").volume.data
+    x, y, z = grid.axes_mm()
+    inside = (np.abs(z) < 24)[:, None, None] & (np.hypot(*np.meshgrid(x, y)) < 24)[None]
+
+    def rmse(volume):
+        return float(np.sqrt(np.mean((volume - truth)[inside] ** 2)))
+
+    assert rmse(turned.data) == pytest.approx(rmse(reference), rel=0.02)
+
+    import SimpleITK as sitk
+
+    image = sitk.ReadImage(str(projections))
+    image.SetOrigin((-76.0, 76.0, 0.0))  # centred, as for a geometry of a centred panel
+    moved = tmp_path / "centred.mha"
+    sitk.WriteImage(image, str(moved))
+    result = runner.invoke(
+        app,
+        [
+            "recon",
+            "--projections",
+            str(moved),
+            "--geometry",
+            str(geometry),
+            "--out",
+            str(tmp_path / "bad.mha"),
+            *grid_args,
+        ],
+    )
+    assert result.exit_code == 2
+    assert "rotation axis projects at pixel" in result.output and "Origin" in result.output
+    assert not (tmp_path / "bad.mha").exists()
+
+
 def test_plan_writes_the_study_plan_and_a_recording(tmp_path):
     protocol = tiny_protocol(tmp_path, views=24)
     study = tmp_path / "study"
@@ -173,7 +264,9 @@ def test_plan_writes_the_study_plan_and_a_recording(tmp_path):
     summary = json.loads((study / "plan" / "summary.json").read_text(encoding="utf-8"))
     assert summary["views"] == 24 and summary["min_clearance_mm"] >= 20.0
     assert "min clearance" in result.output and "max joint speed" in result.output
-    geometry = read_rtk_geometry(study / "plan" / "geometry.xml", load_protocol(protocol).detector)
+    panel = load_protocol(protocol).detector
+    centred = PanelHeader.centered(panel.rows, panel.cols, panel.pixel_pitch_mm)
+    geometry = read_rtk_geometry(study / "plan" / "geometry.xml", centred)
     assert len(geometry) == 24
 
 

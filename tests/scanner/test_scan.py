@@ -15,7 +15,7 @@ import yaml
 
 from recon.config import load_config, load_protocol
 from recon.fdk import fdk_reconstruct
-from recon.io import read_projections
+from recon.io import read_projections, read_stack_header
 from recon.rtk_xml import read_rtk_geometry
 from recon.volume import VolumeGrid
 from scanner.cli import CONFIGS
@@ -88,8 +88,8 @@ def test_recorded_geometry_is_the_measured_one(reference: Path):
     """Recorded views come from the measured joints: off the plan by the tracking lag (within
     the acquisition tolerance), off the truth by the structure's vibration, which no encoder
     sees (RMS over a turn = the configured amplitude)."""
-    panel = small_protocol().detector
     scan = reference / "scan"
+    panel = read_stack_header(scan / "projections.mha")
     recorded, true, planned = (
         read_rtk_geometry(scan / f"{name}.xml", panel)
         for name in ("geometry", "true_geometry", "planned_geometry")
@@ -112,7 +112,7 @@ def test_reconstructs_as_well_as_the_direct_simulation(reference: Path):
     labels, mu = rasterize_knee(phantom, grid)
     inside = labels > 0
     stack = read_projections(reference / "scan" / "projections.mha")
-    recorded = read_rtk_geometry(reference / "scan" / "geometry.xml", protocol.detector)
+    recorded = read_rtk_geometry(reference / "scan" / "geometry.xml", stack.header)
     ours = fdk_reconstruct(stack.data, recorded, grid).volume.data
     direct = simulate_knee_scan(protocol, phantom, voxel_mm=PHANTOM_VOXEL_MM, seed=3)
     theirs = fdk_reconstruct(direct.projections, direct.geometry, grid).volume.data

@@ -9,7 +9,7 @@ import numpy as np
 import yaml
 
 from recon.config import ScanProtocol, load_config
-from recon.io import read_projections
+from recon.io import read_projections, read_stack_header
 from recon.rtk_xml import read_rtk_geometry
 from scanner.cli import CONFIGS
 from scanner.scan import ScanSettings
@@ -82,8 +82,10 @@ def test_ur_backend_scans_like_the_simulated_one(tmp_path):
         assert done.stage("scan")["status"] == "complete" and done.verify() == []
 
     # the same views (within the acquisition tolerance) and the same images (within noise)
-    panel = tiny_protocol().detector
-    g_ur, g_sim = (read_rtk_geometry(s / "scan" / "geometry.xml", panel) for s in (ur, sim))
+    g_ur, g_sim = (
+        read_rtk_geometry(s / "geometry.xml", read_stack_header(s / "projections.mha"))
+        for s in (ur / "scan", sim / "scan")
+    )
     apart = np.linalg.norm(g_ur.sources_mm - g_sim.sources_mm, axis=1)
     assert apart.max() < 2 * ScanSettings().pose_tolerance_mm
     p_ur, p_sim = (read_projections(s / "scan" / "projections.mha").data for s in (ur, sim))

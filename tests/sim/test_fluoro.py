@@ -307,7 +307,7 @@ def test_save_sequence_writes_readable_files(squat_sequence, tmp_path):
     stack = read_projections(paths["frames"])
     np.testing.assert_array_equal(stack.data, seq.frames)
     assert stack.pixel_pitch_mm == (2.4, 2.4)
-    geometry = read_rtk_geometry(paths["view"], stack.detector, stack.origin_uv_mm)
+    geometry = read_rtk_geometry(paths["view"], stack.header)
     assert len(geometry) == 5 and all(v.isclose(seq.view, 1e-6) for v in geometry)
     frames, poses = poses_by_frame(read_poses(paths["poses"]), tuple(seq.poses))
     np.testing.assert_array_equal(frames, np.arange(5))
