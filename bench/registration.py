@@ -11,9 +11,19 @@ Two regimes (SYSTEM.md, issue "4D virtual imaging"):
   resolution with beam hardening, scatter, detector blur, distortion, Poisson + readout noise
   and soft tissue that deforms non-rigidly and is displaced by the bones.
 
-In both regimes the frames are dewarped first (calibration.distortion), with the warp fitted to
-one exposure of the dewarp grid through the same image model as the frames (``--no-dewarp``
-registers the distorted frames as they are); ``dewarp_rms_mm`` is the fit's residual.
+- ``cross_renderer``: data made elsewhere. Frames rendered by itk-rtk's Joseph forward
+  projector (sim.fluoro's scene with RTK as its projector: every bone's excess volume through
+  its moved view, the deformed soft tissue) from a 0.5 mm raster of the whole leg of a knee of
+  other proportions (:data:`CROSS_SPEC`), with Poisson noise; the registered static volume is
+  a 0.8 mm raster of the same knee whose box (:data:`CUT_GRID`) cuts the femur and the tibia
+  90 mm from the joint line, so the frames show the bones going on past the model's cut. The
+  third sequence keeps the tibia still (sim.motion.flexion_extension: the femur flexes over
+  it). No panel distortion, no dewarp.
+
+In the first two regimes the frames are dewarped first (calibration.distortion), with the warp
+fitted to one exposure of the dewarp grid through the same image model as the frames
+(``--no-dewarp`` registers the distorted frames as they are); ``dewarp_rms_mm`` is the fit's
+residual.
 
 Per regime, every method runs the same sequences (squat motions with different seeds), from the
 same start perturbation of the first frame: ``boneaxis_kpm`` (PCA + differential evolution on
@@ -48,6 +58,7 @@ from recon.config import load_protocol  # noqa: E402
 from recon.distortion import Distortion  # noqa: E402
 from recon.fdk import fdk_reconstruct  # noqa: E402
 from recon.geometry import DetectorSpec  # noqa: E402
+from recon.rtk_peer import rtk_forward_project  # noqa: E402
 from recon.volume import Volume, VolumeGrid  # noqa: E402
 from registration.boneaxis import Settings, Tracker, compose  # noqa: E402
 from registration.drr import SoftTissue, bone_models, scene  # noqa: E402
@@ -61,7 +72,7 @@ from sim.fluoro import (  # noqa: E402
     simulate_dewarp_grid,
     simulate_fluoroscopy,
 )
-from sim.motion import squat_motion  # noqa: E402
+from sim.motion import flexion_extension, squat_motion  # noqa: E402
 from sim.phantoms.knee import KneePhantomSpec, rasterize_knee  # noqa: E402
 from sim.scan import simulate_knee_scan  # noqa: E402
 
@@ -82,6 +93,14 @@ leg and left its faces in the DRRs (one 30-frame 90-degree independent sequence:
 1.68 -> 1.23 mm, RSR 68.9 -> 76.7 % with the whole leg)."""
 SIMULATION_GRID = VolumeGrid.centered((187, 187, 640), 0.75, (0.0, 0.0, 490.0))
 """The simulated scan's leg: 480 mm about the joint line, more than the cone covers."""
+CROSS_SPEC = KneePhantomSpec(scale=1.08, soft_tissue_radius_mm=66.0, fat_thickness_mm=12.0)
+"""The cross-renderer knee: bones 8 % larger, a thicker leg and fat layer than the others'."""
+CUT_GRID = VolumeGrid.centered((175, 175, 225), 0.8, (0.0, 0.0, CROSS_SPEC.joint_line_height_mm))
+"""The cross-renderer's static scan: the leg's whole cross-section, but only 90 mm above and
+below the joint line, inside the lateral view's field (about +-100 mm at the knee): the box
+cuts the femoral and tibial shafts and the leg in view."""
+CROSS_VOXEL_MM = 0.5
+"""The cross-renderer frames' raster (the registered volume's is CUT_GRID's 0.8 mm)."""
 
 
 def log(msg: str) -> None:
@@ -101,9 +120,9 @@ def cbct(spec: KneePhantomSpec) -> tuple[Volume, Volume]:
     return volume, segment_bones(volume, side=spec.side)
 
 
-def phantom_volumes(spec: KneePhantomSpec) -> tuple[Volume, Volume]:
-    labels, mu = rasterize_knee(spec, CBCT_GRID, supersample=2)
-    return Volume(mu, CBCT_GRID, "1/mm"), Volume(labels, CBCT_GRID, "label")
+def phantom_volumes(spec: KneePhantomSpec, grid: VolumeGrid = CBCT_GRID) -> tuple[Volume, Volume]:
+    labels, mu = rasterize_knee(spec, grid, supersample=2)
+    return Volume(mu, grid, "1/mm"), Volume(labels, grid, "label")
 
 
 def truth_of(motion, k: int) -> dict[str, np.ndarray]:
@@ -208,6 +227,46 @@ def drr_ms_256(models, view) -> float:
     return (time.perf_counter() - started) / 20 * 1000.0
 
 
+REGIMES = ("matched", "independent", "cross_renderer")
+
+
+def static_scan(regime: str) -> tuple[KneePhantomSpec, Volume, Volume]:
+    """The regime's knee and the static volume registered (attenuation, labels)."""
+    if regime == "matched":
+        return KneePhantomSpec(), *phantom_volumes(KneePhantomSpec())
+    if regime == "independent":
+        return KneePhantomSpec(), *cbct(KneePhantomSpec())
+    return CROSS_SPEC, *phantom_volumes(CROSS_SPEC, CUT_GRID)
+
+
+def motion_of(regime: str, spec: KneePhantomSpec, seq: int, frames: int, flexion: float):
+    """Sequence ``seq``'s motion: squats of different seeds; the cross renderer's third
+    sequence keeps the tibia still while the femur flexes over it."""
+    if regime == "cross_renderer" and seq == 2:
+        return flexion_extension(spec, frames=frames, max_flexion_deg=flexion)
+    return squat_motion(spec, frames=frames, max_flexion_deg=flexion, seed=seq)
+
+
+def frames_of(regime, spec, motion, view, models, soft, photons: float, seq: int) -> np.ndarray:
+    """The regime's frames of ``motion`` (before any dewarp)."""
+    if regime == "matched":
+        rng = np.random.default_rng(100 + seq)
+        n = len(motion.frames)
+        clean = np.stack([scene(view, models, truth_of(motion, k), soft) for k in range(n)])
+        return matched_frames(clean, view, photons, rng)
+    if regime == "independent":
+        return simulate_fluoroscopy(spec, motion, view, seed=seq).frames
+    clean = simulate_fluoroscopy(
+        spec,
+        motion,
+        view,
+        voxel_mm=CROSS_VOXEL_MM,
+        realism="ideal",
+        projector=rtk_forward_project,
+    ).frames
+    return add_fluoro_noise(clean, photons, np.random.default_rng(200 + seq))[1]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sequences", type=int, default=3)
@@ -225,7 +284,7 @@ def main() -> None:
         default=None,
         help="sequences for the methods other than boneaxis_kpm (default: all)",
     )
-    parser.add_argument("--regimes", nargs="+", default=["matched", "independent"])
+    parser.add_argument("--regimes", nargs="+", default=list(REGIMES), choices=REGIMES)
     parser.add_argument("--max-flexion", type=float, default=90.0, help="peak flexion, deg")
     parser.add_argument("--quick", action="store_true")
     parser.add_argument(
@@ -234,19 +293,19 @@ def main() -> None:
     args = parser.parse_args()
     if args.quick:
         args.sequences, args.frames, args.max_flexion = 1, 12, 40.0
-    spec = KneePhantomSpec()
     detector = DetectorSpec(rows=args.panel, cols=args.panel, pixel_pitch_mm=307.2 / args.panel)
-    view = lateral_view(spec, detector)
+    photons = 2.0e4 * (detector.pixel_pitch_mm / 0.3) ** 2
     entries = []
     for regime in args.regimes:
         log(f"regime {regime}: bone models")
-        volume, labels = phantom_volumes(spec) if regime == "matched" else cbct(spec)
+        spec, volume, labels = static_scan(regime)
+        view = lateral_view(spec, detector)
         models = bone_models(volume, labels)
         soft = SoftTissue.of(volume, labels)
         drr_ms = drr_ms_256(models, view)
         runs = {m: {"errors": [], "first": [], "warm": []} for m in args.methods}
-        photons = 2.0e4 * (detector.pixel_pitch_mm / 0.3) ** 2
-        dewarp = None if args.no_dewarp else dewarp_of(regime, spec)
+        warped = regime != "cross_renderer"  # the panel's pincushion in the image model
+        dewarp = dewarp_of(regime, spec) if warped and not args.no_dewarp else None
         if dewarp is not None:
             log(f"dewarp: {dewarp.summary()}")
         floor = []
@@ -259,18 +318,9 @@ def main() -> None:
             ]
             log(f"matched floor (start at truth): {floor}")
         for seq in range(args.sequences):
-            motion = squat_motion(
-                spec, frames=args.frames, max_flexion_deg=args.max_flexion, seed=seq
-            )
+            motion = motion_of(regime, spec, seq, args.frames, args.max_flexion)
             log(f"regime {regime}, sequence {seq}: rendering {args.frames} frames")
-            if regime == "matched":
-                rng = np.random.default_rng(100 + seq)
-                clean = np.stack(
-                    [scene(view, models, truth_of(motion, k), soft) for k in range(args.frames)]
-                )
-                frames = matched_frames(clean, view, photons, rng)
-            else:
-                frames = simulate_fluoroscopy(spec, motion, view, seed=seq).frames
+            frames = frames_of(regime, spec, motion, view, models, soft, photons, seq)
             if dewarp is not None:
                 frames = dewarp.undistort(frames, view.pitch_u_mm)
             start = perturbed(truth_of(motion, 0), models, np.random.default_rng(seq))

@@ -1,10 +1,16 @@
-"""DICOM CT series export, one file per axial slice, written with SimpleITK (GDCM).
+"""DICOM CT series: export one file per axial slice, and import a scanner's series, with
+SimpleITK (GDCM).
 
 Values are stored as int16 with RescaleSlope/RescaleIntercept in Hounsfield units,
 ``HU = 1000 * (mu - mu_water) / mu_water`` for attenuation volumes (1/mm). The slope is 1 HU
 whenever the volume's HU range spans at most 65532 HU (quantisation error <= 0.5 HU);
 wider ranges double it until they fit (error <= slope / 2). Positions are LPS mm, which is
 DICOM's patient frame, so no conversion happens here.
+
+Import (:func:`read_dicom_series`): one CT series from a folder, slices ordered by position
+along their normal (GDCM), the modality rescale applied (values in HU), axes that are a
+signed permutation of LPS reoriented like recon.io's volumes, oblique series, unequal slice
+gaps and other modalities refused with the folder and the tag named.
 """
 
 from __future__ import annotations
@@ -17,6 +23,8 @@ from pathlib import Path
 import numpy as np
 import SimpleITK as sitk
 
+from recon.attenuation import mu_to_hu
+from recon.io import ImageFileError, identity_oriented
 from recon.volume import Volume
 
 CT_IMAGE_STORAGE = "1.2.840.10008.5.1.4.1.1.2"
@@ -127,7 +135,7 @@ def _to_hu(volume: Volume, mu_water_per_mm: float, folder: Path) -> np.ndarray:
         raise ValueError(f"{folder}: volume data contain {bad} non-finite values (NaN or inf)")
     if volume.unit == "HU":
         return data
-    return 1000.0 * (data - mu_water) / mu_water
+    return mu_to_hu(data, mu_water)
 
 
 def _series_tags(
@@ -189,3 +197,63 @@ def _ds(value: float) -> str:
         if len(text) <= _DS_MAX_CHARS:
             return text
     raise ValueError(f"cannot write {value!r} as a DICOM decimal string")
+
+
+def read_dicom_series(folder: str | Path) -> Volume:
+    """The CT series in ``folder`` as a volume in HU on an identity-direction grid.
+
+    Raises:
+        FileNotFoundError: ``folder`` does not exist.
+        ImageFileError: no DICOM series in it, or a slice GDCM cannot read.
+        ValueError: several series, a modality other than CT (0008,0060), slices whose gaps
+            differ by more than 1 % of the spacing, an oblique orientation.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"{folder}: no such folder (a DICOM CT series is a folder)")
+    ids = sitk.ImageSeriesReader.GetGDCMSeriesIDs(str(folder))
+    if not ids:
+        raise ImageFileError(f"{folder}: no DICOM series in this folder")
+    if len(ids) > 1:
+        raise ValueError(f"{folder}: {len(ids)} DICOM series in one folder; give one")
+    files = sitk.ImageSeriesReader.GetGDCMSeriesFileNames(str(folder), ids[0])
+    reader = sitk.ImageSeriesReader()
+    reader.SetFileNames(files)
+    reader.MetaDataDictionaryArrayUpdateOn()
+    try:
+        image = reader.Execute()
+    except RuntimeError as err:
+        raise ImageFileError(f"{folder}: could not read the series ({err})") from None
+    modality = (
+        reader.GetMetaData(0, "0008|0060").strip()
+        if reader.HasMetaDataKey(0, "0008|0060")
+        else None
+    )
+    if modality != "CT":
+        raise ValueError(
+            f"{folder}: Modality (0008,0060) is {modality!r}; a static scan in CT numbers "
+            "must be a CT series"
+        )
+    _check_slice_gaps(reader, len(files), image, folder)
+    data, grid = identity_oriented(image, folder)
+    return Volume(data.astype(np.float32), grid, "HU")
+
+
+def _check_slice_gaps(reader, count: int, image: sitk.Image, folder: Path) -> None:
+    """ValueError unless consecutive slices lie one spacing apart along their normal (1 %)."""
+    if count < 2:
+        return
+    direction = np.reshape(image.GetDirection(), (3, 3))
+    positions = np.array(
+        [[float(x) for x in reader.GetMetaData(k, "0020|0032").split("\\")] for k in range(count)]
+    )
+    along = positions @ direction[:, 2]
+    gaps = np.diff(along)
+    spacing = image.GetSpacing()[2]
+    worst = int(np.argmax(np.abs(gaps - spacing)))
+    if abs(gaps[worst] - spacing) > 0.01 * spacing:
+        raise ValueError(
+            f"{folder}: slices {worst + 1} and {worst + 2} lie {gaps[worst]:.3f} mm apart along "
+            f"Image Position Patient (0020,0032), the series' spacing is {spacing:.3f} mm: "
+            "unequal slice gaps (a missing slice?)"
+        )

@@ -141,14 +141,29 @@ def read_volume(path: str | Path, unit: Unit | None = None) -> Volume:
             f"{path}: label volume must have integer pixels, "
             f"got {sitk.GetPixelIDValueAsString(reader.GetPixelID())}"
         )
-    signed_perm = _signed_permutation(np.reshape(reader.GetDirection(), (3, 3)), path)
-    image = _execute(reader, path)
+    _signed_permutation(np.reshape(reader.GetDirection(), (3, 3)), path)  # before reading
+    data, grid = identity_oriented(_execute(reader, path), path)
+    if resolved != "label":
+        data = data.astype(np.float32, copy=False)
+    return Volume(data=data, grid=grid, unit=resolved)
+
+
+def volume_unit_note(path: str | Path) -> Unit | None:
+    """The unit a volume file states (its ``ITK_FileNotes``), None when it states none; reads
+    the header only."""
+    path = _check_suffix(Path(path), VOLUME_SUFFIXES, "volume")
+    return _unit_from_notes(_open_image(path))
+
+
+def identity_oriented(image: sitk.Image, path: Path) -> tuple[np.ndarray, VolumeGrid]:
+    """A 3-D SimpleITK image's array [z, y, x] and grid with identity direction: files whose
+    axes are a signed permutation of the LPS axes are flipped and transposed (every voxel keeps
+    its world position); oblique ones are refused (ValueError naming ``path``)."""
+    signed_perm = _signed_permutation(np.reshape(image.GetDirection(), (3, 3)), path)
     data, spacing, origin = _reorient_to_identity(
         sitk.GetArrayFromImage(image), image.GetSpacing(), image.GetOrigin(), signed_perm
     )
-    if resolved != "label":
-        data = data.astype(np.float32, copy=False)
-    return Volume(data=data, grid=VolumeGrid(data.shape, spacing, origin), unit=resolved)
+    return data, VolumeGrid(data.shape, spacing, origin)
 
 
 def _storage_array(volume: Volume, path: Path) -> np.ndarray:

@@ -19,11 +19,13 @@ from pathlib import Path
 
 import numpy as np
 
+from recon.attenuation import DEFAULT_EFFECTIVE_ENERGY_KEV
 from recon.distortion import Distortion
 from recon.fdk import CORNER_FRACTION
 from recon.geometry import View
 from recon.io import read_volume
 from recon.rtk_xml import read_rtk_geometry
+from recon.static_volume import StaticSource, StaticUnit, read_attenuation
 from recon.volume import Volume
 from registration.boneaxis import TRACK_ORDER, FrameResult, Settings, Tracker
 from registration.drr import SoftTissue, bone_models
@@ -89,16 +91,20 @@ def register_files(
     distortion: Distortion | None = None,
     settings: Settings | None = None,
     progress: Callable[[int, int], None] | None = None,
+    unit: StaticUnit | None = None,
+    effective_energy_kev: float = DEFAULT_EFFECTIVE_ENERGY_KEV,
 ) -> list[FrameResult]:
     """``cbct register``: track every bone through every frame and write the results.
 
     Every input is read and checked before the (long) registration starts; ``out`` must not
     exist and is written only at the end. ``distortion``: the panel's warp, the frames are
-    dewarped with it first (ValueError if it belongs to a panel of another size).
+    dewarped with it first (ValueError if it belongs to a panel of another size). The static
+    volume (a file or a DICOM CT series) may be in HU or 1/mm: ``unit`` where the file does
+    not say, HU converted at ``effective_energy_kev`` (recon.static_volume).
     """
     if out.exists():
         raise FileExistsError(f"{out} exists: choose a new output folder")
-    volume, labels = load_inputs(volume_path, labels_path)
+    volume, labels, source = load_inputs(volume_path, labels_path, unit, effective_energy_kev)
     frames = read_frames(frames_path, pixel_pitch_mm)
     view = fluoroscopy_view(geometry_path, frames)
     if distortion is not None:
@@ -109,7 +115,7 @@ def register_files(
     _check_in_view(view, models, start, f"{frames.header.source} with {geometry_path}")
     tracker = Tracker(view, frames.data, models, settings, SoftTissue.of(volume, labels))
     results = tracker.track(start, progress=progress)
-    _write(out, results, models, view, tracker, truth, distortion)
+    _write(out, results, models, view, tracker, truth, distortion, source)
     return results
 
 
@@ -133,7 +139,9 @@ def _check_in_view(view: View, models: dict, start: dict, where: str) -> None:
         )
 
 
-def _write(out, results, models, view, tracker: Tracker, truth, distortion) -> None:
+def _write(
+    out, results, models, view, tracker: Tracker, truth, distortion, source: StaticSource
+) -> None:
     out.mkdir(parents=True)
     if distortion is not None:
         distortion.write(out / "distortion.json")
@@ -158,6 +166,7 @@ def _write(out, results, models, view, tracker: Tracker, truth, distortion) -> N
         for name, b in r.bones.items()
     ]
     report = {
+        "static_volume": source.summary(),
         "settings": tracker.settings.model_dump(),
         "frame_blur_mm": tracker.frame_blur_mm,
         "dewarp": None if distortion is None else distortion.summary(),
@@ -177,12 +186,18 @@ def _write(out, results, models, view, tracker: Tracker, truth, distortion) -> N
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1), encoding="utf-8")
 
 
-def load_inputs(volume_path: Path, labels_path: Path) -> tuple[Volume, Volume]:
-    """The static scan's attenuation and labels, checked to share one grid."""
-    volume = read_volume(volume_path, unit="1/mm")
+def load_inputs(
+    volume_path: Path,
+    labels_path: Path,
+    unit: StaticUnit | None = None,
+    effective_energy_kev: float = DEFAULT_EFFECTIVE_ENERGY_KEV,
+) -> tuple[Volume, Volume, StaticSource]:
+    """The static scan as attenuation (1/mm; recon.static_volume.read_attenuation) and its
+    labels, checked to share one grid, and where the attenuation's unit came from."""
+    volume, source = read_attenuation(volume_path, unit, effective_energy_kev)
     labels = read_volume(labels_path, unit="label")
     if labels.grid != volume.grid:
         raise ValueError(
             f"{labels_path}: label grid {labels.grid} does not match the volume's {volume.grid}"
         )
-    return volume, labels
+    return volume, labels, source

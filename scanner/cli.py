@@ -27,6 +27,7 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
+from recon.attenuation import DEFAULT_EFFECTIVE_ENERGY_KEV
 from recon.config import load_config
 from recon.distortion import Distortion
 from registration.boneaxis import Settings
@@ -349,7 +350,10 @@ def assess(
 
 @app.command()
 def register(
-    volume: Annotated[Path, typer.Option(help="static scan, attenuation 1/mm (.nii.gz, .mha)")],
+    volume: Annotated[
+        Path,
+        typer.Option(help="static scan: .nii.gz, .nii, .mha, or a DICOM CT series folder"),
+    ],
     labels: Annotated[Path, typer.Option(help="its bone labels on the same grid")],
     frames: Annotated[Path, typer.Option(help="fluoroscopy: .mha stack, DICOM file or folder")],
     geometry: Annotated[Path, typer.Option(help="the fluoroscopy view, RTK geometry XML")],
@@ -368,10 +372,20 @@ def register(
     ] = None,
     settings: Annotated[Path, typer.Option(help="registration settings YAML")] = CONFIGS
     / "registration.yaml",
+    unit: Annotated[
+        str | None,
+        typer.Option(help="the static scan's unit where its file does not say: hu or 1/mm"),
+    ] = None,
+    effective_energy_kev: Annotated[
+        float, typer.Option(help="effective energy HU are converted to 1/mm at, keV")
+    ] = DEFAULT_EFFECTIVE_ENERGY_KEV,
 ) -> None:
     """Track femur, tibia-fibula and patella through a fluoroscopy sequence (BoneAxis-Reg)."""
     if out.exists():
         fail(f"{out} exists: choose a new output folder (nothing is overwritten)")
+    units = {"hu": "HU", "1/mm": "1/mm"}
+    if unit is not None and unit.lower() not in units:
+        fail(f"--unit {unit!r}: give hu (CT numbers) or 1/mm (linear attenuation)")
     try:
         chosen = load_config(settings, Settings)
         warp = None if distortion is None else Distortion.read(distortion)
@@ -397,6 +411,8 @@ def register(
                 distortion=warp,
                 settings=chosen,
                 progress=lambda done, total: bar.update(task, completed=done, total=total),
+                unit=None if unit is None else units[unit.lower()],
+                effective_energy_kev=effective_energy_kev,
             )
     except (ValueError, OSError) as err:
         fail(str(err))

@@ -72,6 +72,9 @@ from sim.scan import add_noise
 from sim.scan import photons_per_pixel as exposure_photons_per_pixel
 
 Realism = Literal["independent", "ideal"]
+Projector = Callable[[np.ndarray, VolumeGrid, Geometry], np.ndarray]
+"""Line integrals of a volume (values on a grid) through views, float32 (views, rows, cols):
+recon.project.forward_project, or a peer's (recon.rtk_peer.rtk_forward_project)."""
 
 FRAME_RATE_HZ = 15.0
 """Default frame rate of the fluoroscope, frames per second."""
@@ -445,12 +448,14 @@ def _build_scene(
 # -- rendering -------------------------------------------------------------------------------------
 
 
-def _render_bones(scene: _Scene, poses: dict[str, np.ndarray], view: View) -> np.ndarray:
+def _render_bones(
+    scene: _Scene, poses: dict[str, np.ndarray], view: View, projector: Projector
+) -> np.ndarray:
     """Sum over bones of each excess volume projected at its pose, (F, rows, cols)."""
     total = np.zeros((len(poses["femur"]), view.rows, view.cols), dtype=np.float32)
     for bone, volume in scene.excess.items():
         views = Geometry([move_view(view, np.linalg.inv(T)) for T in poses[bone]])
-        total += forward_project(volume.data, volume.grid, views)
+        total += projector(volume.data, volume.grid, views)
     return total
 
 
@@ -540,7 +545,11 @@ def _pull_back_kernel(soft, origin, spacing, A, b, slope, center, out):  # pragm
 
 
 def _render_soft(
-    scene: _Scene, poses: dict[str, np.ndarray], view: View, spec: KneePhantomSpec
+    scene: _Scene,
+    poses: dict[str, np.ndarray],
+    view: View,
+    spec: KneePhantomSpec,
+    projector: Projector,
 ) -> np.ndarray:
     """The deformed soft tissue projected frame by frame, (F, rows, cols)."""
     reference = knee_bone_poses(spec)
@@ -552,7 +561,7 @@ def _render_soft(
     }
     geometry = Geometry([view])
     frames = [
-        forward_project(
+        projector(
             _deformed_soft_tissue(scene, T_f, T_t, axes),
             scene.soft_out,
             geometry,
@@ -573,6 +582,7 @@ def simulate_fluoroscopy(
     frame_rate_hz: float = FRAME_RATE_HZ,
     seed: int = 0,
     status: Callable[[str], None] | None = None,
+    projector: Projector = forward_project,
 ) -> FluoroSequence:
     """Render a fluoroscopy sequence of the phantom moving through ``motion``.
 
@@ -587,6 +597,8 @@ def simulate_fluoroscopy(
         frame_rate_hz: frames per second, for ``times_s``.
         seed: noise seed.
         status: optional callback receiving a line per stage.
+        projector: renders the bones and the soft tissue (our Joseph projector; a peer's
+            renders frames the registration's own renderer did not make).
 
     Returns:
         The frames and their ground truth.
@@ -604,9 +616,9 @@ def simulate_fluoroscopy(
     scene = _build_scene(spec, motion, view, voxel_mm, say)
     n = len(motion.flexion_deg)
     say(f"projecting {len(scene.excess)} bones over {n} frames of {view.rows} x {view.cols}")
-    ideal = _render_bones(scene, motion.poses, view)
+    ideal = _render_bones(scene, motion.poses, view, projector)
     say(f"deforming and projecting the soft tissue on {scene.soft_out.size_xyz} voxels")
-    ideal += _render_soft(scene, motion.poses, view, spec)
+    ideal += _render_soft(scene, motion.poses, view, spec, projector)
     counts, photons = None, 0.0
     frames = ideal.astype(np.float32)
     if realism == "independent":

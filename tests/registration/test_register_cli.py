@@ -12,6 +12,7 @@ import yaml
 from typer.testing import CliRunner
 
 from calibration.distortion import DewarpGridSpec
+from recon.attenuation import mu_water_per_mm
 from recon.config import ConfigError, load_config
 from recon.geometry import DetectorSpec, Geometry, View
 from recon.io import write_projections, write_volume
@@ -149,6 +150,36 @@ def test_the_frames_header_places_the_panel(inputs, knee_case) -> None:
     assert "the knee of the static scan projects at pixel" in result.output
     assert "flipped.mha" in result.output and "Origin" in result.output
     assert not out.exists()
+
+
+def test_register_takes_a_ct_in_hu_written_elsewhere(inputs, knee_case) -> None:
+    """The static scan as another scanner's NIfTI: CT numbers, no unit note. ``--unit 1/mm``
+    is refused before any work; without ``--unit`` the values tell HU, the volume is converted
+    at 70 keV (where the phantom's attenuation was made) and registers as the 1/mm one does;
+    registration.json says so."""
+    folder, paths = inputs
+    volume = knee_case.volume
+    water = mu_water_per_mm(70.0)
+    hu = sitk.GetImageFromArray((1000.0 * (volume.data - water) / water).astype(np.float32))
+    hu.SetSpacing(volume.grid.spacing_mm)
+    hu.SetOrigin(volume.grid.origin_mm)
+    sitk.WriteImage(hu, str(folder / "ct_hu.nii.gz"))
+    wrong = folder / "wrong-unit"
+    given = {"volume": folder / "ct_hu.nii.gz"}
+    result = runner.invoke(app, [*_args(paths, wrong, **given), "--unit", "1/mm"])
+    assert result.exit_code == 2 and "CT numbers (HU), not attenuation in 1/mm" in result.output
+    assert "--unit hu" in result.output and not wrong.exists()
+    out = folder / "from-hu"
+    given |= {"truth": paths["truth"], "initial": paths["initial"]}
+    result = runner.invoke(app, _args(paths, out, **given))
+    assert result.exit_code == 0, result.output
+    assert json.loads((out / "metrics.json").read_text())["tre_mm_median"] < 1.0
+    static = json.loads((out / "registration.json").read_text())["static_volume"]
+    assert (static["unit"], static["unit_from"], static["effective_energy_kev"]) == (
+        "HU",
+        "values",
+        70.0,
+    )
 
 
 def test_the_settings_file_holds_the_defaults_and_bad_fields_are_named(tmp_path) -> None:
