@@ -40,7 +40,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, NonNegativeFloat, PositiveFloat, PositiveInt
-from scipy.ndimage import binary_dilation, gaussian_filter, maximum_filter1d, minimum_filter1d
+from scipy.ndimage import (
+    binary_dilation,
+    distance_transform_edt,
+    gaussian_filter,
+    maximum_filter1d,
+    minimum_filter1d,
+)
 from scipy.optimize import differential_evolution, minimize, minimize_scalar
 from scipy.spatial.transform import RigidTransform, Rotation
 from threadpoolctl import threadpool_limits
@@ -72,6 +78,11 @@ MIN_SILHOUETTE_PX = 20
 """A bone casting fewer pixels (at a pyramid level) than this is out of the field of view."""
 
 
+EDGE_ON_DEG = 45.0
+"""A face of the static scan's box cuts the leg with a step in the DRR where the rays graze it
+within this angle (registration.drr.cut_outlines); seen more face-on, what it leaves out
+thins out to nothing at its outline."""
+
 FRAME_BLUR_MM = np.arange(0.0, 3.01, 0.5)
 """Candidate blurs of the frames along each panel axis (Gaussian sigma, mm) for resolution
 matching."""
@@ -102,6 +113,13 @@ class Settings(BaseModel):
         "frame (the pair on the FRAME_BLUR_MM grid that maximises the bone's NCC)",
     )
     mask_dilation_mm: PositiveFloat = Field(4.0, description="2D mask dilation, mm")
+    truncation_band_mm: NonNegativeFloat = Field(
+        12.0,
+        description="the mask leaves out pixels this close (panel mm) to where the static "
+        "scan's box cuts the leg, projected at the current poses: the DRR ends there, the "
+        "frame goes on (the edge and its high-pass reach, 3 sigma, plus a few mm of motion); "
+        "0 keeps them",
+    )
     de_translation_mm: PositiveFloat = Field(12.0, description="DE box half-width, mm")
     de_long_axis_deg: PositiveFloat = Field(15.0, description="DE box about the long axis, deg")
     de_other_axes_deg: PositiveFloat = Field(8.0, description="DE box about the others, deg")
@@ -187,9 +205,9 @@ class _Objective:
     The soft tissue is deformed by the bones' estimates at the start; the bone carries its
     share of it (``carried``, rendered moved by the bone's motion from its start pose). The
     similarity is taken over the bone's silhouette at the start pose (and at the ``reach``
-    poses), dilated (the frame's 2D mask), in a crop of the view around it; the fixed rest of
-    the scene (``background``: its line integrals through a view) is rendered once, over the
-    crop and the reach of the high-pass filter around it.
+    poses), dilated, less the ``excluded`` pixels (the frame's 2D mask), in a crop of the
+    view around it; the fixed rest of the scene (``background``: its line integrals through a
+    view) is rendered once, over the crop and the reach of the high-pass filter around it.
     """
 
     def __init__(
@@ -205,6 +223,7 @@ class _Objective:
         coarse: bool,
         prior: Callable[[np.ndarray], float] | None = None,
         reach: tuple[np.ndarray, ...] = (),
+        excluded: np.ndarray | None = None,
     ) -> None:
         silhouette = bone.render(view, T0, coarse) > 0.02
         for T in reach:  # poses the search will visit far from T0: the mask covers them too
@@ -212,6 +231,10 @@ class _Objective:
         if silhouette.sum() < MIN_SILHOUETTE_PX:
             raise OutOfView(f"bone {bone.name} leaves the field of view")
         mask = binary_dilation(silhouette, iterations=max(1, dilation_px))
+        if excluded is not None:
+            mask &= ~excluded
+            if mask.sum() < MIN_SILHOUETTE_PX:
+                raise OutOfView(f"bone {bone.name} lies where the static scan's box cuts it")
         rows, cols = np.nonzero(mask)
         margin = math.ceil(3 * sigma_px)
         r0, r1 = max(0, rows.min() - margin), min(view.rows, rows.max() + margin + 1)
@@ -464,7 +487,37 @@ class Tracker:
             self._coarse(level, name),
             None if lone else self._prior(name, poses),
             reach,
+            self._truncation(level, name, poses, reach),
         )
+
+    def _truncation(
+        self, level: int, name: str, poses: dict[str, np.ndarray], reach: tuple[np.ndarray, ...]
+    ) -> np.ndarray | None:
+        """The pixels of ``level``'s view within ``truncation_band_mm`` of the static scan's
+        cuts (registration.drr.SoftTissue.cuts) seen within :data:`EDGE_ON_DEG` of edge-on,
+        carried by the femur and the tibia at ``poses`` (bone ``name``'s also at ``reach``);
+        None when nothing is cut nearby."""
+        band_mm = self.settings.truncation_band_mm
+        if self.soft_tissue is None or band_mm == 0:
+            return None
+        view = self._views[level]
+        pad = math.ceil(band_mm / view.pitch_u_mm)  # cuts just off the panel reach onto it
+        hit = np.zeros((view.rows + 2 * pad, view.cols + 2 * pad), dtype=bool)
+        for carrier, (points, normals) in self.soft_tissue.cuts.items():
+            for T in (poses[carrier], *(reach if carrier == name else ())):
+                moved = points @ T[:3, :3].T + T[:3, 3]
+                rays = moved - view.source_mm
+                facing = np.abs(np.sum(rays * (normals @ T[:3, :3].T), axis=1))
+                edge_on = facing < math.sin(math.radians(EDGE_ON_DEG)) * np.linalg.norm(
+                    rays, axis=1
+                )
+                u, v = np.rint(view.project(moved[edge_on]) + pad).T
+                on = (u >= 0) & (u < hit.shape[1]) & (v >= 0) & (v < hit.shape[0])
+                hit[v[on].astype(int), u[on].astype(int)] = True
+        if not hit.any():
+            return None
+        near = distance_transform_edt(~hit, sampling=(view.pitch_v_mm, view.pitch_u_mm))
+        return (near <= band_mm)[pad:-pad, pad:-pad]
 
     def _soft_tissue(
         self, name: str, poses: dict[str, np.ndarray]

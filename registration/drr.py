@@ -14,11 +14,11 @@ least twice the voxel size (:class:`RigidVolume`).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numba
 import numpy as np
-from scipy.ndimage import distance_transform_edt
+from scipy.ndimage import binary_erosion, distance_transform_edt
 
 from recon.geometry import Geometry, View
 from recon.project import JosephProjector
@@ -34,6 +34,9 @@ SOFT_TISSUE_BLEND_MM = 40.0
 SOFT_TISSUE_VOXEL_MM = 2.0
 """The soft tissue's lattice: the scan's voxels pooled to about this size, mm (its detail is
 the skin and fat outline, which the high-pass similarity sees at a few mm)."""
+CUT_LEVELS = (0.5, 1.5)
+"""Where the scan's box cuts the leg: on each face of the box, the outlines of what exceeds
+these fractions of the soft tissue's attenuation (the skin; the bones' cortex)."""
 
 
 def _pooled(
@@ -141,6 +144,31 @@ def _crop(
         tuple(b - a for a, b in zip(lo, hi, strict=True)), grid.spacing_mm, tuple(origin)
     )
     return box, sub
+
+
+def cut_outlines(volume: Volume, soft_level: float) -> tuple[np.ndarray, np.ndarray]:
+    """Where the box of ``volume`` cuts the leg: the voxels of each face layer on the outline
+    of what exceeds :data:`CUT_LEVELS` times ``soft_level`` there (including where it meets
+    the face's rim), world mm (N, 3), and their face's outward normal (N, 3). A DRR of the
+    scan ends at the box while the leg goes on: seen edge-on, a face's cut section projects
+    within its outline, a step in the line integrals; seen face-on, what lies beyond thins
+    out to nothing at the outline (no step)."""
+    data = volume.data
+    shape = data.shape  # (z, y, x)
+    points, normals = [], []
+    for axis in range(3):
+        for end, sign in ((0, -1.0), (shape[axis] - 1, 1.0)):
+            face = np.take(data, end, axis=axis)
+            for level in CUT_LEVELS:
+                inside = face > level * soft_level
+                outline = inside & ~binary_erosion(inside, border_value=0)
+                index = list(np.nonzero(outline))
+                index.insert(axis, np.full(len(index[0]), end))
+                points.append(np.column_stack(index[::-1]).astype(np.float64))  # x, y, z
+                normal = np.zeros(3)
+                normal[2 - axis] = sign
+                normals.append(np.tile(normal, (len(points[-1]), 1)))
+    return volume.grid.index_to_world(np.vstack(points)), np.vstack(normals)
 
 
 def soft_tissue_level(volume: Volume, labels: Volume) -> float:
@@ -266,7 +294,7 @@ class SoftTissue:
     with ``w`` a smoothstep over ``blend_mm`` across the joint plane (through the moved joint
     centre, normal to the mean of the moved femoral and tibial long axes). The flesh bends
     at the knee instead of two rigid halves crossing each other; what the scan's box leaves
-    out stays out.
+    out stays out, and where the box cuts the leg is known (``cuts``).
 
     Attributes:
         data: attenuation (1/mm) on ``grid``, the static scan's pose.
@@ -274,6 +302,9 @@ class SoftTissue:
         joint_mm: the joint centre at the static scan (world mm).
         axes: the femur's and the tibia's long axes at the static scan, pointing up (2, 3).
         blend_mm: width of the hand-over from the tibia to the femur, mm.
+        cuts: the scan's :func:`cut_outlines` (points, world mm, and their faces' normals, at
+            the static scan) by the bone that carries them ("femur", "tibia_fibula": the
+            larger share of the motion).
     """
 
     data: np.ndarray
@@ -281,6 +312,7 @@ class SoftTissue:
     joint_mm: np.ndarray
     axes: np.ndarray
     blend_mm: float = SOFT_TISSUE_BLEND_MM
+    cuts: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
 
     @classmethod
     def of(
@@ -306,14 +338,23 @@ class SoftTissue:
             xyz = np.column_stack((axes_mm[0][kx], axes_mm[1][ky], axes_mm[2][kz]))
             sample = xyz[:: max(1, len(xyz) // 20000)] - xyz.mean(axis=0)
             _, _, vt = np.linalg.svd(sample, full_matrices=False)
-            axes.append(vt[0] if vt[0, 2] > 0 else -vt[0])
+            # the principal axis nearest the standing leg's (world z): a bone the scan's box
+            # cuts short can be wider than the part of it that is left is tall
+            axis = vt[int(np.argmax(np.abs(vt[:, 2])))]
+            axes.append(axis if axis[2] > 0 else -axis)
             ends.append(xyz[:, 2].min() if name == "femur" else xyz[:, 2].max())
             points.append(xyz)
         joint_z = 0.5 * sum(ends)
         near = np.vstack(points)
         near = near[np.abs(near[:, 2] - joint_z) < 0.5 * blend_mm]
         joint = np.array([*near[:, :2].mean(axis=0), joint_z])
-        return cls(data, grid, joint, np.array(axes), blend_mm)
+        normal = axes[0] + axes[1]
+        cuts, faces = cut_outlines(volume, soft)
+        femoral = (cuts - joint) @ normal >= 0.0  # the femur's share >= 1/2
+        carried = {
+            b: (cuts[k], faces[k]) for b, k in (("femur", femoral), ("tibia_fibula", ~femoral))
+        }
+        return cls(data, grid, joint, np.array(axes), blend_mm, carried)
 
     def deformed(
         self, T_femur: np.ndarray, T_tibia: np.ndarray, view: View | None = None
