@@ -68,7 +68,7 @@ def table(header: Iterable[str], rows: Iterable[Iterable[object]]) -> str:
 
 # -- one table per benchmark --------------------------------------------------------------------
 
-REGIMES = ("matched", "independent")
+REGIMES = ("matched", "independent", "cross_renderer")
 BONES = ("femur", "tibia_fibula", "patella")
 
 

@@ -7,6 +7,17 @@ weighted by the ray density there, ``V_voxel / (w^2 cos(theta) * pixel area)`` (
 view's normalised depth, ``theta`` the ray's angle to the detector normal). The two discretise
 the same continuous X-ray transform and its adjoint, so ``<A x, y> = <x, A^T y>`` holds to the
 discretisation error of interpolation (second order in voxel and pixel size for smooth x, y).
+
+Boundary convention (DESIGN.md, "Data made elsewhere"): voxels are cubes. Along a ray's main
+axis every slice's sample stands for the whole voxel's thickness, so the integral reaches half
+a voxel beyond the outer voxel centres; across it, the bilinear taps fall off into zeros
+outside the volume, so the content fades out over the voxel beyond the outer centres. This is
+exactly RTK's Joseph projector (rtk::JosephForwardProjectionImageFilter) run on the volume
+padded with two layers of zero voxels (tests/recon/test_project.py, float precision). RTK on
+the unpadded volume stops at the outer voxel centres, with interpolation clamped at the
+border: a ray that crosses the volume loses half a step of each end slice's value (a uniform
+volume of 1/mm reads one voxel's length less), and the volume's outline moves in by about half
+a voxel. The two agree to float precision when the outer layers are zero.
 """
 
 from __future__ import annotations

@@ -127,6 +127,50 @@ def test_matches_rtk_joseph_projector():
     assert rel_rmse < 1e-5
 
 
+def test_at_the_boundary_ours_is_rtk_on_the_volume_padded_with_zeros():
+    """The boundary convention (recon/project.py): voxels are cubes. On a volume whose outer
+    voxels are not zero, ours equals RTK's Joseph projector run on the volume padded with two
+    layers of zero voxels, to float32 rounding; RTK on the volume as it is stops at the outer
+    voxel centres, so through a uniform volume every ray that enters and leaves through the
+    two faces across its main axis reads exactly one step along that axis less (the step:
+    one voxel's length along the ray, ``h |d| / |d_k|``)."""
+    geometry = circular_orbit(5, 600, 1000, PANEL, isocenter_mm=ISO)
+    volume = (1.0 + np.abs(smooth_random(GRID.shape, 2, seed=4))).astype(np.float32)
+    ours = forward_project(volume, GRID, geometry)
+    pad = 2
+    padded_grid = VolumeGrid(
+        tuple(n + 2 * pad for n in GRID.shape),
+        GRID.spacing_mm,
+        tuple(np.asarray(GRID.origin_mm) - pad * np.asarray(GRID.spacing_mm)),
+    )
+    padded = rtk_forward_project(np.pad(volume, pad), padded_grid, geometry)
+    assert np.abs(ours - padded).max() < 1e-5 * ours.max()
+
+    mu = 0.02  # 1/mm
+    uniform = np.full(GRID.shape, mu, dtype=np.float32)
+    lost = forward_project(uniform, GRID, geometry) - rtk_forward_project(uniform, GRID, geometry)
+    lo = np.asarray(GRID.origin_mm)  # the outer voxel centres
+    hi = lo + (np.asarray(GRID.size_xyz) - 1) * np.asarray(GRID.spacing_mm)
+    h = GRID.spacing_mm[0]
+    crossing = 0
+    for i, view in enumerate(geometry):
+        u, v = np.meshgrid(np.arange(PANEL.cols), np.arange(PANEL.rows))
+        rays = view.pixel_to_world(u, v) - view.source_mm
+        k = np.argmax(np.abs(rays), axis=-1)
+        d_k = np.take_along_axis(rays, k[..., None], axis=-1)[..., 0]
+        step = h * np.linalg.norm(rays, axis=-1) / np.abs(d_k)
+        # where the ray meets the planes of the outer centres across k: a voxel inside them?
+        inside = np.ones(k.shape, dtype=bool)
+        for plane in (lo, hi):
+            hit = view.source_mm + ((plane[k] - view.source_mm[k]) / d_k)[..., None] * rays
+            within = (hit >= lo + h) & (hit <= hi - h)
+            np.put_along_axis(within, k[..., None], True, axis=-1)
+            inside &= np.all(within, axis=-1)
+        crossing += inside.sum()
+        np.testing.assert_allclose(lost[i][inside], mu * step[inside], rtol=1e-4)
+    assert crossing > 0.3 * lost.size
+
+
 def test_bad_input_is_refused_before_projecting():
     geometry = circular_orbit(4, 600, 1000, PANEL, isocenter_mm=ISO)
     with pytest.raises(ValueError, match="does not match grid shape"):
