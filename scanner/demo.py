@@ -31,6 +31,7 @@ import yaml
 
 from calibration.calibrate import calibrate
 from calibration.distortion import DewarpGridSpec
+from calibration.phantom import BBPhantomSpec
 from recon.config import ScanProtocol, load_config, load_protocol
 from recon.fdk import Progress
 from recon.io import read_projections, write_projections
@@ -51,7 +52,6 @@ from scanner.study import Study, StudyError
 from sim.backend import SimBackendSpec
 from sim.fluoro import lateral_view, save_sequence, simulate_dewarp_grid, simulate_fluoroscopy
 from sim.motion import flexion_extension
-from sim.phantoms.bb import BBPhantomSpec
 from sim.phantoms.knee import KneePhantomSpec
 
 FULL = {

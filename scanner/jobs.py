@@ -17,6 +17,7 @@ from assessment.report import write_report
 from assessment.series import bone_mesh, export_series, record_series
 from calibration.calibrate import Calibration, calibrate, corrected_geometry
 from calibration.distortion import DewarpGridSpec, fit_distortion
+from calibration.phantom import BBPhantomSpec
 from recon.config import load_config, load_protocol
 from recon.distortion import Distortion
 from recon.fdk import FDKResult, Progress, check_axis_on_panel, default_grid, fdk_reconstruct
@@ -29,7 +30,7 @@ from registration.frames import read_frames
 from registration.poses import BonePose, poses_by_frame, read_poses
 from registration.track import fluoroscopy_view
 from scanner.study import sha256, software_version
-from sim.phantoms.bb import BBPhantomSpec, project_bb
+from sim.phantoms.bb import project_bb
 from sim.phantoms.knee import KneePhantomSpec
 from sim.scan import add_noise, photons_per_pixel, simulate_knee_scan
 from sim.vibration import VibrationSpec, vibrate
