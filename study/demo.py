@@ -36,10 +36,15 @@ from recon.config import ScanProtocol, load_config, load_protocol
 from recon.fdk import Progress
 from recon.io import read_projections, write_projections
 from registration.boneaxis import Settings
-from scanner.jobs import Status
-from scanner.recording import merge_recordings
 from scanner.session import SessionInputs, read_inputs, scan_stage
-from scanner.stages import (
+from scanner.study import Study, StudyError
+from sim.backend import SimBackendSpec
+from sim.fluoro import lateral_view, save_sequence, simulate_dewarp_grid, simulate_fluoroscopy
+from sim.motion import flexion_extension
+from sim.phantoms.knee import KneePhantomSpec
+from study.jobs import Status
+from study.recording import merge_recordings
+from study.stages import (
     Say,
     assessment_stage,
     derived_folder,
@@ -48,11 +53,6 @@ from scanner.stages import (
     run_stage,
     segmentation_stage,
 )
-from scanner.study import Study, StudyError
-from sim.backend import SimBackendSpec
-from sim.fluoro import lateral_view, save_sequence, simulate_dewarp_grid, simulate_fluoroscopy
-from sim.motion import flexion_extension
-from sim.phantoms.knee import KneePhantomSpec
 
 FULL = {
     "views": 180,

@@ -15,10 +15,10 @@ from typer.testing import CliRunner
 
 from recon.io import read_volume
 from registration.labels import LABELS
-from scanner.cli import app
-from scanner.demo import STAGES
 from scanner.study import Study
 from sim.phantoms.knee import KneePhantomSpec, attenuation_per_mm, rasterize_knee
+from study.cli import app
+from study.demo import STAGES
 
 runner = CliRunner()
 
