@@ -36,13 +36,13 @@ from recon.config import ScanProtocol, load_config, load_protocol
 from recon.fdk import Progress
 from recon.io import read_projections, write_projections
 from registration.boneaxis import Settings
+from scanner.scan_files import Status
 from scanner.session import SessionInputs, read_inputs, scan_stage
 from scanner.study import Study, StudyError
 from sim.backend import SimBackendSpec
 from sim.fluoro import lateral_view, save_sequence, simulate_dewarp_grid, simulate_fluoroscopy
 from sim.motion import flexion_extension
 from sim.phantoms.knee import KneePhantomSpec
-from study.jobs import Status
 from study.recording import merge_recordings
 from study.stages import (
     Say,

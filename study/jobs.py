@@ -7,7 +7,6 @@ outputs go to new files or to a folder that does not exist yet (or is empty).
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from pathlib import Path
 
 from assessment.knee import BONE_LABELS, KneeAssessment, assess_knee
@@ -27,8 +26,6 @@ from registration.frames import read_frames
 from registration.poses import BonePose, poses_by_frame, read_poses
 from registration.track import fluoroscopy_view
 from scanner.scan_files import new_folder
-
-Status = Callable[[str], None]
 
 
 def reconstruct_files(
