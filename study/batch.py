@@ -1,6 +1,6 @@
 """``cbct batch``: the derived stages of many studies as tasks on dask.distributed.
 
-A task runs one study's stages with the same functions as ``cbct demo`` (``scanner.stages``):
+A task runs one study's stages with the same functions as ``cbct demo`` (``study.stages``):
 
 ========  ===============================  =====================================
 task      stages                           reads (checked against study.json)

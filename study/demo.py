@@ -14,7 +14,7 @@
 9. merge every stage's rerun recording into ``recording.rrd``.
 
 Stages 1-4 are the simulated acquisitions (:func:`acquire`, also used to make cohorts), 5-8
-the derived stages of ``scanner.stages`` that ``cbct batch`` runs too.
+the derived stages of ``study.stages`` that ``cbct batch`` runs too.
 
 Each stage is marked in ``study.json`` when complete, with its files' checksums; a stage
 writes into ``<stage>.partial/`` and is renamed when done, so ``--resume`` redoes only what
