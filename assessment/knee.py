@@ -22,9 +22,8 @@ from assessment.anatomy import (
 from assessment.kinematics import knee_kinematics
 from assessment.results import MLD_FLAG_MM, KneeKinematics
 from recon.volume import Volume
-from registration.labels import BONE_LABELS
+from registration.labels import BONE_LABELS, LABELS
 from registration.poses import BonePose, poses_by_frame
-from sim.phantoms.knee import KNEE_LABELS
 
 INSERT_LABEL = 6
 """Label of a TKA polyethylene insert; with ``tka`` the TP plane is fitted to its top."""
@@ -93,7 +92,7 @@ def assess_knee(
     tibia_name = _tibia_name(poses)
     frames, stacks = poses_by_frame(poses, ("femur", tibia_name))
     anatomy_labels = mirror_x(labels) if side == "left" else labels
-    femur = femur_anatomy(anatomy_labels, KNEE_LABELS["femur"])
+    femur = femur_anatomy(anatomy_labels, LABELS["femur"])
     if tka:
         if not np.any(anatomy_labels.data == INSERT_LABEL):
             raise ValueError(
@@ -101,7 +100,7 @@ def assess_knee(
             )
         tibia = tibia_anatomy(anatomy_labels, INSERT_LABEL, plateau_offset_mm)
     else:
-        tibia = tibia_anatomy(anatomy_labels, KNEE_LABELS["tibia"], plateau_offset_mm)
+        tibia = tibia_anatomy(anatomy_labels, LABELS["tibia"], plateau_offset_mm)
     kinematics = knee_kinematics(
         femur, tibia, frames, stacks["femur"], stacks[tibia_name], side, flag_mm
     )

@@ -36,11 +36,12 @@ sys.path.insert(0, str(ROOT))
 
 from calibration.calibrate import calibrate_balls, find_balls  # noqa: E402
 from calibration.fit import dlt, project  # noqa: E402
+from calibration.phantom import BBPhantomSpec  # noqa: E402
 from recon.config import load_config, load_protocol  # noqa: E402
 from recon.fdk import fdk_reconstruct  # noqa: E402
 from recon.geometry import Geometry, View  # noqa: E402
 from recon.volume import VolumeGrid  # noqa: E402
-from sim.phantoms.bb import BBPhantomSpec, project_bb  # noqa: E402
+from sim.phantoms.bb import project_bb  # noqa: E402
 from sim.phantoms.knee import KneePhantomSpec, rasterize_knee  # noqa: E402
 from sim.scan import simulate_knee_scan  # noqa: E402
 from sim.vibration import VibrationSpec, vibrate  # noqa: E402

@@ -1,8 +1,8 @@
 """Benchmark: ``cbct batch all`` over a small simulated cohort on 1 and 2 local workers.
 
-Makes ``--studies`` studies once (the demo's acquisitions at ``scanner.batch.TINY``, seeds
+Makes ``--studies`` studies once (the demo's acquisitions at ``study.batch.TINY``, seeds
 1..N, on a 2-worker LocalCluster), then for W = 1 and 2 hard-links fresh copies and times
-``scanner.batch.run(..., "all")`` on a LocalCluster of W single-threaded worker processes (the
+``study.batch.run(..., "all")`` on a LocalCluster of W single-threaded worker processes (the
 same code ``cbct batch`` runs). Before the clock starts each cluster is up (``cluster_start_s``)
 and each worker has run every task once on its own copy of a study (``warm_s``: imports and
 numba's cached kernels, a start-up a long cohort amortises). Scaling efficiency 1 -> 2
@@ -45,8 +45,8 @@ sys.path.insert(0, str(ROOT))
 from distributed import Client  # noqa: E402
 
 from registration.boneaxis import Settings  # noqa: E402
-from scanner import batch  # noqa: E402
 from scanner.cli import CONFIGS  # noqa: E402
+from study import batch  # noqa: E402
 
 LIGHT = Settings(
     pyramid_mm=(2.4,),
@@ -237,7 +237,7 @@ def main() -> None:
         root = args.keep or Path(tmp)
         acquired = root / "acquired"
         acquired.mkdir(parents=True)
-        say(f"acquiring {args.studies} studies at scanner.batch.TINY on 2 workers")
+        say(f"acquiring {args.studies} studies at study.batch.TINY on 2 workers")
         acquisition_s = make_cohort(acquired, args.studies)
         runs = {}
         for workers in (1, 2):

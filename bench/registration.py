@@ -87,7 +87,7 @@ START_PERTURBATION = (4.0, 4.0)
 """First-frame start: the truth moved by up to this many mm and degrees per axis."""
 CBCT_GRID = VolumeGrid.centered((175, 175, 400), 0.8, (0.0, 0.0, 520.0))
 """The registration's CBCT volume: the leg's whole cross-section (140 x 140 mm) and 320 mm of it
-from 120 mm below the joint line, 0.8 mm voxels, like the demo's (scanner.stages.RECON_EXTENT_MM).
+from 120 mm below the joint line, 0.8 mm voxels, like the demo's (study.stages.RECON_EXTENT_MM).
 The soft tissue ends where this box does: the former 84 x 100 x 264 mm box at 0.6 mm cut the
 leg and left its faces in the DRRs (one 30-frame 90-degree independent sequence: TRE mean
 1.68 -> 1.23 mm, RSR 68.9 -> 76.7 % with the whole leg)."""

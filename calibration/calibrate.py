@@ -28,10 +28,10 @@ import numpy as np
 from calibration.detect import detect_balls
 from calibration.fit import Prior, fit_phantom_pose, fit_view
 from calibration.identify import identify
+from calibration.phantom import BBPhantomSpec
 from recon.config import ScanProtocol
 from recon.geometry import Geometry
 from recon.rtk_xml import PanelHeader, read_rtk_geometry, write_rtk_geometry
-from sim.phantoms.bb import BBPhantomSpec
 
 MIN_BALLS = 8
 """Fewest identified balls a view needs to be calibrated (9 parameters, 2 equations a ball)."""

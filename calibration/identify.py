@@ -9,7 +9,7 @@
    steps, so a missing ball shows as a double step.
 3. Offset: the sizes of the ordered balls, placed at their relative steps, are slid along the
    code; the offset where every size matches, and no other offset does, names every ball
-   (the code's windows of :data:`~sim.phantoms.bb.CODE_WINDOW` balls are unique).
+   (the code's windows of :data:`~calibration.phantom.CODE_WINDOW` balls are unique).
 
 Views where this is ambiguous identify nothing rather than guess.
 """
@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from calibration.detect import Detections
-from sim.phantoms.bb import CODE_WINDOW
+from calibration.phantom import CODE_WINDOW
 
 MAX_ELONGATION = 1.6
 """Blobs more elongated than this are overlapping balls."""

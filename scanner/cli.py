@@ -1,45 +1,28 @@
-"""The operator console ``cbct``.
+"""The operator console ``cbct``: its acquisition commands and what every command shares.
 
-Commands today: ``plan`` (checked, timed robot motion for a protocol), ``scan`` (a scan on the
-simulated or the UR backend into a study folder, resumable), ``simulate-scan`` (scan
-the digital knee phantom with a protocol), ``recon`` (weighted FDK of RTK-format inputs),
-``calibrate-fluoro`` (the fluoroscopy panel's distortion from a dewarp grid's image),
-``register`` (track the bones through a fluoroscopy sequence), ``assess`` (knee kinematics
-report from bone poses), ``demo`` (the chain that exists, on the
-simulated scanner) and ``batch`` (the derived stages of many studies on dask.distributed, and a
-cohort summary). Every
-command checks its inputs before long work starts, never overwrites an existing output, and
-shows progress on long work.
+Here: ``plan`` (checked, timed robot motion for a protocol), ``scan`` (a scan on the simulated
+or the UR backend into a study folder, resumable) and ``simulate-scan`` (scan a digital
+phantom with a protocol). The study pipeline's commands join this app in study.cli, which is
+the console's entry point. Every command checks its inputs before long work starts, never
+overwrites an existing output, and shows progress on long work.
 """
 
 from __future__ import annotations
 
-import json
-import os
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated
 
-import numpy as np
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
-from recon.attenuation import DEFAULT_EFFECTIVE_ENERGY_KEV
-from recon.config import load_config
-from recon.distortion import Distortion
-from registration.boneaxis import Settings
-from registration.track import register_files
-from scanner import batch as batch_job
-from scanner import demo as demo_job
-from scanner import jobs
+from scanner import scan_files
 from scanner.backends import load_backend_spec
 from scanner.scan import Progress as ScanProgress
 from scanner.scan import ScanFault
 from scanner.session import read_inputs, run_session
-from scanner.study import StudyError
 from sim.vibration import VibrationSpec
 
 app = typer.Typer(
@@ -53,7 +36,8 @@ console = Console(stderr=True)
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 
 
-def _progress() -> Progress:
+def views_progress() -> Progress:
+    """A progress bar of views done, with elapsed and remaining time, on the console."""
     return Progress(
         TextColumn("{task.description}"),
         BarColumn(),
@@ -65,7 +49,7 @@ def _progress() -> Progress:
     )
 
 
-def _views_done(bar: Progress, description: str) -> Callable[[int, int], None]:
+def views_done(bar: Progress, description: str) -> Callable[[int, int], None]:
     """A progress callback that shows its bar from the first report on."""
     task = None
 
@@ -92,9 +76,9 @@ def plan(
 ) -> None:
     """Plan a protocol on the scanner: IK, collision and limit checks, timing, a recording."""
     try:
-        with _progress() as bar:
-            result = jobs.plan_to_study(
-                protocol, out, scanner, progress=_views_done(bar, "inverse kinematics")
+        with views_progress() as bar:
+            result = scan_files.plan_to_study(
+                protocol, out, scanner, progress=views_done(bar, "inverse kinematics")
             )
     except (ValueError, OSError) as err:
         fail(str(err))
@@ -174,7 +158,7 @@ def simulate_scan(
         except ValueError as err:
             fail(str(err))
     try:
-        written = jobs.simulate_to_folder(
+        written = scan_files.simulate_to_folder(
             protocol,
             out,
             phantom,
@@ -188,243 +172,6 @@ def simulate_scan(
     except (ValueError, OSError) as err:
         fail(str(err))
     console.print(f"[green]wrote[/] {len(written)} files to {out}")
-
-
-@app.command()
-def calibrate(
-    projections: Annotated[Path, typer.Option(help="BB-phantom projection stack .mha")],
-    geometry: Annotated[Path, typer.Option(help="the scan's planned geometry (RTK XML)")],
-    protocol: Annotated[Path, typer.Option(help="the protocol that acquired it")],
-    study: Annotated[Path, typer.Option(help="study folder; writes STUDY/calibration")],
-    phantom_config: Annotated[Path, typer.Option(help="BB phantom YAML")] = CONFIGS
-    / "phantoms"
-    / "bb_helix.yaml",
-) -> None:
-    """Per-view geometry from a steel-ball phantom scan: the vibration correction later scans of
-    the same protocol and plan reconstruct with (cbct recon --calibration)."""
-    try:
-        with _progress() as bar:
-            result = jobs.calibrate_to_study(
-                projections,
-                geometry,
-                protocol,
-                phantom_config,
-                study,
-                progress=_views_done(bar, "finding balls"),
-            )
-    except (ValueError, OSError) as err:
-        fail(str(err))
-    summary = result.summary()
-    used = [v for v in result.views if v.status == "calibrated"]
-    deviation = np.array([v.source_deviation_mm for v in used])
-    console.print(
-        f"[green]wrote[/] {study / 'calibration'}: {summary['calibrated_views']} of "
-        f"{summary['views']} views calibrated, reprojection RMS median "
-        f"{summary['reprojection_rms_px_median']:.3f} px (max "
-        f"{summary['reprojection_rms_px_max']:.3f} px, worst views "
-        f"{summary['worst_views']}), source deviation from the plan median "
-        f"{np.median(deviation):.2f} mm",
-        soft_wrap=True,
-        highlight=False,
-    )
-    if summary["uncalibrated_views"]:
-        console.print(
-            f"[yellow]views kept at their plan (too few balls):[/] {summary['uncalibrated_views']}",
-            soft_wrap=True,
-        )
-
-
-@app.command("calibrate-fluoro")
-def calibrate_fluoro(
-    grid: Annotated[Path, typer.Option(help="one exposure of the dewarp grid (.mha, DICOM)")],
-    geometry: Annotated[Path, typer.Option(help="the fluoroscopy view, RTK geometry XML")],
-    out: Annotated[Path, typer.Option(help="new distortion file (.json)")],
-    grid_config: Annotated[Path, typer.Option(help="dewarp grid YAML")] = CONFIGS
-    / "phantoms"
-    / "dewarp_grid.yaml",
-    degree: Annotated[int, typer.Option(help="degree of the warp polynomial (1-9)")] = 5,
-    pixel_pitch_mm: Annotated[
-        float | None, typer.Option(help="panel pitch for DICOM images without one, mm")
-    ] = None,
-) -> None:
-    """The fluoroscopy panel's distortion from an image of the dewarp grid alone: the warp
-    ``cbct register --distortion`` removes from every frame."""
-    if out.exists():
-        fail(f"{out} exists: choose a new file (nothing is overwritten)")
-    try:
-        distortion = jobs.fit_fluoro_distortion(grid, geometry, grid_config, degree, pixel_pitch_mm)
-        distortion.write(out)
-    except (ValueError, OSError) as err:
-        fail(str(err))
-    console.print(
-        f"[green]wrote[/] {out}: {distortion.balls} balls, residual RMS "
-        f"{distortion.rms_mm:.3f} mm (max {distortion.max_mm:.3f}), largest displacement "
-        f"{distortion.max_displacement_mm:.2f} mm",
-        soft_wrap=True,
-        highlight=False,
-    )
-
-
-@app.command()
-def recon(
-    projections: Annotated[Path, typer.Option(help="projection stack .mha (line integrals)")],
-    geometry: Annotated[Path, typer.Option(help="RTK geometry XML")],
-    out: Annotated[Path, typer.Option(help="output volume .nii.gz, .nii, .mha or .mhd")],
-    size: Annotated[tuple[int, int, int] | None, typer.Option(help="voxels along x y z")] = None,
-    spacing_mm: Annotated[float | None, typer.Option(help="voxel size, mm")] = None,
-    origin_mm: Annotated[
-        tuple[float, float, float] | None,
-        typer.Option(help="world x y z of the centre of the first voxel, mm"),
-    ] = None,
-    filter: Annotated[str, typer.Option(help="ram-lak, shepp-logan, cosine or hann")] = "hann",
-    min_coverage_deg: Annotated[
-        float, typer.Option(help="mask voxels seen over less of the orbit, degrees")
-    ] = 170.0,
-    preview: Annotated[Path | None, typer.Option(help="also write orthogonal slices PNG")] = None,
-    calibration: Annotated[
-        Path | None, typer.Option(help="STUDY/calibration of the same protocol and plan")
-    ] = None,
-    protocol: Annotated[
-        Path | None, typer.Option(help="the scan's protocol (needed with --calibration)")
-    ] = None,
-) -> None:
-    """Reconstruct RTK-format projections with weighted FDK."""
-    if out.exists():
-        fail(f"{out} exists: choose a new output name (nothing is overwritten)")
-    try:
-        with _progress() as bar:
-            start = time.perf_counter()
-            result = jobs.reconstruct_files(
-                projections,
-                geometry,
-                out,
-                size_xyz=size,
-                spacing_mm=spacing_mm,
-                origin_mm=origin_mm,
-                window=filter,
-                min_coverage_deg=min_coverage_deg,
-                progress=_views_done(bar, "weighted FDK"),
-                preview=preview,
-                calibration=calibration,
-                protocol_path=protocol,
-            )
-    except (ValueError, OSError) as err:
-        fail(str(err))
-    grid = result.volume.grid
-    console.print(
-        f"[green]wrote[/] {out}: {grid.size_xyz} voxels of {grid.spacing_mm[0]:.3g} mm in "
-        f"{time.perf_counter() - start:.1f} s; {100 * (1 - result.mask.mean()):.1f} % of voxels "
-        f"masked (seen over < {min_coverage_deg:g} deg)",
-        soft_wrap=True,
-        highlight=False,
-    )
-
-
-@app.command()
-def assess(
-    poses: Annotated[Path, typer.Option(help="poses.csv (frame, bone, 4x4, ...)")],
-    labels: Annotated[Path, typer.Option(help="label volume of the static scan")],
-    out: Annotated[Path, typer.Option(help="new output folder")],
-    side: Annotated[str, typer.Option(help="right or left knee")] = "right",
-    tka: Annotated[bool, typer.Option(help="fit the TP plane to the polyethylene insert")] = False,
-    plateau_offset_mm: Annotated[
-        float, typer.Option(help="shift of the TP plane along its normal, mm")
-    ] = 0.0,
-) -> None:
-    """Knee kinematics, TP-condyle distances and flags: report.html, metrics.csv, plots, 4D."""
-    try:
-        result = jobs.assess_files(
-            poses, labels, out, side, tka=tka, plateau_offset_mm=plateau_offset_mm
-        )
-    except (ValueError, OSError) as err:
-        fail(str(err))
-    kin = result.kinematics
-    console.print(
-        f"[green]wrote[/] {out / 'report.html'}: {len(kin.frames)} frames, flexion "
-        f"{kin.flexion_deg.min():.0f}..{kin.flexion_deg.max():.0f} deg, max |MLD| "
-        f"{abs(kin.mld_mm).max():.2f} mm, {int(kin.flagged.sum())} frame(s) flagged",
-        soft_wrap=True,
-        highlight=False,
-    )
-
-
-@app.command()
-def register(
-    volume: Annotated[
-        Path,
-        typer.Option(help="static scan: .nii.gz, .nii, .mha, or a DICOM CT series folder"),
-    ],
-    labels: Annotated[Path, typer.Option(help="its bone labels on the same grid")],
-    frames: Annotated[Path, typer.Option(help="fluoroscopy: .mha stack, DICOM file or folder")],
-    geometry: Annotated[Path, typer.Option(help="the fluoroscopy view, RTK geometry XML")],
-    out: Annotated[Path, typer.Option(help="new output folder")],
-    truth: Annotated[
-        Path | None, typer.Option(help="true poses.csv: also write metrics.json")
-    ] = None,
-    initial: Annotated[
-        Path | None, typer.Option(help="poses.csv whose first frame starts the search")
-    ] = None,
-    pixel_pitch_mm: Annotated[
-        float | None, typer.Option(help="panel pitch for DICOM frames without one, mm")
-    ] = None,
-    distortion: Annotated[
-        Path | None, typer.Option(help="the panel's distortion (cbct calibrate-fluoro)")
-    ] = None,
-    settings: Annotated[Path, typer.Option(help="registration settings YAML")] = CONFIGS
-    / "registration.yaml",
-    unit: Annotated[
-        str | None,
-        typer.Option(help="the static scan's unit where its file does not say: hu or 1/mm"),
-    ] = None,
-    effective_energy_kev: Annotated[
-        float, typer.Option(help="effective energy HU are converted to 1/mm at, keV")
-    ] = DEFAULT_EFFECTIVE_ENERGY_KEV,
-) -> None:
-    """Track femur, tibia-fibula and patella through a fluoroscopy sequence (BoneAxis-Reg)."""
-    if out.exists():
-        fail(f"{out} exists: choose a new output folder (nothing is overwritten)")
-    units = {"hu": "HU", "1/mm": "1/mm"}
-    if unit is not None and unit.lower() not in units:
-        fail(f"--unit {unit!r}: give hu (CT numbers) or 1/mm (linear attenuation)")
-    try:
-        chosen = load_config(settings, Settings)
-        warp = None if distortion is None else Distortion.read(distortion)
-        bar = Progress(
-            TextColumn("BoneAxis-Reg"),
-            BarColumn(),
-            TextColumn("{task.completed}/{task.total} frames"),
-            TimeElapsedColumn(),
-            TimeRemainingColumn(),
-            console=console,
-        )
-        with bar:
-            task = bar.add_task("frames", total=None)
-            results = register_files(
-                volume,
-                labels,
-                frames,
-                geometry,
-                out,
-                truth_path=truth,
-                initial_path=initial,
-                pixel_pitch_mm=pixel_pitch_mm,
-                distortion=warp,
-                settings=chosen,
-                progress=lambda done, total: bar.update(task, completed=done, total=total),
-                unit=None if unit is None else units[unit.lower()],
-                effective_energy_kev=effective_energy_kev,
-            )
-    except (ValueError, OSError) as err:
-        fail(str(err))
-    failed = sum(b.failed for r in results for b in r.bones.values())
-    line = f"[green]wrote[/] {out / 'poses.csv'}: {len(results)} frames, {failed} flagged"
-    if truth is not None:
-        metrics = json.loads((out / "metrics.json").read_text(encoding="utf-8"))
-        line += (
-            f"; TRE mean {metrics['tre_mm']:.2f} mm (median {metrics['tre_mm_median']:.2f}), "
-            f"RSR {metrics['rsr_pct']:.1f} %"
-        )
-    console.print(line, soft_wrap=True, highlight=False)
 
 
 @app.command()
@@ -517,163 +264,3 @@ def scan(
         soft_wrap=True,
         highlight=False,
     )
-
-
-@app.command()
-def demo(
-    out: Annotated[Path, typer.Option(help="output folder; must not exist or be empty")] = Path(
-        "demo-output"
-    ),
-    quick: Annotated[bool, typer.Option(help="smaller grids, fewer views and frames")] = False,
-    resume: Annotated[
-        bool, typer.Option("--resume", help="continue OUT: redo only the incomplete stages")
-    ] = False,
-) -> None:
-    """Run the main job on the simulated scanner, into one study folder: plan, calibrate,
-    scan, reconstruct, segment, simulate fluoroscopy, track the bones, assess, record."""
-    try:
-        with _progress() as bar:
-            summary = demo_job.run(
-                out,
-                CONFIGS,
-                quick=quick,
-                resume=resume,
-                status=lambda msg: console.print(f"  {msg}", highlight=False),
-                progress=_views_done(bar, "calibration / weighted FDK"),
-            )
-    except ScanFault as err:
-        fail(f"{err}\n  continue with: cbct demo --resume --out {out}")
-    except (ValueError, OSError, RuntimeError) as err:
-        fail(f"{err}\n  what was written is kept; continue with: cbct demo --resume --out {out}")
-    except KeyboardInterrupt:
-        fail(f"interrupted; continue with: cbct demo --resume --out {out}")
-    console.print(summary, soft_wrap=True, highlight=False)
-
-
-@app.command()
-def batch(
-    action: Annotated[str, typer.Argument(help="recon, register, assess or all")],
-    studies: Annotated[
-        list[str], typer.Argument(help="study folders or globs (quoted globs; ** recurses)")
-    ],
-    scheduler: Annotated[
-        str | None,
-        typer.Option(help="address of a running dask scheduler (default: a local cluster)"),
-    ] = None,
-    workers: Annotated[
-        int | None,
-        typer.Option(
-            help="worker processes of the local cluster, one thread each (default: one per core)"
-        ),
-    ] = None,
-    out: Annotated[
-        Path | None, typer.Option(help="new cohort folder (default: cohort-<UTC time>)")
-    ] = None,
-    settings: Annotated[Path, typer.Option(help="registration settings YAML")] = CONFIGS
-    / "registration.yaml",
-    voxel_mm: Annotated[
-        float | None, typer.Option(help="recon voxel, mm (default: the study's own, else 1.0)")
-    ] = None,
-    timeout_s: Annotated[
-        float, typer.Option("--timeout", help="seconds to reach --scheduler and a worker on it")
-    ] = batch_job.CONNECT_TIMEOUT_S,
-) -> None:
-    """Run ACTION on many studies as dask.distributed tasks, then write the cohort summary.
-
-    recon = reconstruction + segmentation, register = registration, assess = assessment,
-    all = the three in order per study (studies in parallel). Complete stages whose files
-    still match their sha256 are skipped; a failed study is reported and the others go on;
-    rerun the same command to finish what is missing. Writes OUT/cohort.csv, cohort.parquet
-    and cohort.html (one row per study and bone). Exit status 1 when a study failed.
-    """
-    if action not in batch_job.ACTIONS:
-        fail(f"unknown action {action!r}: choose one of {', '.join(batch_job.ACTIONS)}")
-    if scheduler is not None and workers is not None:
-        fail("--workers sizes the local cluster: with --scheduler the scheduler's workers run")
-    try:
-        paths = batch_job.find_studies(studies)
-        cohort = batch_job.new_output_folder(out)
-        options = batch_job.TaskOptions(voxel_mm, batch_job.load_settings(settings))
-        n = workers if workers is not None else os.cpu_count() or 1
-        if scheduler is None:
-            console.print(f"starting a local cluster of {n} worker process(es)", highlight=False)
-        client, cluster = batch_job.open_client(scheduler, n, timeout_s)
-    except (StudyError, ValueError, OSError) as err:
-        fail(str(err))
-    tasks = batch_job.ACTIONS[action]
-    bar = Progress(
-        TextColumn("{task.description:>9}"),
-        BarColumn(),
-        TextColumn("{task.completed}/{task.total} studies"),
-        TextColumn("[red]{task.fields[failed]} failed[/]"),
-        TimeElapsedColumn(),
-        console=console,
-    )
-    bars = {t: bar.add_task(t, total=len(paths), failed=0) for t in tasks}
-
-    def heard(outcome: batch_job.Outcome) -> None:
-        failed = bar.tasks[bars[outcome.task]].fields["failed"]
-        if outcome.status in ("failed", "blocked"):
-            failed += 1
-        bar.update(bars[outcome.task], advance=1, failed=failed)
-        if outcome.status == "failed":
-            bar.console.print(
-                f"[bold red]failed[/] {outcome.study} ({outcome.task}): {outcome.error}",
-                soft_wrap=True,
-                highlight=False,
-            )
-
-    try:
-        console.print(
-            f"{len(paths)} studies, action {action}, scheduler {client.scheduler.address}",
-            highlight=False,
-        )
-        link = batch_job.dashboard(client)
-        console.print(
-            f"dask dashboard: {link}" if link else "dask dashboard: none (needs bokeh)",
-            highlight=False,
-        )
-        with bar:
-            report = batch_job.run(client, paths, action, options, on_outcome=heard)
-    except KeyboardInterrupt:
-        fail("interrupted: finished stages are kept; rerun the same command to continue")
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
-    files = batch_job.write_cohort(cohort, paths, report, action)
-    console.print(_batch_table(report, len(paths)), soft_wrap=True)
-    console.print(
-        f"[green]wrote[/] {files.csv}, {files.parquet.name}, {files.html.name} "
-        f"in {files.html.parent}",
-        soft_wrap=True,
-        highlight=False,
-    )
-    failures = report.failures()
-    if failures:
-        lines = "\n".join(f"  {s}: {o.task}: {o.error}" for s, o in failures.items())
-        console.print(
-            f"[bold red]{len(failures)} of {len(paths)} studies failed[/] (the others are "
-            f"done; fix these and rerun):\n{lines}",
-            soft_wrap=True,
-            highlight=False,
-        )
-        raise typer.Exit(1)
-
-
-def _batch_table(report: batch_job.BatchReport, studies: int) -> Table:
-    table = Table(title=f"batch: {studies} studies in {report.seconds:.1f} s")
-    tasks = list(dict.fromkeys(o.task for o in report.outcomes))
-    for column in ("study", *tasks):
-        table.add_column(column)
-    by_study: dict[str, dict[str, str]] = {}
-    for o in report.outcomes:
-        cell = f"{o.status} {o.seconds:.1f} s" if o.status in ("ran", "skipped") else o.status
-        by_study.setdefault(o.study, {})[o.task] = cell
-    for study, cells in by_study.items():
-        table.add_row(Path(study).name, *(cells.get(t, "") for t in tasks))
-    return table
-
-
-if __name__ == "__main__":  # pragma: no cover
-    app()

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from calibration.phantom import BBPhantomSpec
 from recon.config import ScanProtocol, load_config, load_protocol
 from recon.geometry import DetectorSpec, Geometry, View
 from recon.volume import Volume
@@ -27,7 +28,7 @@ from scanner.scan_recording import ScanRecorder
 from scanner.storage import ScanStore
 from scanner.study import Study, StudyError
 from sim.backend import volume_subject
-from sim.phantoms.bb import BBPhantomSpec, project_bb
+from sim.phantoms.bb import project_bb
 from sim.phantoms.knee import KneePhantomSpec, knee_grid, rasterize_knee
 from trajectories.config import ScannerConfig
 from trajectories.model import ScannerModel

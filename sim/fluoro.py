@@ -56,11 +56,10 @@ from recon.io import write_projections
 from recon.project import forward_project
 from recon.rtk_xml import write_rtk_geometry
 from recon.volume import Volume, VolumeGrid
-from registration.labels import BONE_LABELS
+from registration.labels import BONE_LABELS, LABELS
 from registration.poses import BonePose, check_rigid, write_poses
 from sim.motion import BONES, KneeMotion
 from sim.phantoms.knee import (
-    KNEE_LABELS,
     KneePhantomSpec,
     attenuation_per_mm,
     knee_bone_poses,
@@ -126,7 +125,7 @@ class FluoroSequence:
             "tibia", "fibula", "patella", "tibia_fibula").
         flexion_deg: true knee flexion per frame, degrees (F,).
         attenuation: the reference phantom the frames were rendered from, 1/mm.
-        labels: its labels (sim.phantoms.knee.KNEE_LABELS) on the same grid.
+        labels: its labels (registration.labels.LABELS) on the same grid.
         photons_per_pixel: mean unattenuated photons per pixel per frame (0 when ideal).
         realism: "ideal" or "independent" (see the module docstring).
     """
@@ -403,11 +402,11 @@ def _bone_excess(
 ) -> tuple[dict[str, Volume], np.ndarray]:
     """Per bone, mu - mu_muscle on its voxels (labels dilated by one voxel into soft tissue:
     the partial-volume rim), cropped with 2 zero voxels around; and the union mask."""
-    taken = labels >= KNEE_LABELS["femur"]  # voxels already given to a bone
+    taken = labels >= LABELS["femur"]  # voxels already given to a bone
     union = np.zeros(labels.shape, dtype=bool)
     excess = {}
     for bone in BONES:
-        own = labels == KNEE_LABELS[bone]
+        own = labels == LABELS[bone]
         if not own.any():
             continue
         box = _bounding_slices(own, pad=2)

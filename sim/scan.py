@@ -61,7 +61,7 @@ class SimulatedScan:
         counts: detected photons per pixel, float32 (views, rows, cols); None when noise-free.
         geometry: the views acquired.
         attenuation: the phantom, 1/mm, on the simulation grid.
-        labels: the phantom's labels (sim.phantoms.knee.KNEE_LABELS) on the same grid.
+        labels: the phantom's labels (registration.labels.LABELS) on the same grid.
         photons_per_pixel: mean unattenuated photons per pixel per view (0 when noise-free).
     """
 

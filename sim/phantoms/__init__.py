@@ -14,7 +14,6 @@ from sim.phantoms.ellipsoids import (
     shepp_logan_3d,
 )
 from sim.phantoms.knee import (
-    KNEE_LABELS,
     KneePhantomSpec,
     attenuation_per_mm,
     knee_bone_poses,
@@ -26,7 +25,6 @@ from sim.phantoms.knee import (
 )
 
 __all__ = [
-    "KNEE_LABELS",
     "Ellipsoid",
     "KneePhantomSpec",
     "attenuation_per_mm",

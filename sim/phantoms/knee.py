@@ -55,9 +55,6 @@ from registration.labels import LABELS
 from sim.phantoms import sdf
 from sim.phantoms.sdf import box_slices, layer_fractions
 
-KNEE_LABELS = LABELS
-"""Label values of :func:`rasterize_knee` (registration.labels.LABELS)."""
-
 BONES: tuple[str, ...] = ("femur", "tibia", "fibula", "patella")
 
 PATELLA_FEMUR_ROTATION_RATIO = 0.7
@@ -508,11 +505,11 @@ def knee_sdf(spec: KneePhantomSpec, part: str, points_mm: np.ndarray) -> np.ndar
 
 
 def label_points(spec: KneePhantomSpec, points_mm: np.ndarray) -> np.ndarray:
-    """:data:`KNEE_LABELS` value of world points (N, 3) mm, uint8 (N,)."""
+    """:data:`registration.labels.LABELS` value of world points (N, 3) mm, uint8 (N,)."""
     pts = np.atleast_2d(np.asarray(points_mm, dtype=np.float64))
-    labels = np.where(knee_sdf(spec, "skin", pts) < 0.0, KNEE_LABELS["soft_tissue"], 0)
+    labels = np.where(knee_sdf(spec, "skin", pts) < 0.0, LABELS["soft_tissue"], 0)
     for name in BONES:
-        labels = np.where(knee_sdf(spec, name, pts) < 0.0, KNEE_LABELS[name], labels)
+        labels = np.where(knee_sdf(spec, name, pts) < 0.0, LABELS[name], labels)
     return labels.astype(np.uint8)
 
 
@@ -559,7 +556,7 @@ def rasterize_knee(
         supersample: sub-samples per voxel edge, >= 1.
 
     Returns:
-        labels uint8 [z, y, x] (:data:`KNEE_LABELS`) and mu float32 [z, y, x], 1/mm at
+        labels uint8 [z, y, x] (registration.labels.LABELS) and mu float32 [z, y, x], 1/mm at
         ``spec.effective_energy_kev``.
     """
     k = _Knee(spec)
@@ -587,7 +584,7 @@ def rasterize_knee(
         mu_inner = w * mu_of["marrow"] + (1.0 - w) * mu_of["cancellous_bone"]
         mu[sl] += (outer - inner) * mu_of["cortical_bone"] + inner * mu_inner
         bone[sl] += outer
-        labels[sl][outer >= 0.5] = KNEE_LABELS[name]
+        labels[sl][outer >= 0.5] = LABELS[name]
     mu += (1.0 - bone) * mu_of["air"]
     sl = box_slices(grid, *k.envelope_box(margin))
     if sl is not None:
@@ -597,5 +594,5 @@ def rasterize_knee(
         soft = (skin - muscle) * mu_of["fat"] + muscle * mu_of["muscle"] - skin * mu_of["air"]
         mu[sl] += (1.0 - bone[sl]) * soft
         block = labels[sl]
-        block[(block == 0) & (skin >= 0.5)] = KNEE_LABELS["soft_tissue"]
+        block[(block == 0) & (skin >= 0.5)] = LABELS["soft_tissue"]
     return labels, mu

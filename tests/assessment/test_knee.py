@@ -9,9 +9,10 @@ import pytest
 from assessment.anatomy import femur_anatomy, mirror_x, tibia_anatomy
 from assessment.knee import assess_knee
 from recon.volume import Volume, VolumeGrid
+from registration.labels import LABELS
 from registration.poses import BonePose, read_poses, write_poses
 from sim.motion import flexion_extension
-from sim.phantoms.knee import KNEE_LABELS, KneePhantomSpec, knee_landmarks, rasterize_knee
+from sim.phantoms.knee import KneePhantomSpec, knee_landmarks, rasterize_knee
 
 # a standing scan long enough to hold 150 mm of each shaft, as the clinical spirals do
 GRID = VolumeGrid.centered((140, 140, 320), 1.0, (0.0, -4.0, 490.0))
@@ -38,8 +39,8 @@ def test_landmarks_are_found_where_the_phantom_put_them(knees):
     the TP plane normal within 1 deg of the plateau's."""
     spec, labels = knees["right"]
     truth = knee_landmarks(spec)
-    femur = femur_anatomy(labels, KNEE_LABELS["femur"])
-    tibia = tibia_anatomy(labels, KNEE_LABELS["tibia"])
+    femur = femur_anatomy(labels, LABELS["femur"])
+    tibia = tibia_anatomy(labels, LABELS["tibia"])
     np.testing.assert_allclose(femur.medial_epicondyle_mm, truth["medial_epicondyle"], atol=2.0)
     np.testing.assert_allclose(femur.lateral_epicondyle_mm, truth["lateral_epicondyle"], atol=2.0)
     tea = truth["lateral_epicondyle"] - truth["medial_epicondyle"]

@@ -16,11 +16,12 @@ from calibration.calibrate import (
 )
 from calibration.detect import detect_balls
 from calibration.identify import identify
+from calibration.phantom import BBPhantomSpec
 from recon.config import load_config, load_protocol
 from recon.fdk import fdk_reconstruct
 from recon.geometry import View
 from recon.volume import VolumeGrid
-from sim.phantoms.bb import BBPhantomSpec, project_bb
+from sim.phantoms.bb import project_bb
 from sim.phantoms.knee import KneePhantomSpec, rasterize_knee
 from sim.scan import simulate_knee_scan
 from sim.vibration import VibrationSpec, vibrate

@@ -22,9 +22,9 @@ from registration.boneaxis import TRACK_ORDER, Settings, compose
 from registration.frames import read_frames
 from registration.poses import BonePose, read_poses, write_poses
 from registration.track import fluoroscopy_view
-from scanner.cli import app
 from sim.fluoro import DISTORTION_MAX_MM, distort, lateral_view, simulate_dewarp_grid
 from sim.phantoms.knee import KneePhantomSpec
+from study.cli import app
 
 runner = CliRunner()
 FRAMES = 3

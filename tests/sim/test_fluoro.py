@@ -19,6 +19,7 @@ from recon.io import read_projections
 from recon.project import forward_project
 from recon.rtk_xml import read_rtk_geometry
 from recon.volume import VolumeGrid
+from registration.labels import LABELS
 from registration.poses import poses_by_frame, read_poses
 from sim.fluoro import (
     FLUORO_EXPOSURE,
@@ -31,7 +32,6 @@ from sim.fluoro import (
 )
 from sim.motion import BONES, KneeMotion, flexion_extension, squat_motion
 from sim.phantoms.knee import (
-    KNEE_LABELS,
     KneePhantomSpec,
     knee_bone_poses,
     knee_landmarks,
@@ -240,7 +240,7 @@ def test_bones_appear_where_the_true_poses_put_them():
         labels, mu = rasterize_knee(SPEC.model_copy(update={"flexion_deg": flexion}), grid, 2)
         direct[flexion] = forward_project(mu, grid, Geometry([view]))[0]
         if shadow is None:
-            bones = (labels >= KNEE_LABELS["femur"]).astype(np.float32)
+            bones = (labels >= LABELS["femur"]).astype(np.float32)
             shadow = forward_project(bones, grid, Geometry([view]))[0] > 0.0
     errors = {f: float(np.median(np.abs(seq.frames[1] - d)[shadow])) for f, d in direct.items()}
     assert errors[60.0] < 0.7 * min(errors[57.0], errors[63.0]), errors

@@ -16,8 +16,8 @@ from scipy.spatial.transform import Rotation
 from recon.config import ConfigError, load_config
 from recon.geometry import DetectorSpec, circular_orbit
 from recon.volume import VolumeGrid
+from registration.labels import LABELS
 from sim.phantoms import (
-    KNEE_LABELS,
     Ellipsoid,
     KneePhantomSpec,
     attenuation_per_mm,
@@ -201,9 +201,9 @@ def test_knee_grid_covers_the_knee(knees):
 def test_knee_labels_and_plausible_bone_volumes(knees):
     grid, (_, labels, mu) = knees["grid"], knees["right"]
     assert labels.dtype == np.uint8 and mu.dtype == np.float32
-    assert set(np.unique(labels)) == set(KNEE_LABELS.values())
+    assert set(np.unique(labels)) == set(LABELS.values())
     volume_cm3 = {
-        name: np.count_nonzero(labels == KNEE_LABELS[name]) * grid.voxel_volume_mm3 / 1000
+        name: np.count_nonzero(labels == LABELS[name]) * grid.voxel_volume_mm3 / 1000
         for name in ("femur", "tibia", "fibula", "patella")
     }
     # within this field of view (joint line -70 mm .. +90 mm): distal femur (~9 cm of
@@ -227,24 +227,24 @@ def test_knee_attenuation_values(knees):
     assert mu[0, 0, 0] == pytest.approx(table["air"], rel=1e-6)  # grid corner, outside the leg
     # between the skin and the bones, 30 mm anterior-lateral of the plateau: muscle
     index = np.round(grid.world_to_index(lm["tibial_plateau_center"] + (-25, -40, -40)))
-    assert labels[int(index[2]), int(index[1]), int(index[0])] == KNEE_LABELS["soft_tissue"]
+    assert labels[int(index[2]), int(index[1]), int(index[0])] == LABELS["soft_tissue"]
     assert mu[int(index[2]), int(index[1]), int(index[0])] == pytest.approx(table["muscle"])
 
 
 def test_femur_above_tibia_and_joint_space(knees):
     grid, (spec, labels, _) = knees["grid"], knees["right"]
-    femur, tibia = labels == KNEE_LABELS["femur"], labels == KNEE_LABELS["tibia"]
+    femur, tibia = labels == LABELS["femur"], labels == LABELS["tibia"]
     assert _centroid(grid, femur)[2] > _centroid(grid, tibia)[2] + 50
     # no 26-connected contact between femur and tibia (nor femur and patella)
     grown = ndimage.binary_dilation(femur, ndimage.generate_binary_structure(3, 3))
     assert not np.any(grown & tibia)
-    assert not np.any(grown & (labels == KNEE_LABELS["patella"]))
+    assert not np.any(grown & (labels == LABELS["patella"]))
     # bone-free gap below the medial condyle's lowest point: joint_space_mm within a voxel
     lm = knee_landmarks(spec)
     ix, iy, _ = np.round(grid.world_to_index(lm["medial_condyle_lowest"])).astype(int)
     column = labels[:, iy, ix]
-    z_femur = grid.axes_mm()[2][np.nonzero(column == KNEE_LABELS["femur"])[0].min()]
-    z_tibia = grid.axes_mm()[2][np.nonzero(column == KNEE_LABELS["tibia"])[0].max()]
+    z_femur = grid.axes_mm()[2][np.nonzero(column == LABELS["femur"])[0].min()]
+    z_tibia = grid.axes_mm()[2][np.nonzero(column == LABELS["tibia"])[0].max()]
     assert abs((z_femur - z_tibia - 1.0) - spec.joint_space_mm) <= 1.0
     # the lowest femur voxel is the medial condyle landmark, within a voxel
     iz = np.nonzero(femur.any(axis=(1, 2)))[0].min()
@@ -254,8 +254,8 @@ def test_femur_above_tibia_and_joint_space(knees):
 @pytest.mark.parametrize("side", ["right", "left"])
 def test_fibula_is_lateral_and_posterior(knees, side):
     grid, (_, labels, _) = knees["grid"], knees[side]
-    fibula = _centroid(grid, labels == KNEE_LABELS["fibula"])
-    tibia = _centroid(grid, labels == KNEE_LABELS["tibia"])
+    fibula = _centroid(grid, labels == LABELS["fibula"])
+    tibia = _centroid(grid, labels == LABELS["tibia"])
     lateral = -1.0 if side == "right" else 1.0  # patient's right is world -x
     assert lateral * (fibula[0] - tibia[0]) > 20.0
     assert fibula[1] - tibia[1] > 10.0
@@ -266,8 +266,8 @@ def test_left_knee_is_the_mirror_of_the_right(knees):
     mirrored = right[:, :, ::-1]
     assert np.count_nonzero(left != mirrored) <= 1e-5 * left.size
     for name in ("femur", "tibia", "fibula", "patella"):
-        a = _centroid(grid, left == KNEE_LABELS[name])
-        b = _centroid(grid, mirrored == KNEE_LABELS[name])
+        a = _centroid(grid, left == LABELS[name])
+        b = _centroid(grid, mirrored == LABELS[name])
         assert np.all(np.abs(a - b) <= 1.0)
     assert float(np.abs(mu_l - mu_r[:, :, ::-1]).mean()) < 1e-6
 
@@ -342,7 +342,7 @@ def test_femoral_shaft_pca_follows_flexion():
     lm = knee_landmarks(spec)
     grid = VolumeGrid.centered((60, 110, 80), 1.5, lm["knee_center"] + (0.0, 60.0, 35.0))
     labels, _ = rasterize_knee(spec, grid, supersample=1)
-    iz, iy, ix = np.nonzero(labels == KNEE_LABELS["femur"])
+    iz, iy, ix = np.nonzero(labels == LABELS["femur"])
     pts = grid.index_to_world(np.stack((ix, iy, iz), axis=1))
     # the shaft beyond the metaphyseal flare, cut by spheres about the knee centre (not by
     # the grid's faces, whose oblique cut would tilt the principal axis)

@@ -1,6 +1,6 @@
 """``cbct batch``: the derived stages of many studies as tasks on dask.distributed.
 
-A task runs one study's stages with the same functions as ``cbct demo`` (``scanner.stages``):
+A task runs one study's stages with the same functions as ``cbct demo`` (``study.stages``):
 
 ========  ===============================  =====================================
 task      stages                           reads (checked against study.json)
@@ -55,13 +55,13 @@ from matplotlib.ticker import MaxNLocator
 from recon.config import load_config
 from registration.boneaxis import Settings
 from registration.labels import BONE_UNITS
-from scanner.stages import (
+from scanner.study import Study, StudyError
+from study.stages import (
     assessment_stage,
     recon_stage,
     registration_stage,
     segmentation_stage,
 )
-from scanner.study import Study, StudyError
 
 ACTIONS: dict[str, tuple[str, ...]] = {
     "recon": ("recon",),
@@ -641,7 +641,7 @@ TINY: dict[str, float | int] = {
     "frames": 3,
     "max_flexion_deg": 20.0,
 }
-"""A study size (keys of ``scanner.demo.QUICK``) for tests and benchmarks: about 17 s of
+"""A study size (keys of ``study.demo.QUICK``) for tests and benchmarks: about 17 s of
 acquisition and 10-30 s of derived stages per study on one core. Smaller breaks a stage: the
 calibration needs 1.2 mm pixels (panel 512) to find the steel balls, and segmentation loses
 the patella with a 128 panel or 1.5 mm voxels."""
@@ -650,9 +650,9 @@ the patella with a 128 panel or 1.5 mm voxels."""
 def simulate_study(
     path: str | Path, configs: Path, size: dict, seed: int, varus_deg: float | None = None
 ) -> str:
-    """A new simulated study at ``path``: the demo's acquisitions (``scanner.demo.acquire``)
+    """A new simulated study at ``path``: the demo's acquisitions (``study.demo.acquire``)
     with ``seed``, recorded under ``cohort`` in study.json. Returns the path."""
-    from scanner import demo
+    from study import demo
 
     varus = demo.VARUS_DEG if varus_deg is None else varus_deg
     study = Study.create(path, {"cohort": {"size": size, "seed": seed, "varus_deg": varus}})

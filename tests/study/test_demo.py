@@ -14,10 +14,11 @@ from scipy.ndimage import binary_erosion
 from typer.testing import CliRunner
 
 from recon.io import read_volume
-from scanner.cli import app
-from scanner.demo import STAGES
+from registration.labels import LABELS
 from scanner.study import Study
-from sim.phantoms.knee import KNEE_LABELS, KneePhantomSpec, attenuation_per_mm, rasterize_knee
+from sim.phantoms.knee import KneePhantomSpec, attenuation_per_mm, rasterize_knee
+from study.cli import app
+from study.demo import STAGES
 
 runner = CliRunner()
 
@@ -74,7 +75,7 @@ def test_the_volume_has_the_phantom_attenuation(demo: Path):
     volume = read_volume(demo / "recon" / "volume.nii.gz")
     spec = KneePhantomSpec()
     labels, _ = rasterize_knee(spec, volume.grid, supersample=1)
-    soft = binary_erosion(labels == KNEE_LABELS["soft_tissue"], iterations=3) & (volume.data > 0)
+    soft = binary_erosion(labels == LABELS["soft_tissue"], iterations=3) & (volume.data > 0)
     mu = attenuation_per_mm(spec.effective_energy_kev)
     assert np.median(volume.data[soft]) == pytest.approx(mu["muscle"], rel=0.03)
     assert len(list((demo / "recon" / "dicom").glob("*.dcm"))) == volume.grid.shape[0]

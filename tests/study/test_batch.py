@@ -22,9 +22,10 @@ import pytest
 from distributed import Client
 from typer.testing import CliRunner
 
-from scanner import batch
-from scanner.cli import CONFIGS, app
+from scanner.cli import CONFIGS
 from scanner.study import Study
+from study import batch
+from study.cli import app
 
 runner = CliRunner()
 

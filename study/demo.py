@@ -14,7 +14,7 @@
 9. merge every stage's rerun recording into ``recording.rrd``.
 
 Stages 1-4 are the simulated acquisitions (:func:`acquire`, also used to make cohorts), 5-8
-the derived stages of ``scanner.stages`` that ``cbct batch`` runs too.
+the derived stages of ``study.stages`` that ``cbct batch`` runs too.
 
 Each stage is marked in ``study.json`` when complete, with its files' checksums; a stage
 writes into ``<stage>.partial/`` and is renamed when done, so ``--resume`` redoes only what
@@ -31,14 +31,20 @@ import yaml
 
 from calibration.calibrate import calibrate
 from calibration.distortion import DewarpGridSpec
+from calibration.phantom import BBPhantomSpec
 from recon.config import ScanProtocol, load_config, load_protocol
 from recon.fdk import Progress
 from recon.io import read_projections, write_projections
 from registration.boneaxis import Settings
-from scanner.jobs import Status
-from scanner.recording import merge_recordings
+from scanner.scan_files import Status
 from scanner.session import SessionInputs, read_inputs, scan_stage
-from scanner.stages import (
+from scanner.study import Study, StudyError
+from sim.backend import SimBackendSpec
+from sim.fluoro import lateral_view, save_sequence, simulate_dewarp_grid, simulate_fluoroscopy
+from sim.motion import flexion_extension
+from sim.phantoms.knee import KneePhantomSpec
+from study.recording import merge_recordings
+from study.stages import (
     Say,
     assessment_stage,
     derived_folder,
@@ -47,12 +53,6 @@ from scanner.stages import (
     run_stage,
     segmentation_stage,
 )
-from scanner.study import Study, StudyError
-from sim.backend import SimBackendSpec
-from sim.fluoro import lateral_view, save_sequence, simulate_dewarp_grid, simulate_fluoroscopy
-from sim.motion import flexion_extension
-from sim.phantoms.bb import BBPhantomSpec
-from sim.phantoms.knee import KneePhantomSpec
 
 FULL = {
     "views": 180,

@@ -30,10 +30,10 @@ from registration.labels import BONE_UNITS, LABELS
 from registration.poses import read_poses
 from registration.segment import bone_surfaces, segment_bones
 from registration.track import register_files
-from scanner.jobs import fit_fluoro_distortion, write_assessment
-from scanner.recording import record_volume
 from scanner.study import Study, StudyError
 from sim.phantoms.knee import KneePhantomSpec, attenuation_per_mm, rasterize_knee
+from study.jobs import fit_fluoro_distortion, write_assessment
+from study.recording import record_volume
 
 Say = Callable[[str], None]
 
