@@ -35,7 +35,7 @@ from typing import Literal
 import numpy as np
 import scipy.fft
 
-from recon.geometry import Geometry
+from recon.geometry import Geometry, View
 from recon.project import COUNT_WEIGHT, FDK_WEIGHT, backproject_weighted, check_in_front
 from recon.turned_panel import AlignedPanels, align_to_motion
 from recon.volume import Volume, VolumeGrid
@@ -291,6 +291,163 @@ def _grid_seen(geometry: Geometry, grid: VolumeGrid) -> None:
     raise ValueError("no view sees any part of the volume grid: check its origin and size")
 
 
+class FDKAccumulator:
+    """Weighted FDK built up a batch of views at a time, in any order: what
+    :func:`fdk_reconstruct` runs, and what a scan runs while it acquires.
+
+    The orbit (rotation axis, per-view angular weights, redundancy) is read once from
+    ``geometry``, the views known before the first projection (a plan or a calibration); each
+    batch may bring the matrices its views were actually taken at (``views`` in :meth:`add`),
+    which place its rays. The volume of every view added, in the order added, is
+    :meth:`result`; the same views added in the same order give the same float32 sums whatever
+    the batches, so streaming equals the offline reconstruction to float rounding.
+
+    Args: see :func:`fdk_reconstruct`.
+    """
+
+    def __init__(
+        self,
+        geometry: Geometry,
+        grid: VolumeGrid,
+        *,
+        window: Window = "hann",
+        cutoff: float = 1.0,
+        redundancy: Redundancy = "auto",
+        min_coverage_deg: float = 170.0,
+        edge_taper_px: float = 8.0,
+        coverage_subsample: int = 4,
+    ) -> None:
+        if redundancy not in ("auto", "parker", "none"):
+            raise ValueError(f"redundancy must be 'auto', 'parker' or 'none', got {redundancy!r}")
+        check_in_front(geometry, grid)
+        _grid_seen(geometry, grid)
+        check_axis_on_panel(geometry)
+        self.grid, self.min_coverage_deg = grid, min_coverage_deg
+        self.n_views, self.rows, self.cols = len(geometry), geometry.rows, geometry.cols
+        # the detector edge fades in over edge_taper_px on the real panel; off it, nothing counts
+        self._taper = np.outer(
+            _taper(geometry.rows, edge_taper_px), _taper(geometry.cols, edge_taper_px)
+        ).astype(np.float32)
+        self.aligned = motion_aligned(geometry)
+        self.orbit = estimate_orbit(self.aligned.geometry)
+        virtual = self.aligned.geometry
+        self._n_fft = scipy.fft.next_fast_len(2 * virtual.cols)
+        # per virtual pixel; an oversampled virtual panel keeps the real panel's band (cycles/mm)
+        band = cutoff / self.aligned.oversample
+        self._ramp = ramp_filter_response(self._n_fft, 1.0, window, band).astype(np.complex64)
+        use_parker = redundancy == "parker" or (
+            redundancy == "auto"
+            and len(self.orbit.passes) == 1
+            and not self.orbit.closed
+            and self.orbit.span_deg < 359.0
+        )
+        self._parker = parker_weights(virtual, self.orbit) if use_parker else None
+        self._coarse = _coarse_grid(grid, coverage_subsample)
+        self._num = np.zeros(grid.shape, dtype=np.float32)
+        self._count = np.zeros(self._coarse.shape, dtype=np.float32)
+        self._cosine: dict[tuple, np.ndarray] = {}
+        self.added = np.zeros(self.n_views, dtype=bool)
+
+    def add(self, start: int, projections: np.ndarray, views: Geometry | None = None) -> None:
+        """Weight, filter and backproject views ``start .. start + n - 1``.
+
+        Args:
+            start: index of the first view in the orbit's geometry.
+            projections: float32 (n, rows, cols) line integrals.
+            views: the n views as acquired (default: the orbit's own).
+        """
+        proj = np.asarray(projections, dtype=np.float32)
+        n = len(proj)
+        if proj.ndim != 3 or proj.shape[1:] != (self.rows, self.cols):
+            raise ValueError(
+                f"projections have shape {proj.shape}; the geometry has views of "
+                f"{self.rows} x {self.cols} pixels"
+            )
+        if not 0 <= start or start + n > self.n_views:
+            raise ValueError(
+                f"views {start}..{start + n - 1} outside the orbit's 0..{self.n_views - 1}"
+            )
+        again = np.flatnonzero(self.added[start : start + n]) + start
+        if again.size:
+            raise ValueError(f"view(s) {again[:10].tolist()} were added already")
+        bad = [start + k for k, p in enumerate(proj) if not np.isfinite(p).all()]
+        if bad:
+            raise ValueError(f"projections contain NaN or infinite values in view(s) {bad[:10]}")
+        if views is None:
+            virtual, aligned, first = self.aligned.geometry[start : start + n], self.aligned, start
+        else:
+            if len(views) != n or (views.rows, views.cols) != (self.rows, self.cols):
+                raise ValueError(
+                    f"{len(views)} views of {views.rows} x {views.cols} pixels given for {n} "
+                    f"projections of {self.rows} x {self.cols}"
+                )
+            check_in_front(views, self.grid)
+            aligned, first = align_to_motion(views, self.orbit.axis), 0
+            virtual = aligned.geometry
+            if (virtual.rows, virtual.cols) != (
+                self.aligned.geometry.rows,
+                self.aligned.geometry.cols,
+            ):
+                raise ValueError("the views as acquired turn their panels unlike the orbit's")
+        index = np.arange(start, start + n)
+        orbit = self.orbit
+        # Parker weights before filtering (along u); the edge taper after, where it is a plain
+        # per-pixel view weight that the views' weighted count carries as well
+        pre = (
+            np.ones((n, 1, virtual.cols), dtype=np.float32)
+            if self._parker is None
+            else self._parker[index, None, :].astype(np.float32)
+        )
+        support = aligned.images(np.broadcast_to(self._taper, (n, *self._taper.shape)), first)
+        batch = aligned.images(proj, first)
+        if batch is proj:
+            batch = proj.copy()
+        batch *= pre
+        for k, view in enumerate(virtual):
+            batch[k] *= self._cosine_weights(view)
+        spec = scipy.fft.rfft(batch, n=self._n_fft, axis=2, workers=-1)
+        spec *= self._ramp
+        filtered = scipy.fft.irfft(spec, n=self._n_fft, axis=2, workers=-1)[:, :, : virtual.cols]
+        # FDK weight SOD / (SDD w^2) per view times dbeta; the ramp ran in pixel units,
+        # 1 / pitch turns it into 1/mm
+        sdd = np.array([v.sdd_mm for v in virtual])
+        pitch = np.array([v.pitch_u_mm for v in virtual])
+        scale = orbit.dbeta_rad[index] * orbit.sod_mm[index] / (sdd * pitch)
+        filtered *= scale[:, None, None].astype(np.float32) * support
+        backproject_weighted(filtered, virtual, self.grid, FDK_WEIGHT, self._num)
+        # the views' weighted count: dbeta * SOD * SDD * w / L_perp^2, in degrees
+        jac = np.degrees(orbit.dbeta_rad[index]) * orbit.sod_mm[index] * sdd
+        weights = pre * support * jac[:, None, None].astype(np.float32)
+        backproject_weighted(
+            weights, virtual, self._coarse, COUNT_WEIGHT, self._count, axis=orbit.axis
+        )
+        self.added[start : start + n] = True
+
+    def result(self) -> FDKResult:
+        """The volume of the views added so far (all of them for a complete scan)."""
+        coverage = _interpolate(self._count, self._coarse, self.grid)
+        mask = coverage >= self.min_coverage_deg
+        volume = np.zeros(self.grid.shape, dtype=np.float32)
+        np.divide(self._num, coverage, out=volume, where=mask)
+        volume *= 180.0  # pi * num / count, with the count in degrees
+        return FDKResult(Volume(volume, self.grid, "1/mm"), coverage, mask, self.orbit)
+
+    def _cosine_weights(self, view: View) -> np.ndarray:
+        """cos of the angle between each pixel's ray and the detector normal, (rows, cols),
+        computed once per panel placement (sdd, principal point, pitches)."""
+        up, vp = view.principal_point_px
+        key = (view.sdd_mm, up, vp, view.pitch_u_mm, view.pitch_v_mm)
+        weights = self._cosine.get(key)
+        if weights is None:
+            d = view.sdd_mm
+            du = (np.arange(view.cols) - up) * view.pitch_u_mm
+            dv = (np.arange(view.rows) - vp) * view.pitch_v_mm
+            weights = (d / np.sqrt(d * d + du[None, :] ** 2 + dv[:, None] ** 2)).astype(np.float32)
+            if len(self._cosine) < 64:
+                self._cosine[key] = weights
+        return weights
+
+
 def fdk_reconstruct(
     projections: np.ndarray,
     geometry: Geometry,
@@ -303,6 +460,7 @@ def fdk_reconstruct(
     edge_taper_px: float = 8.0,
     coverage_subsample: int = 4,
     batch_views: int = 16,
+    orbit_geometry: Geometry | None = None,
     progress: Progress | None = None,
 ) -> FDKResult:
     """Reconstruct line-integral projections with weighted FDK.
@@ -320,6 +478,9 @@ def fdk_reconstruct(
         coverage_subsample: the smooth coverage map is computed on a grid this many times
             coarser per axis and interpolated.
         batch_views: views filtered and backprojected together (bounds memory).
+        orbit_geometry: the views whose orbit sets the angular weights and the redundancy
+            (e.g. the plan of a scan whose ``geometry`` holds the views as recorded, so that
+            the arms' tracking noise does not enter the weights); default ``geometry``.
         progress: optional callback ``progress(views_done, views_total)``.
 
     Returns:
@@ -332,92 +493,38 @@ def fdk_reconstruct(
             f"projections have shape {proj.shape}; the geometry has {n_views} views of "
             f"{geometry.rows} x {geometry.cols} pixels"
         )
-    bad = np.flatnonzero([not np.isfinite(p).all() for p in proj])
-    if bad.size:
+    if orbit_geometry is not None and (
+        len(orbit_geometry) != n_views
+        or (orbit_geometry.rows, orbit_geometry.cols) != (geometry.rows, geometry.cols)
+    ):
         raise ValueError(
-            f"projections contain NaN or infinite values in view(s) {bad[:10].tolist()}"
+            f"the orbit's geometry has {len(orbit_geometry)} views of {orbit_geometry.rows} x "
+            f"{orbit_geometry.cols} pixels; the projections' {n_views} of {geometry.rows} x "
+            f"{geometry.cols}"
         )
-    if redundancy not in ("auto", "parker", "none"):
-        raise ValueError(f"redundancy must be 'auto', 'parker' or 'none', got {redundancy!r}")
-    check_in_front(geometry, grid)
-    _grid_seen(geometry, grid)
-    check_axis_on_panel(geometry)
-    # the detector edge fades in over edge_taper_px on the real panel; off it, nothing counts
-    taper = np.outer(
-        _taper(geometry.rows, edge_taper_px), _taper(geometry.cols, edge_taper_px)
-    ).astype(np.float32)
-    aligned = motion_aligned(geometry)
-    geometry = aligned.geometry
-    orbit = estimate_orbit(geometry)
-    n_fft = scipy.fft.next_fast_len(2 * geometry.cols)
-    # per virtual pixel; an oversampled virtual panel keeps the real panel's band (cycles/mm)
-    band = cutoff / aligned.oversample
-    ramp = ramp_filter_response(n_fft, 1.0, window, band).astype(np.complex64)
-    use_parker = redundancy == "parker" or (
-        redundancy == "auto"
-        and len(orbit.passes) == 1
-        and not orbit.closed
-        and orbit.span_deg < 359.0
+    accumulator = FDKAccumulator(
+        geometry if orbit_geometry is None else orbit_geometry,
+        grid,
+        window=window,
+        cutoff=cutoff,
+        redundancy=redundancy,
+        min_coverage_deg=min_coverage_deg,
+        edge_taper_px=edge_taper_px,
+        coverage_subsample=coverage_subsample,
     )
-    R = parker_weights(geometry, orbit) if use_parker else np.ones((n_views, geometry.cols))
-    coarse = _coarse_grid(grid, coverage_subsample)
-    num = np.zeros(grid.shape, dtype=np.float32)
-    count = np.zeros(coarse.shape, dtype=np.float32)
     for start in range(0, n_views, batch_views):
-        views = geometry[start : min(start + batch_views, n_views)]
-        index = range(start, start + len(views))
-        # Parker weights before filtering (along u); the edge taper after, where it is a plain
-        # per-pixel view weight that the views' weighted count carries as well
-        pre = R[start : start + len(views), None, :].astype(np.float32)
-        support = aligned.images(np.broadcast_to(taper, (len(views), *taper.shape)), start)
-        batch = np.stack([_cosine_weights(v) for v in views]).astype(np.float32) * pre
-        batch *= aligned.images(proj[start : start + len(views)], start)
-        spec = scipy.fft.rfft(batch, n=n_fft, axis=2, workers=-1)
-        spec *= ramp
-        filtered = scipy.fft.irfft(spec, n=n_fft, axis=2, workers=-1)[:, :, : geometry.cols]
-        # FDK weight SOD / (SDD w^2) per view times dbeta; the ramp ran in pixel units,
-        # 1 / pitch turns it into 1/mm
-        scale = np.array(
-            [
-                orbit.dbeta_rad[i] * orbit.sod_mm[i] / (v.sdd_mm * v.pitch_u_mm)
-                for i, v in zip(index, views, strict=True)
-            ]
-        )
-        filtered *= scale[:, None, None].astype(np.float32) * support
-        backproject_weighted(filtered, views, grid, FDK_WEIGHT, num)
-        # the views' weighted count: dbeta * SOD * SDD * w / L_perp^2, in degrees
-        jac = np.array(
-            [
-                np.degrees(orbit.dbeta_rad[i]) * orbit.sod_mm[i] * v.sdd_mm
-                for i, v in zip(index, views, strict=True)
-            ]
-        )
-        weights = pre * support * jac[:, None, None].astype(np.float32)
-        backproject_weighted(weights, views, coarse, COUNT_WEIGHT, count, axis=orbit.axis)
+        stop = min(start + batch_views, n_views)
+        views = None if orbit_geometry is None else geometry[start:stop]
+        accumulator.add(start, proj[start:stop], views)
         if progress is not None:
-            progress(start + len(views), n_views)
-
-    coverage = _interpolate(count, coarse, grid)
-    mask = coverage >= min_coverage_deg
-    volume = np.zeros(grid.shape, dtype=np.float32)
-    np.divide(num, coverage, out=volume, where=mask)
-    volume *= 180.0  # pi * num / count, with the count in degrees
-    return FDKResult(Volume(volume, grid, "1/mm"), coverage, mask, orbit)
+            progress(stop, n_views)
+    return accumulator.result()
 
 
 def motion_aligned(geometry: Geometry) -> AlignedPanels:
     """The views on virtual panels whose rows run along the orbit's motion (recon.turned_panel;
     upright panels come back as they are)."""
     return align_to_motion(geometry, estimate_orbit(geometry).axis)
-
-
-def _cosine_weights(view) -> np.ndarray:
-    """cos of the angle between each pixel's ray and the detector normal, (rows, cols)."""
-    up, vp = view.principal_point_px
-    d = view.sdd_mm
-    du = (np.arange(view.cols) - up) * view.pitch_u_mm
-    dv = (np.arange(view.rows) - vp) * view.pitch_v_mm
-    return d / np.sqrt(d * d + du[None, :] ** 2 + dv[:, None] ** 2)
 
 
 def _coarse_grid(grid: VolumeGrid, subsample: int) -> VolumeGrid:

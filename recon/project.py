@@ -285,7 +285,9 @@ def _row_gather(n, img, cols, idx, fu, fv, wt, acc):  # pragma: no cover
         acc[k] += (r0 + fv[k] * (r1 - r0)) * wt[k]
 
 
-@numba.njit(parallel=True, fastmath=True, cache=True, error_model="numpy", boundscheck=False)
+@numba.njit(
+    parallel=True, fastmath=True, cache=True, error_model="numpy", boundscheck=False, nogil=True
+)
 def _backproject_kernel(q, mats, sources, axis, mode, origin, spacing, out):  # pragma: no cover
     """out[z, y, x] += sum over views of weight(mode) * bilinear(q[view]) at P x."""
     n_views, rows, cols = q.shape
@@ -337,7 +339,10 @@ def _backproject_kernel(q, mats, sources, axis, mode, origin, spacing, out):  # 
             n = min(nx - 1, math.floor(hi)) - x0 + 1
             if n <= 0:
                 continue
-            _row_samples(n, x0, h, s, umax, vmax, cols, mode, d0, dd, ax32, idx, fu, fv, wt)
+            if mode == FDK_WEIGHT:  # the hot path, compiled with the weight's branch folded
+                _row_samples(n, x0, h, s, umax, vmax, cols, 0, d0, dd, ax32, idx, fu, fv, wt)
+            else:
+                _row_samples(n, x0, h, s, umax, vmax, cols, mode, d0, dd, ax32, idx, fu, fv, wt)
             _row_gather(n, flat[view], cols, idx, fu, fv, wt, acc[x0:])
         for x in range(nx):
             out[z, y, x] += acc[x]

@@ -1,9 +1,9 @@
 """The operator console ``cbct``: its acquisition commands and what every command shares.
 
-Here: ``plan`` (checked, timed robot motion for a protocol), ``scan`` (a scan on the simulated
-or the UR backend into a study folder, resumable) and ``simulate-scan`` (scan a digital
-phantom with a protocol). The study pipeline's commands join this app in study.cli, which is
-the console's entry point. Every command checks its inputs before long work starts, never
+Here: ``plan`` (checked, timed robot motion for a protocol) and ``simulate-scan`` (scan a
+digital phantom with a protocol). The study pipeline's commands join this app in study.cli,
+which is the console's entry point (``cbct scan`` is there: it reconstructs while it
+acquires). Every command checks its inputs before long work starts, never
 overwrites an existing output, and shows progress on long work.
 """
 
@@ -19,10 +19,6 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, Ti
 from rich.table import Table
 
 from scanner import scan_files
-from scanner.backends import load_backend_spec
-from scanner.scan import Progress as ScanProgress
-from scanner.scan import ScanFault
-from scanner.session import read_inputs, run_session
 from sim.vibration import VibrationSpec
 
 app = typer.Typer(
@@ -172,95 +168,3 @@ def simulate_scan(
     except (ValueError, OSError) as err:
         fail(str(err))
     console.print(f"[green]wrote[/] {len(written)} files to {out}")
-
-
-@app.command()
-def scan(
-    study: Annotated[Path, typer.Option(help="study folder: new, or the one to --resume")],
-    protocol: Annotated[
-        Path | None, typer.Option(help="scan protocol YAML (a new study needs one)")
-    ] = None,
-    backend: Annotated[str, typer.Option(help="sim or ur")] = "sim",
-    backend_config: Annotated[
-        Path | None, typer.Option(help="backend YAML (default configs/backends/BACKEND.yaml)")
-    ] = None,
-    scanner: Annotated[Path, typer.Option(help="scanner hardware YAML")] = CONFIGS / "scanner.yaml",
-    phantom: Annotated[Path, typer.Option(help="knee phantom the simulated panel images")] = CONFIGS
-    / "phantoms"
-    / "knee.yaml",
-    phantom_voxel_mm: Annotated[float, typer.Option(help="phantom raster for the panel, mm")] = 1.0,
-    yes: Annotated[bool, typer.Option("--yes", help="answer yes to both confirmations")] = False,
-    resume: Annotated[
-        bool, typer.Option("--resume", help="continue STUDY with the views not yet stored")
-    ] = False,
-) -> None:
-    """Scan: preflight, approach, acquire view by view (stored as acquired), retreat.
-
-    Any fault (device error, protective stop, off-pose arm, open interlock, Ctrl-C) switches
-    the X-ray off, then stops the arms, and marks the study incomplete; --resume continues it.
-    """
-    config = backend_config or CONFIGS / "backends" / f"{backend}.yaml"
-    try:
-        if resume:
-            if protocol is not None:
-                fail("--resume continues the study with its own protocol: drop --protocol")
-            inputs = None
-            override = load_backend_spec(backend, config) if backend_config else None
-        else:
-            if protocol is None:
-                fail("a new study needs --protocol")
-            inputs = read_inputs(
-                protocol, scanner, backend, config, phantom, phantom_voxel_mm=phantom_voxel_mm
-            )
-            override = None
-    except (ValueError, OSError) as err:
-        fail(str(err))
-
-    def confirm(question: str) -> bool:
-        if yes:
-            console.print(f"{question} [bold]yes[/] (--yes)", soft_wrap=True, highlight=False)
-            return True
-        return typer.confirm(question, default=False, err=True)
-
-    bar = Progress(
-        TextColumn("{task.description}"),
-        BarColumn(),
-        TextColumn("{task.completed}/{task.total} views"),
-        TextColumn("{task.fields[dose]:.1f} mAs"),
-        TimeElapsedColumn(),
-        console=console,
-    )
-    task = None
-
-    def progress(p: ScanProgress) -> None:
-        nonlocal task
-        if task is None:
-            task = bar.add_task("acquiring", total=p.views, dose=0.0)
-        bar.update(task, completed=p.views_done, dose=p.dose_mas)
-
-    try:
-        with bar:
-            done = run_session(
-                study,
-                inputs,
-                resume=resume,
-                backend_override=override,
-                confirm=confirm,
-                progress=progress,
-                say=lambda msg: console.print(f"  {msg}", highlight=False),
-            )
-    except ScanFault as err:
-        fail(
-            f"{err}\n  the study keeps every stored view; continue with: cbct scan --resume "
-            f"--study {study}"
-        )
-    except (ValueError, OSError, RuntimeError) as err:
-        fail(str(err))
-    stage = done.stage("scan")
-    console.print(
-        f"[green]scan complete[/]: {stage['views']} views, {stage['dose_mas']:.1f} mAs in "
-        f"{study / 'scan'} (projections.mha, geometry.xml; recording: rerun "
-        f"{study / 'scan' / 'recording.rrd'})",
-        soft_wrap=True,
-        highlight=False,
-    )

@@ -14,6 +14,7 @@ import shutil
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
@@ -25,7 +26,7 @@ from scanner.backends import BACKEND_SPECS, load_backend_spec, open_backend
 from scanner.scan import Progress as ScanProgress
 from scanner.scan import ScanRun, ScanSettings
 from scanner.scan_recording import ScanRecorder
-from scanner.storage import ScanStore
+from scanner.storage import ScanStore, ViewRecord
 from scanner.study import Study, StudyError
 from sim.backend import volume_subject
 from sim.phantoms.bb import project_bb
@@ -36,6 +37,20 @@ from trajectories.plan import Plan, plan_scan
 from trajectories.recording import record_plan
 
 Say = Callable[[str], None]
+
+
+class ViewSink(Protocol):
+    """Takes every view of a scan as it is stored (e.g. a reconstruction during acquisition).
+
+    ``start`` is called once the store is open, before anything moves: the views already
+    stored (a resumed scan) are the sink's to read from it. ``view`` runs in the exposure loop
+    after each view is stored, so it must return at once (queue the work)."""
+
+    def start(self, store: ScanStore) -> None: ...
+
+    def view(self, record: ViewRecord, image: np.ndarray) -> None: ...
+
+
 PHANTOMS = {"knee": KneePhantomSpec, "bb": BBPhantomSpec}
 LEG_HEIGHT_MM = 480.0
 """Length of leg the simulated panel images, mm, centred on the joint line: more than the cone
@@ -161,6 +176,7 @@ def run_session(
     progress: Callable[[ScanProgress], None] = lambda _p: None,
     say: Say = lambda _m: None,
     settings: ScanSettings | None = None,
+    sink: ViewSink | None = None,
 ) -> Study:
     """Plan and scan into ``study_path`` (new), or continue it (``resume``; the backend's
     config may be given again, e.g. new addresses, or a simulation without the fault)."""
@@ -178,6 +194,7 @@ def run_session(
         progress=progress,
         say=say,
         settings=settings,
+        sink=sink,
     )
     return study
 
@@ -192,10 +209,12 @@ def scan_stage(
     progress: Callable[[ScanProgress], None] = lambda _p: None,
     say: Say = lambda _m: None,
     settings: ScanSettings | None = None,
+    sink: ViewSink | None = None,
 ) -> None:
     """Scan ``stage`` (``scan`` or ``calibration_scan``) of an open study: with new
     ``inputs`` (recorded as the stage's config snapshot), or, when ``inputs`` is None,
-    continue it with its snapshot (and ``backend_override`` if given)."""
+    continue it with its snapshot (and ``backend_override`` if given). ``sink`` takes every
+    view as it is stored (:class:`ViewSink`)."""
     if study.stage(stage).get("status") == "complete":
         raise StudyError(f"{study.path}: {stage} is complete; nothing to resume")
     configs = study.manifest["config"]
@@ -232,6 +251,14 @@ def scan_stage(
     )
     truth = (lambda: simulated.detector.true_views[-1].matrix) if simulated else (lambda: None)
     recorder = ScanRecorder(study, plan.joint_names, panel.pixel_pitch_mm, stage)
+    on_view = recorder.view
+    if sink is not None:
+        sink.start(store)
+
+        def on_view(record: ViewRecord, image: np.ndarray) -> None:
+            recorder.view(record, image)
+            sink.view(record, image)
+
     run = ScanRun(
         backend=backend,
         model=model,
@@ -241,7 +268,7 @@ def scan_stage(
         settings=settings or ScanSettings(),
         confirm=confirm,
         progress=progress,
-        on_view=recorder.view,
+        on_view=on_view,
         truth=truth,
     )
     sessions = study.manifest.setdefault("sessions", [])

@@ -125,6 +125,17 @@ class ScanStore:
                 self.study.manifest["files"][relpath] = digest
             self.records[k] = ViewRecord.from_json(data)
 
+    def image(self, k: int) -> np.ndarray:
+        """The stored line integrals of view ``k``, float32 (rows, cols)."""
+        if k not in self.records:
+            raise StudyError(f"view {k} is not stored")
+        return read_projections(self.study.path / f"{self._name(k)}.mha").data[0]
+
+    def view(self, k: int) -> View:
+        """Stored view ``k`` as recorded (its realised matrix)."""
+        p = self.panel
+        return View.from_matrix(self.records[k].matrix, p.pixel_pitch_mm, p.rows, p.cols)
+
     def put(self, record: ViewRecord, line_integrals: np.ndarray, counts: np.ndarray) -> None:
         """Store one view (both images, then its record) and save the manifest."""
         k = record.view
@@ -168,12 +179,7 @@ class ScanStore:
             self.study.write(
                 f"{self.folder}/{name}.mha", lambda p, a=stack: write_projections(p, a, pitch)
             )
-        recorded = Geometry(
-            [
-                View.from_matrix(self.records[k].matrix, pitch, self.panel.rows, self.panel.cols)
-                for k in order
-            ]
-        )
+        recorded = Geometry([self.view(k) for k in order])
         self.study.write(f"{self.folder}/geometry.xml", lambda p: write_rtk_geometry(p, recorded))
         self.study.write(
             f"{self.folder}/planned_geometry.xml", lambda p: write_rtk_geometry(p, self.planned)

@@ -26,12 +26,17 @@ from recon.config import load_config
 from recon.distortion import Distortion
 from registration.boneaxis import Settings
 from registration.track import register_files
+from scanner.backends import load_backend_spec
 from scanner.cli import CONFIGS, app, console, fail, views_done, views_progress
+from scanner.scan import Progress as ScanProgress
 from scanner.scan import ScanFault
+from scanner.session import read_inputs, run_session
 from scanner.study import StudyError
 from study import batch as batch_job
 from study import demo as demo_job
 from study import jobs
+from study.live_recon import LiveRecon
+from study.stages import recon_stage
 
 __all__ = ["app"]
 
@@ -133,6 +138,13 @@ def recon(
     protocol: Annotated[
         Path | None, typer.Option(help="the scan's protocol (needed with --calibration)")
     ] = None,
+    orbit: Annotated[
+        Path | None,
+        typer.Option(
+            help="RTK geometry XML whose orbit sets the angular weights (a study's "
+            "scan/planned_geometry.xml); default: the geometry's own"
+        ),
+    ] = None,
 ) -> None:
     """Reconstruct RTK-format projections with weighted FDK."""
     if out.exists():
@@ -153,6 +165,7 @@ def recon(
                 preview=preview,
                 calibration=calibration,
                 protocol_path=protocol,
+                orbit_path=orbit,
             )
     except (ValueError, OSError) as err:
         fail(str(err))
@@ -161,6 +174,129 @@ def recon(
         f"[green]wrote[/] {out}: {grid.size_xyz} voxels of {grid.spacing_mm[0]:.3g} mm in "
         f"{time.perf_counter() - start:.1f} s; {100 * (1 - result.mask.mean()):.1f} % of voxels "
         f"masked (seen over < {min_coverage_deg:g} deg)",
+        soft_wrap=True,
+        highlight=False,
+    )
+
+
+@app.command()
+def scan(
+    study: Annotated[Path, typer.Option(help="study folder: new, or the one to --resume")],
+    protocol: Annotated[
+        Path | None, typer.Option(help="scan protocol YAML (a new study needs one)")
+    ] = None,
+    backend: Annotated[str, typer.Option(help="sim or ur")] = "sim",
+    backend_config: Annotated[
+        Path | None, typer.Option(help="backend YAML (default configs/backends/BACKEND.yaml)")
+    ] = None,
+    scanner: Annotated[Path, typer.Option(help="scanner hardware YAML")] = CONFIGS / "scanner.yaml",
+    phantom: Annotated[Path, typer.Option(help="knee phantom the simulated panel images")] = CONFIGS
+    / "phantoms"
+    / "knee.yaml",
+    phantom_voxel_mm: Annotated[float, typer.Option(help="phantom raster for the panel, mm")] = 1.0,
+    recon_voxel_mm: Annotated[
+        float, typer.Option(help="voxel of the volume reconstructed during the scan, mm")
+    ] = 1.0,
+    yes: Annotated[bool, typer.Option("--yes", help="answer yes to both confirmations")] = False,
+    resume: Annotated[
+        bool, typer.Option("--resume", help="continue STUDY with the views not yet stored")
+    ] = False,
+) -> None:
+    """Scan: preflight, approach, acquire view by view (stored as acquired), retreat; every
+    stored view is reconstructed while the scan goes on (weighted FDK), and the volume is the
+    study's recon stage when the last view is in.
+
+    Any fault (device error, protective stop, off-pose arm, open interlock, Ctrl-C) switches
+    the X-ray off, then stops the arms, and marks the study incomplete; --resume continues it.
+    """
+    config = backend_config or CONFIGS / "backends" / f"{backend}.yaml"
+    try:
+        if resume:
+            if protocol is not None:
+                fail("--resume continues the study with its own protocol: drop --protocol")
+            inputs = None
+            override = load_backend_spec(backend, config) if backend_config else None
+        else:
+            if protocol is None:
+                fail("a new study needs --protocol")
+            inputs = read_inputs(
+                protocol, scanner, backend, config, phantom, phantom_voxel_mm=phantom_voxel_mm
+            )
+            override = None
+    except (ValueError, OSError) as err:
+        fail(str(err))
+
+    def confirm(question: str) -> bool:
+        if yes:
+            console.print(f"{question} [bold]yes[/] (--yes)", soft_wrap=True, highlight=False)
+            return True
+        return typer.confirm(question, default=False, err=True)
+
+    bar = Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        TextColumn("{task.completed}/{task.total} views"),
+        TextColumn("{task.fields[dose]:.1f} mAs"),
+        TextColumn("recon backlog {task.fields[backlog]} views"),
+        TimeElapsedColumn(),
+        console=console,
+    )
+    task = None
+    if not 0.1 <= recon_voxel_mm <= 4.0:
+        fail(f"--recon-voxel-mm must be in [0.1, 4] mm, got {recon_voxel_mm}")
+    live = LiveRecon(recon_voxel_mm)
+    last_view = time.perf_counter()
+    backlog_at_end = 0
+
+    def progress(p: ScanProgress) -> None:
+        nonlocal task, last_view, backlog_at_end
+        if task is None:
+            task = bar.add_task("acquiring", total=p.views, dose=0.0, backlog=0)
+        bar.update(task, completed=p.views_done, dose=p.dose_mas, backlog=live.backlog)
+        last_view, backlog_at_end = time.perf_counter(), live.backlog
+
+    try:
+        with bar:
+            done = run_session(
+                study,
+                inputs,
+                resume=resume,
+                backend_override=override,
+                confirm=confirm,
+                progress=progress,
+                say=lambda msg: console.print(f"  {msg}", highlight=False),
+                sink=live,
+            )
+    except ScanFault as err:
+        live.close()
+        fail(
+            f"{err}\n  the study keeps every stored view; continue with: cbct scan --resume "
+            f"--study {study}"
+        )
+    except (ValueError, OSError, RuntimeError) as err:
+        live.close()
+        fail(str(err))
+    try:
+        recon_stage(done, recon_voxel_mm, result=live.finish(), say=lambda _m: None)
+    except (ValueError, OSError, RuntimeError) as err:
+        fail(
+            f"{err}\n  the scan is complete and kept; reconstruct it offline with: cbct recon "
+            f"--projections {study}/scan/projections.mha --geometry {study}/scan/geometry.xml "
+            f"--orbit {study}/scan/planned_geometry.xml --out VOLUME.nii.gz"
+        )
+    ready = time.perf_counter() - last_view
+    stage = done.stage("scan")
+    console.print(
+        f"[green]scan complete[/]: {stage['views']} views, {stage['dose_mas']:.1f} mAs in "
+        f"{study / 'scan'} (projections.mha, geometry.xml; recording: rerun "
+        f"{study / 'scan' / 'recording.rrd'})",
+        soft_wrap=True,
+        highlight=False,
+    )
+    console.print(
+        f"[green]volume[/] reconstructed during the scan (backlog at the last view: "
+        f"{backlog_at_end} views; recon stage written {ready:.1f} s after it): "
+        f"{study / 'recon' / 'volume.nii.gz'} (+ .mha, dicom/, slices.png)",
         soft_wrap=True,
         highlight=False,
     )

@@ -43,6 +43,7 @@ from sim.backend import SimBackendSpec
 from sim.fluoro import lateral_view, save_sequence, simulate_dewarp_grid, simulate_fluoroscopy
 from sim.motion import flexion_extension
 from sim.phantoms.knee import KneePhantomSpec
+from study.live_recon import LiveRecon
 from study.recording import merge_recordings
 from study.stages import (
     Say,
@@ -150,9 +151,10 @@ def acquire(
         say(f"stage {next(number)}/{len(STAGES)} {name}: {title}")
         return lambda msg: say(f"  {msg}")
 
-    def scan(name: str, p: ScanProtocol, phantom: str) -> None:
+    def scan(name: str, p: ScanProtocol, phantom: str, sink: LiveRecon | None = None) -> None:
         started_before = name in study.manifest["config"]
-        scan_stage(study, None if started_before else inputs(p, phantom), name, say=say)
+        new_inputs = None if started_before else inputs(p, phantom)
+        scan_stage(study, new_inputs, name, say=say, sink=sink)
 
     run_stage(
         study,
@@ -176,12 +178,17 @@ def acquire(
         calibration,
         stage("calibration", "fit every view's projection matrix"),
     )
-    run_stage(
-        study,
-        "scan",
-        lambda: scan("scan", protocol, "knee"),
-        stage("scan", "scan the standing knee"),
-    )
+    live = LiveRecon(size["recon_voxel_mm"])
+    say_scan = stage("scan", "scan the standing knee, reconstructing while it acquires")
+    try:
+        ran = run_stage(study, "scan", lambda: scan("scan", protocol, "knee", live), say_scan)
+    except BaseException:
+        live.close()
+        raise
+    if ran:  # the volume of the views as they came in is the recon stage
+        scanned = time.perf_counter()
+        recon_stage(study, size["recon_voxel_mm"], say=say_scan, result=live.finish())
+        say_scan(f"recon stage written {time.perf_counter() - scanned:.1f} s after the scan")
 
     def fluoro(folder: Path) -> dict:
         n = size["frames"]

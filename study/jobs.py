@@ -42,11 +42,14 @@ def reconstruct_files(
     preview: Path | None = None,
     calibration: Path | None = None,
     protocol_path: Path | None = None,
+    orbit_path: Path | None = None,
 ) -> FDKResult:
     """Reconstruct an RTK projection stack + geometry XML into a volume file (and a PNG).
 
     The grid defaults to the orbit's field of view (recon.fdk.default_grid); ``origin_mm``
-    needs ``size_xyz``. Nothing is written if any input is wrong.
+    needs ``size_xyz``. ``orbit_path`` (RTK XML, e.g. a scan's planned views) sets FDK's
+    angular weights instead of the geometry's own orbit. Nothing is written if any input is
+    wrong.
     """
     for path in (out, preview):
         if path is not None and path.exists():
@@ -66,6 +69,17 @@ def reconstruct_files(
             f"describes {len(geometry)} views"
         )
     check_axis_on_panel(geometry, f"{projections_path} with {geometry_path}")
+    orbit = None
+    if orbit_path is not None:
+        if calibration is not None:
+            raise ValueError(
+                "--orbit and --calibration exclude each other: a calibration is its own orbit"
+            )
+        orbit = read_rtk_geometry(orbit_path, stack.header)
+        if len(orbit) != len(geometry):
+            raise ValueError(
+                f"{orbit_path} describes {len(orbit)} views, {geometry_path} {len(geometry)}"
+            )
     if origin_mm is not None and size_xyz is None:
         raise ValueError("--origin-mm needs --size (the grid's voxel counts)")
     grid = default_grid(geometry, spacing_mm, size_xyz)
@@ -77,6 +91,7 @@ def reconstruct_files(
         grid,
         window=window,
         min_coverage_deg=min_coverage_deg,
+        orbit_geometry=orbit,
         progress=progress,
     )
     write_volume(out, result.volume)

@@ -20,7 +20,8 @@ import numpy as np
 from calibration.calibrate import corrected_geometry
 from recon.config import ScanProtocol
 from recon.dicom import write_dicom_series
-from recon.fdk import Progress, fdk_reconstruct
+from recon.fdk import FDKResult, Progress, fdk_reconstruct
+from recon.geometry import Geometry
 from recon.io import read_projections, read_volume, write_volume
 from recon.preview import save_orthogonal_slices
 from recon.rtk_xml import read_rtk_geometry
@@ -109,33 +110,63 @@ def recon_grid(protocol: ScanProtocol, voxel_mm: float) -> VolumeGrid:
     return VolumeGrid.centered(size, voxel_mm, tuple(center))
 
 
+def recon_geometry(
+    study: Study, protocol: ScanProtocol, planned: Geometry
+) -> tuple[Geometry, bool]:
+    """The geometry a study's scan is reconstructed on, known before its first view: the
+    calibrated views when the study has a calibration (False: they place the rays too), else
+    the plan's views, whose orbit sets FDK's angular weights while each view's rays come from
+    its recorded matrix (True), so that the arms' tracking noise stays out of the weights."""
+    if study.stage("calibration").get("status") == "complete":
+        return corrected_geometry(study.path / "calibration", protocol), False
+    return planned, True
+
+
 def recon_stage(
-    study: Study, voxel_mm: float = 1.0, progress: Progress | None = None, say: Say = print
+    study: Study,
+    voxel_mm: float = 1.0,
+    progress: Progress | None = None,
+    say: Say = print,
+    result: FDKResult | None = None,
 ) -> bool:
-    """Weighted FDK of ``scan/`` with the calibrated geometry when the study has a calibration,
-    else the recorded one -> ``recon/`` (NIfTI, MetaImage, DICOM series, preview, recording;
-    against the phantom when simulated)."""
+    """Weighted FDK of ``scan/`` on :func:`recon_geometry` -> ``recon/`` (NIfTI, MetaImage,
+    DICOM series, preview, recording; against the phantom when simulated). ``result`` is the
+    reconstruction made during the scan (:mod:`study.live_recon`), written as it is."""
 
     def fill(folder: Path) -> dict:
+        nonlocal result
         protocol = scan_protocol(study)
         stack = read_projections(study.path / "scan" / "projections.mha")
         recorded = read_rtk_geometry(study.path / "scan" / "geometry.xml", stack.header)
-        calibrated = study.stage("calibration").get("status") == "complete"
-        geometry = (
-            corrected_geometry(study.path / "calibration", protocol) if calibrated else recorded
-        )
+        planned = read_rtk_geometry(study.path / "scan" / "planned_geometry.xml", stack.header)
+        orbit, per_view = recon_geometry(study, protocol, planned)
+        calibrated = not per_view
         grid = recon_grid(protocol, voxel_mm)
-        result = fdk_reconstruct(stack.data, geometry, grid, progress=progress)
+        streamed = result is not None
+        if result is None:
+            result = fdk_reconstruct(
+                stack.data,
+                recorded if per_view else orbit,
+                grid,
+                orbit_geometry=orbit if per_view else None,
+                progress=progress,
+            )
+        elif result.volume.grid != grid:
+            raise ValueError(f"the reconstruction's grid {result.volume.grid} is not {grid}")
         volume = result.volume
-        write_volume(folder / "volume.nii.gz", volume)
         write_volume(folder / "volume.mha", volume)
+        write_volume(folder / "volume.nii.gz", volume)
         knee = simulated_knee(study)
         energy = REAL_SCAN_ENERGY_KEV if knee is None else knee.effective_energy_kev
         water = attenuation_per_mm(energy)["water"]
         write_dicom_series(folder / "dicom", volume, mu_water_per_mm=water)
         save_orthogonal_slices(volume, folder / "slices.png", title="weighted FDK")
         record_volume(volume, folder / "recording.rrd")
-        details = {"geometry": "calibrated" if calibrated else "recorded", "voxel_mm": voxel_mm}
+        details = {
+            "geometry": "calibrated" if calibrated else "recorded",
+            "voxel_mm": voxel_mm,
+            "during_scan": streamed,
+        }
         if knee is not None:  # simulation: against the phantom, and the other geometries
             labels, truth = rasterize_knee(knee, grid, supersample=2)
             inside = (labels > 0) & result.mask
@@ -146,7 +177,8 @@ def recon_stage(
                 others["true"] = read_rtk_geometry(true_path, stack.header)
             for name, other in others.items():
                 if name not in rmse:
-                    data = fdk_reconstruct(stack.data, other, grid).volume.data
+                    other_result = fdk_reconstruct(stack.data, other, grid, orbit_geometry=planned)
+                    data = other_result.volume.data
                     rmse[name] = _rmse(data, truth, inside)
             details |= {f"rmse_{name}_per_mm": value for name, value in rmse.items()}
         (folder / "metrics.json").write_text(json.dumps(details, indent=2), encoding="utf-8")

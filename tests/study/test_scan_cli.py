@@ -1,4 +1,5 @@
-"""``cbct scan`` from the console: confirmations, a fault and its resume, refusals."""
+"""``cbct scan`` from the console: confirmations, a fault and its resume (the volume
+reconstructed during the scan written as the recon stage), refusals."""
 
 from __future__ import annotations
 
@@ -7,8 +8,9 @@ from pathlib import Path
 import yaml
 from typer.testing import CliRunner
 
-from scanner.cli import CONFIGS, app
+from scanner.cli import CONFIGS
 from scanner.study import Study
+from study.cli import app
 
 runner = CliRunner()
 
@@ -30,7 +32,9 @@ def sim_config(tmp: Path, **faults) -> Path:
 
 
 def scan(*args: str, answers: str | None = None):
-    return runner.invoke(app, ["scan", "--phantom-voxel-mm", "2", *args], input=answers)
+    return runner.invoke(
+        app, ["scan", "--phantom-voxel-mm", "2", "--recon-voxel-mm", "4", *args], input=answers
+    )
 
 
 def test_scan_fault_then_resume(tmp_path):
@@ -47,7 +51,11 @@ def test_scan_fault_then_resume(tmp_path):
     result = scan(*common, "--resume", "--backend-config", str(sim_config(tmp_path)))
     assert result.exit_code == 0, result.output
     assert "scan complete: 60 views" in result.output
-    assert Study.open(study).verify() == []
+    assert "reconstructed during the scan" in result.output
+    done = Study.open(study)
+    assert done.verify() == []
+    assert done.stage("recon")["status"] == "complete" and done.stage("recon")["during_scan"]
+    assert (study / "recon" / "volume.nii.gz").is_file()
 
 
 def test_declining_at_the_prompt_moves_nothing(tmp_path):
