@@ -13,9 +13,10 @@ Layout under ``scan/`` (``calibration_scan/`` for the steel-ball phantom's scan)
     joint_states.csv             joints at every exposure (plan joint units)
     exposure_log.csv             view, clock time, kV, mA, ms, generator sequence
 
-A view counts as stored once its .json exists (written last, atomically, after both images);
-on reopening, every stored view is checked against its checksums, and an altered or missing
-file is an error, never skipped silently.
+A view counts as stored once its .json exists (written last, atomically, after both images,
+with their sha256); on reopening, every stored view is checked against its checksums (the
+manifest's, or the record's for views stored after the manifest's last save), and an altered or
+missing file is an error, never skipped silently.
 """
 
 from __future__ import annotations
@@ -137,7 +138,9 @@ class ScanStore:
         return View.from_matrix(self.records[k].matrix, p.pixel_pitch_mm, p.rows, p.cols)
 
     def put(self, record: ViewRecord, line_integrals: np.ndarray, counts: np.ndarray) -> None:
-        """Store one view (both images, then its record) and save the manifest."""
+        """Store one view: both images, then its record, which carries their sha256. The
+        manifest is saved with the stage's status (done, or SAFE); a view stored after its
+        last save is verified against its record on reopening (:meth:`_load`)."""
         k = record.view
         if k in self.records:
             raise StudyError(f"view {k} is already stored: acquired views are never replaced")
@@ -148,7 +151,6 @@ class ScanStore:
             self.study.write(base + suffix, lambda p, a=image: write_projections(p, a[None], pitch))
             files[base + suffix] = self.study.manifest["files"][base + suffix]
         self.study.write_json(base + ".json", {**record.to_json(), "files": files})
-        self.study.save()
         self.records[k] = record
 
     def mark_incomplete(self, reason: str, failed_in: str) -> None:

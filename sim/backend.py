@@ -18,7 +18,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from recon.geometry import DetectorSpec, Geometry, View
-from recon.project import forward_project
+from recon.project import JosephProjector
 from recon.volume import Volume
 from sim.arms import GROUPS, MockArm, SimWorld, VirtualClock
 from sim.detector import SimDetector
@@ -59,8 +59,10 @@ class SimBackendSpec(BaseModel):
 def volume_subject(volume: Volume) -> Callable[[View], np.ndarray]:
     """Line integrals of an attenuation volume (1/mm) through one view (recon projector)."""
 
+    projector = JosephProjector(volume.data, volume.grid)  # padded once for every view
+
     def render(view: View) -> np.ndarray:
-        return forward_project(volume.data, volume.grid, Geometry([view]))[0]
+        return projector.project(Geometry([view]))[0]
 
     return render
 

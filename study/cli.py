@@ -277,7 +277,13 @@ def scan(
         live.close()
         fail(str(err))
     try:
-        recon_stage(done, recon_voxel_mm, result=live.finish(), say=lambda _m: None)
+        recon_stage(
+            done,
+            recon_voxel_mm,
+            result=live.finish(),
+            written=live.volume_path,
+            say=lambda _m: None,
+        )
     except (ValueError, OSError, RuntimeError) as err:
         fail(
             f"{err}\n  the scan is complete and kept; reconstruct it offline with: cbct recon "

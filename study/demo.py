@@ -187,7 +187,10 @@ def acquire(
         raise
     if ran:  # the volume of the views as they came in is the recon stage
         scanned = time.perf_counter()
-        recon_stage(study, size["recon_voxel_mm"], say=say_scan, result=live.finish())
+        result = live.finish()
+        recon_stage(
+            study, size["recon_voxel_mm"], say=say_scan, result=result, written=live.volume_path
+        )
         say_scan(f"recon stage written {time.perf_counter() - scanned:.1f} s after the scan")
 
     def fluoro(folder: Path) -> dict:

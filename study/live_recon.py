@@ -2,7 +2,8 @@
 it is stored, on a worker thread, so that the volume is ready when the scan ends.
 
 A :class:`LiveRecon` is the scan's view sink (:class:`scanner.session.ViewSink`). The exposure
-loop only queues each stored view (no copy, no wait); the worker gathers them into the batches
+loop only queues each stored view (no copy, no wait); the worker, whose backprojector leaves
+one core to the exposure loop, gathers them into the batches
 of the offline reconstruction (views ``16 j .. 16 j + 15``, :data:`BATCH_VIEWS`) and adds each
 batch to an :class:`recon.fdk.FDKAccumulator` once all its views are in. The geometry is the
 one the offline recon stage uses (:func:`study.stages.recon_geometry`): the calibrated views
@@ -10,22 +11,33 @@ when the study has a calibration, else each view as recorded with the plan's orb
 angular weights. Same views, same batches, same order: the volume equals the offline
 ``recon`` stage's to float rounding. A resumed scan first queues the views already stored,
 read back from the study.
+
+The worker writes the volume (``recon.live/volume.mha``) the moment its last batch is in,
+while the arms retreat and the scan assembles its stacks; the recon stage then takes that file
+as its own (:func:`study.stages.recon_stage`) and adds the rest.
 """
 
 from __future__ import annotations
 
 import queue
+import shutil
 import threading
+from pathlib import Path
 
+import numba
 import numpy as np
 
 from recon.fdk import FDKAccumulator, FDKResult
 from recon.geometry import Geometry
+from recon.io import write_volume
 from scanner.storage import ScanStore, ViewRecord
 from study.stages import recon_geometry, recon_grid, scan_protocol
 
 BATCH_VIEWS = 16
 """Views filtered and backprojected together, as the offline reconstruction batches them."""
+LIVE_FOLDER = "recon.live"
+"""Where the worker writes the finished volume, in the study folder (derived data: a new
+session's reconstruction clears it)."""
 
 
 class LiveRecon:
@@ -50,6 +62,9 @@ class LiveRecon:
         self._thread: threading.Thread | None = None
         self._store: ScanStore | None = None
         self._recorded = True
+        self._result: FDKResult | None = None
+        self.volume_path: Path | None = None
+        """The volume as written by the worker once every view is in."""
 
     @property
     def backlog(self) -> int:
@@ -62,6 +77,9 @@ class LiveRecon:
         orbit, self._recorded = recon_geometry(store.study, protocol, store.planned)
         self.accumulator = FDKAccumulator(orbit, recon_grid(protocol, self.voxel_mm))
         self._store = store
+        folder = store.study.path / LIVE_FOLDER
+        if folder.exists():  # an earlier session's: this one rebuilds from every stored view
+            shutil.rmtree(folder)
         self._thread = threading.Thread(target=self._work, name="live-recon", daemon=True)
         self._thread.start()
         for k in sorted(store.stored):
@@ -81,7 +99,7 @@ class LiveRecon:
         missing = np.flatnonzero(~self.accumulator.added)
         if missing.size:
             raise RuntimeError(f"views {missing[:10].tolist()} were never reconstructed")
-        return self.accumulator.result()
+        return self._result
 
     def close(self) -> None:
         """Stop the worker without a result (the scan stopped before its last view)."""
@@ -93,6 +111,8 @@ class LiveRecon:
         self._thread.join()
 
     def _work(self) -> None:
+        # one core fewer for the backprojector: the exposure loop keeps a core to itself
+        numba.set_num_threads(max(1, numba.config.NUMBA_NUM_THREADS - 1))
         while (item := self._queue.get()) is not None:
             if self._error is not None:
                 continue  # keep draining: the scan must never wait on a failed worker
@@ -113,3 +133,8 @@ class LiveRecon:
         views = Geometry([self._store.view(i) for i in batch]) if self._recorded else None
         self.accumulator.add(first, images, views)
         self.done += len(batch)
+        if self.accumulator.added.all():
+            self._result = self.accumulator.result()
+            folder = self._store.study.path / LIVE_FOLDER
+            folder.mkdir()
+            self.volume_path = write_volume(folder / "volume.mha", self._result.volume)

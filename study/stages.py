@@ -10,6 +10,7 @@ and leaves the stages before it untouched, so running again redoes only what is 
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import time
 from collections.abc import Callable
@@ -128,10 +129,12 @@ def recon_stage(
     progress: Progress | None = None,
     say: Say = print,
     result: FDKResult | None = None,
+    written: Path | None = None,
 ) -> bool:
     """Weighted FDK of ``scan/`` on :func:`recon_geometry` -> ``recon/`` (NIfTI, MetaImage,
     DICOM series, preview, recording; against the phantom when simulated). ``result`` is the
-    reconstruction made during the scan (:mod:`study.live_recon`), written as it is."""
+    reconstruction made during the scan (:mod:`study.live_recon`), taken as it is, and
+    ``written`` its volume already on disk (moved into the stage as ``volume.mha``)."""
 
     def fill(folder: Path) -> dict:
         nonlocal result
@@ -154,7 +157,11 @@ def recon_stage(
         elif result.volume.grid != grid:
             raise ValueError(f"the reconstruction's grid {result.volume.grid} is not {grid}")
         volume = result.volume
-        write_volume(folder / "volume.mha", volume)
+        if written is not None:
+            os.replace(written, folder / "volume.mha")
+            shutil.rmtree(written.parent)
+        else:
+            write_volume(folder / "volume.mha", volume)
         write_volume(folder / "volume.nii.gz", volume)
         knee = simulated_knee(study)
         energy = REAL_SCAN_ENERGY_KEV if knee is None else knee.effective_energy_kev

@@ -73,7 +73,9 @@ def live_scan(tmp_path_factory) -> tuple[Path, Path]:
     tmp = tmp_path_factory.mktemp("live")
     live = LiveRecon(VOXEL_MM)
     study = run_session(tmp / "live", inputs(tmp), sink=live)
-    recon_stage(study, VOXEL_MM, result=live.finish(), say=lambda _m: None)
+    recon_stage(
+        study, VOXEL_MM, result=live.finish(), written=live.volume_path, say=lambda _m: None
+    )
     run_session(tmp / "plain", inputs(tmp))
     return tmp / "live", tmp / "plain"
 
