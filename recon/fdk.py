@@ -391,8 +391,13 @@ class FDKAccumulator:
                 raise ValueError("the views as acquired turn their panels unlike the orbit's")
         index = np.arange(start, start + n)
         orbit = self.orbit
-        # Parker weights before filtering (along u); the edge taper after, where it is a plain
-        # per-pixel view weight that the views' weighted count carries as well
+        # FDK weight SOD / (SDD w^2) per view times dbeta; the ramp runs in pixel units,
+        # 1 / pitch turns it into 1/mm. Per-view constants and the Parker weights (along u)
+        # go before the filter; the edge taper after it, where it is a plain per-pixel view
+        # weight that the views' weighted count carries as well
+        sdd = np.array([v.sdd_mm for v in virtual])
+        pitch = np.array([v.pitch_u_mm for v in virtual])
+        scale = orbit.dbeta_rad[index] * orbit.sod_mm[index] / (sdd * pitch)
         pre = (
             np.ones((n, 1, virtual.cols), dtype=np.float32)
             if self._parker is None
@@ -400,20 +405,14 @@ class FDKAccumulator:
         )
         support = aligned.images(np.broadcast_to(self._taper, (n, *self._taper.shape)), first)
         batch = aligned.images(proj, first)
-        if batch is proj:
-            batch = proj.copy()
-        batch *= pre
+        weighted = np.empty_like(batch) if batch is proj else batch
         for k, view in enumerate(virtual):
-            batch[k] *= self._cosine_weights(view)
-        spec = scipy.fft.rfft(batch, n=self._n_fft, axis=2, workers=-1)
+            np.multiply(batch[k], self._cosine_weights(view), out=weighted[k])
+            weighted[k] *= np.float32(scale[k]) * pre[k]
+        spec = scipy.fft.rfft(weighted, n=self._n_fft, axis=2, workers=-1)
         spec *= self._ramp
-        filtered = scipy.fft.irfft(spec, n=self._n_fft, axis=2, workers=-1)[:, :, : virtual.cols]
-        # FDK weight SOD / (SDD w^2) per view times dbeta; the ramp ran in pixel units,
-        # 1 / pitch turns it into 1/mm
-        sdd = np.array([v.sdd_mm for v in virtual])
-        pitch = np.array([v.pitch_u_mm for v in virtual])
-        scale = orbit.dbeta_rad[index] * orbit.sod_mm[index] / (sdd * pitch)
-        filtered *= scale[:, None, None].astype(np.float32) * support
+        filtered = scipy.fft.irfft(spec, n=self._n_fft, axis=2, workers=-1)
+        filtered = np.multiply(filtered[:, :, : virtual.cols], support, out=weighted)
         backproject_weighted(filtered, virtual, self.grid, FDK_WEIGHT, self._num)
         # the views' weighted count: dbeta * SOD * SDD * w / L_perp^2, in degrees
         jac = np.degrees(orbit.dbeta_rad[index]) * orbit.sod_mm[index] * sdd
