@@ -239,6 +239,7 @@ def scan(
         TextColumn("{task.fields[dose]:.1f} mAs"),
         TextColumn("recon backlog {task.fields[backlog]} views"),
         TimeElapsedColumn(),
+        TimeRemainingColumn(),
         console=console,
     )
     task = None
