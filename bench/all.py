@@ -43,6 +43,7 @@ QUICK: dict[str, list[str]] = {
     "calibration": ["--views", "90"],
     "recon": ["--small"],
     "registration": ["--quick"],
+    "scan": ["--small"],
 }
 """Arguments of the small variants (``--quick``); others run as in ``FULL``."""
 STDERR_TAIL_LINES = 40
