@@ -651,12 +651,13 @@ def simulate_study(
     path: str | Path, configs: Path, size: dict, seed: int, varus_deg: float | None = None
 ) -> str:
     """A new simulated study at ``path``: the demo's acquisitions (``study.demo.acquire``)
-    with ``seed``, recorded under ``cohort`` in study.json. Returns the path."""
+    with ``seed``, recorded under ``cohort`` in study.json, its reconstruction left to the
+    batch. Returns the path."""
     from study import demo
 
     varus = demo.VARUS_DEG if varus_deg is None else varus_deg
     study = Study.create(path, {"cohort": {"size": size, "seed": seed, "varus_deg": varus}})
-    demo.acquire(study, configs, size, seed=seed, varus_deg=varus)
+    demo.acquire(study, configs, size, seed=seed, varus_deg=varus, live_recon=False)
     return str(path)
 
 

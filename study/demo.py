@@ -3,10 +3,12 @@
 1. plan the knee reverse spiral on the scanner (IK, clearance, timing), then scan the
    steel-ball phantom on the vibrating mock arms;
 2. calibrate every view;
-3. scan the standing knee phantom on the same plan;
+3. scan the standing knee phantom on the same plan, reconstructing while it acquires (the
+   volume is written as stage 5 when the last view is in);
 4. simulate lateral fluoroscopy of a flexion-extension with a varus imbalance mid-motion, and
    one exposure of the dewarp grid (the panel's distortion);
-5. weighted FDK with the calibrated geometry (NIfTI, MetaImage, DICOM series, preview);
+5. weighted FDK with the calibrated geometry (NIfTI, MetaImage, DICOM series, preview):
+   written by stage 3, or made from the stored scan when a resumed demo lacks it;
 6. segment femur, tibia-fibula and patella (labels, meshes);
 7. dewarp the frames, track the bones with BoneAxis-Reg, scored against the simulation's
    truth;
@@ -122,11 +124,14 @@ def acquire(
     varus_deg: float = VARUS_DEG,
     say: Say = lambda _m: None,
     progress: Progress | None = None,
+    live_recon: bool = True,
 ) -> None:
     """The simulated acquisitions of one study: steel-ball calibration scan and fit, the knee
     scan, and a lateral fluoroscopy of a flexion-extension with ``varus_deg`` mid-motion
     (stages ``calibration_scan``, ``calibration``, ``scan``, ``fluoro``; complete ones skipped).
-    ``seed`` varies the arms' tracking noise, the panels' quantum noise and the fluoroscopy's."""
+    ``live_recon``: the knee scan reconstructs while it acquires and writes the ``recon`` stage
+    (a cohort's studies leave it to ``cbct batch``). ``seed`` varies the arms' tracking noise,
+    the panels' quantum noise and the fluoroscopy's."""
     protocol, cal_protocol = _protocols(configs, size)
     knee = load_config(configs / "phantoms" / "knee.yaml", KneePhantomSpec)
     bb = load_config(configs / "phantoms" / "bb_helix.yaml", BBPhantomSpec)
@@ -178,14 +183,16 @@ def acquire(
         calibration,
         stage("calibration", "fit every view's projection matrix"),
     )
-    live = LiveRecon(size["recon_voxel_mm"])
-    say_scan = stage("scan", "scan the standing knee, reconstructing while it acquires")
+    live = LiveRecon(size["recon_voxel_mm"]) if live_recon else None
+    title = "scan the standing knee" + (", reconstructing while it acquires" if live else "")
+    say_scan = stage("scan", title)
     try:
         ran = run_stage(study, "scan", lambda: scan("scan", protocol, "knee", live), say_scan)
     except BaseException:
-        live.close()
+        if live is not None:
+            live.close()
         raise
-    if ran:  # the volume of the views as they came in is the recon stage
+    if ran and live is not None:  # the volume of the views as they came in is the recon stage
         scanned = time.perf_counter()
         result = live.finish()
         recon_stage(
