@@ -298,9 +298,10 @@ class FDKAccumulator:
     The orbit (rotation axis, per-view angular weights, redundancy) is read once from
     ``geometry``, the views known before the first projection (a plan or a calibration); each
     batch may bring the matrices its views were actually taken at (``views`` in :meth:`add`),
-    which place its rays. The volume of every view added, in the order added, is
-    :meth:`result`; the same views added in the same order give the same float32 sums whatever
-    the batches, so streaming equals the offline reconstruction to float rounding.
+    which place its rays. :meth:`result` is the volume of every view added so far. Views may
+    come in any order and batches; the same batches in the same order give the same float32
+    sums bit for bit (a scan that streams its views in :func:`fdk_reconstruct`'s batches gets
+    the offline volume), other batches the same volume to float rounding.
 
     Args: see :func:`fdk_reconstruct`.
     """
@@ -363,7 +364,7 @@ class FDKAccumulator:
                 f"projections have shape {proj.shape}; the geometry has views of "
                 f"{self.rows} x {self.cols} pixels"
             )
-        if not 0 <= start or start + n > self.n_views:
+        if start < 0 or start + n > self.n_views:
             raise ValueError(
                 f"views {start}..{start + n - 1} outside the orbit's 0..{self.n_views - 1}"
             )
