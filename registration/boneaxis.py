@@ -14,9 +14,12 @@ b) kinematic priority module (KPM), from the third frame: the pose is predicted 
    turning point, where the last motion nearly stops, S is the motion before it); the search
    widens (a small DE box) only when the similarity after refinement says the prediction
    failed;
-c) refinement: Powell then Nelder-Mead, coarse (binned panel) to fine; a second pass refines
-   each bone against the others' new estimates (on warm frames Nelder-Mead on the finest
-   level only: the first pass has brought every bone close).
+c) refinement: on the first frame Powell then Nelder-Mead, coarse (binned panel) to fine, and a
+   second pass that refines each bone against the others' new estimates; on every later
+   frame Levenberg-Marquardt on the residual whose half squared norm is 1 - NCC (plus the
+   prior), its Jacobian by central differences, on the coarse level in the first pass and on
+   the finest in the second (a quarter of the renders of the derivative-free passes, and
+   the same accuracy).
 
 A single lateral view barely sees the patella's medial-lateral shift and its tilt and spin
 (depth along the ray and rotations out of the image plane; measured on the quick demo: a
@@ -37,6 +40,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, NonNegativeFloat, PositiveFloat, PositiveInt
@@ -47,7 +51,7 @@ from scipy.ndimage import (
     maximum_filter1d,
     minimum_filter1d,
 )
-from scipy.optimize import differential_evolution, minimize, minimize_scalar
+from scipy.optimize import differential_evolution, least_squares, minimize, minimize_scalar
 from scipy.spatial.transform import RigidTransform, Rotation
 from threadpoolctl import threadpool_limits
 
@@ -82,6 +86,12 @@ EDGE_ON_DEG = 45.0
 """A face of the static scan's box cuts the leg with a step in the DRR where the rays graze it
 within this angle (registration.drr.cut_outlines); seen more face-on, what it leaves out
 thins out to nothing at its outline."""
+
+DEFORMATION_REUSE_MM = 0.5
+DEFORMATION_REUSE_REACH_MM = 60.0
+"""The soft tissue deformed by a pair of femur and tibia poses is reused for poses that move
+no corner of the cube of this half-width about the joint centre by more than
+DEFORMATION_REUSE_MM (its lattice is ~2 mm; the bone carries its share from there)."""
 
 FRAME_BLUR_MM = np.arange(0.0, 3.01, 0.5)
 """Candidate blurs of the frames along each panel axis (Gaussian sigma, mm) for resolution
@@ -133,6 +143,21 @@ class Settings(BaseModel):
         "accuracy)",
     )
     nelder_mead_maxfev: PositiveInt = 120
+    warm_refinement: Literal["least_squares", "powell_nelder_mead"] = Field(
+        "least_squares",
+        description="refinement once the KPM has placed a bone (every frame after the first): "
+        "Levenberg-Marquardt on the residual whose half squared norm is 1 - NCC (Jacobian by "
+        "central differences of ls_step), the coarse levels in the first pass and the finest "
+        "in the second, or the derivative-free passes of the first frame",
+    )
+    ls_step: tuple[PositiveFloat, PositiveFloat] = Field(
+        (0.25, 0.25), description="least squares: central-difference steps, (mm, deg)"
+    )
+    ls_max_steps: tuple[PositiveInt, PositiveInt] = Field(
+        (5, 4),
+        description="least squares: residual evaluations as MINPACK counts them (each step "
+        "also takes a Jacobian: 12 renders) on the coarse levels and on the finest",
+    )
     passes: PositiveInt = Field(
         2,
         description="passes over the bones per frame; later passes refine each against the "
@@ -221,7 +246,7 @@ class _Objective:
         sigma_px: float,
         dilation_px: int,
         coarse: bool,
-        prior: Callable[[np.ndarray], float] | None = None,
+        prior: Callable[[np.ndarray], np.ndarray] | None = None,
         reach: tuple[np.ndarray, ...] = (),
         excluded: np.ndarray | None = None,
     ) -> None:
@@ -253,6 +278,7 @@ class _Objective:
         self._T0_inv = np.linalg.inv(T0)
         self.sigma, self.coarse, self.prior = sigma_px, coarse, prior
         self.evaluations = 0
+        self._unit_target: np.ndarray | None = None
 
     def image(self, T: np.ndarray) -> np.ndarray:
         moving = self.bone.render(self.view, T, self.coarse, self.spans)
@@ -264,14 +290,40 @@ class _Objective:
         self.evaluations += 1
         return self.cost(compose(np.asarray(x, dtype=np.float64), self.T0, self.bone.centroid_mm))
 
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        """Target minus render over the mask, each zero-mean and of unit norm (half the
+        squared norm is 1 - NCC), and the prior's terms times sqrt(2), at pose ``x``."""
+        self.evaluations += 1
+        T = compose(np.asarray(x, dtype=np.float64), self.T0, self.bone.centroid_mm)
+        if self._unit_target is None:
+            self._unit_target = _unit(self.target[self.mask])
+        prior = () if self.prior is None else math.sqrt(2.0) * self.prior(T)
+        try:
+            image = _unit(self.image(T)[self.mask])
+        except ValueError:  # no view renders the pose: the worst residual
+            image = -self._unit_target
+        return np.append(self._unit_target - image, prior)
+
+    def scores(self, T: np.ndarray) -> tuple[float, float]:
+        """NCC and gradient NCC at pose ``T`` (no prior)."""
+        image = self.image(T)
+        return ncc(self.target, image, self.mask), gradient_ncc(self.target, image, self.mask)
+
     def cost(self, T: np.ndarray) -> float:
         """-NCC at pose T plus the prior (if any); +1 (worst) for poses no view can render
         (e.g. behind the source)."""
-        penalty = 0.0 if self.prior is None else self.prior(T)
+        penalty = 0.0 if self.prior is None else float(np.sum(self.prior(T) ** 2))
         try:
             return penalty - ncc(self.target, self.image(T), self.mask)
         except ValueError:
             return 1.0 + penalty
+
+
+def _unit(values: np.ndarray) -> np.ndarray:
+    """``values`` less their mean, scaled to unit norm (float64; zeros when constant)."""
+    centred = values.astype(np.float64) - values.mean(dtype=np.float64)
+    norm = np.linalg.norm(centred)
+    return centred / norm if norm > 0 else centred
 
 
 def _row_spans(mask: np.ndarray, margin_px: int) -> np.ndarray:
@@ -288,6 +340,17 @@ def _row_spans(mask: np.ndarray, margin_px: int) -> np.ndarray:
     return np.column_stack((lo, hi)).astype(np.int64)
 
 
+def patellofemoral_offsets(
+    T_femur: np.ndarray, T_patella: np.ndarray, center_mm: np.ndarray, axis: np.ndarray
+) -> np.ndarray:
+    """:func:`patellofemoral_deviation` as a vector: the shift (mm), then the rotation vector
+    less its component along ``axis`` (deg, 3; its norm is the tilt)."""
+    M = np.linalg.inv(T_femur) @ T_patella
+    shift = axis @ (M[:3, :3] @ center_mm + M[:3, 3] - center_mm)
+    rotvec = Rotation.from_matrix(M[:3, :3]).as_rotvec(degrees=True)
+    return np.append(shift, rotvec - (rotvec @ axis) * axis)
+
+
 def patellofemoral_deviation(
     T_femur: np.ndarray, T_patella: np.ndarray, center_mm: np.ndarray, axis: np.ndarray
 ) -> tuple[float, float]:
@@ -296,10 +359,8 @@ def patellofemoral_deviation(
     medial-lateral ``axis`` (a unit vector in the static scan, which the femur carries with
     it), mm, and its rotation about the two axes perpendicular to that, deg. Flexing about
     any medial-lateral line and sliding in the femur's sagittal plane count nothing."""
-    M = np.linalg.inv(T_femur) @ T_patella
-    shift = float(axis @ (M[:3, :3] @ center_mm + M[:3, 3] - center_mm))
-    rotvec = Rotation.from_matrix(M[:3, :3]).as_rotvec(degrees=True)
-    return shift, float(np.linalg.norm(rotvec - (rotvec @ axis) * axis))
+    offsets = patellofemoral_offsets(T_femur, T_patella, center_mm, axis)
+    return float(offsets[0]), float(np.linalg.norm(offsets[1:]))
 
 
 def _carried_pose(name: str, poses: dict[str, np.ndarray]) -> np.ndarray:
@@ -388,9 +449,16 @@ class Tracker:
         self.frames = np.asarray(frames, dtype=np.float32)
         self.bones = bones
         self.soft_tissue = soft_tissue
-        self._deformed: dict[tuple, tuple] = {}
-        """Per (femur, tibia) pose pair of the frame: the deformed soft tissue."""
-        self._split: dict[tuple, tuple] = {}
+        self._knees: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        """The frame's (femur, tibia) pose pairs the soft tissue was deformed by."""
+        self._deformed: dict[int, tuple] = {}
+        """Per pose pair of :attr:`_knees`: the deformed soft tissue."""
+        if soft_tissue is not None:
+            reach = DEFORMATION_REUSE_REACH_MM * np.array([-1.0, 1.0])
+            self._knee_corners = soft_tissue.joint_mm + np.array(
+                [[x, y, z] for x in reach for y in reach for z in reach]
+            )
+        self._split: dict[tuple[int, str], tuple] = {}
         """Per pose pair and bone: what stays, what the bone carries."""
         self.settings = settings or Settings()
         self.levels = tuple(
@@ -519,15 +587,33 @@ class Tracker:
         near = distance_transform_edt(~hit, sampling=(view.pitch_v_mm, view.pitch_u_mm))
         return (near <= band_mm)[pad:-pad, pad:-pad]
 
+    def _near(self, *poses: np.ndarray) -> bool:
+        """Whether the pairs of poses (femur, femur', tibia, tibia') move no corner of the
+        knee's cube (:data:`DEFORMATION_REUSE_REACH_MM`) further apart than
+        :data:`DEFORMATION_REUSE_MM`."""
+        corners = self._knee_corners
+        return all(
+            np.abs(corners @ (A[:3, :3] - B[:3, :3]).T + (A[:3, 3] - B[:3, 3])).max()
+            <= DEFORMATION_REUSE_MM
+            for A, B in (poses[:2], poses[2:])
+        )
+
     def _soft_tissue(
         self, name: str, poses: dict[str, np.ndarray]
     ) -> tuple[JosephProjector, JosephProjector | None]:
         """The soft tissue deformed by ``poses``: what stays when bone ``name`` moves, and
         what it carries (registration.drr.SoftTissue.carried, averaged over pairs of slices
-        along the rays: rendered every evaluation); kept for the frame being registered."""
-        knee = (poses["femur"].tobytes(), poses["tibia_fibula"].tobytes())
-        if knee not in self._deformed:
-            T_femur, T_tibia = poses["femur"], poses["tibia_fibula"]
+        along the rays: rendered every evaluation); kept for the frame being registered and
+        reused for poses within :data:`DEFORMATION_REUSE_MM` (the carried part follows the
+        bone from there)."""
+        T_femur, T_tibia = poses["femur"], poses["tibia_fibula"]
+        knee = next(
+            (k for k, (Tf, Tt) in self._knees.items() if self._near(Tf, T_femur, Tt, T_tibia)),
+            None,
+        )
+        if knee is None:
+            knee = len(self._knees)
+            self._knees[knee] = (T_femur, T_tibia)
             self._deformed[knee] = self.soft_tissue.deformed(T_femur, T_tibia, self.view)
         if (knee, name) not in self._split:
             deformed = self._deformed[knee]
@@ -539,7 +625,9 @@ class Tracker:
 
     def _prior(self, name: str, poses: dict[str, np.ndarray]) -> Callable | None:
         """The patellofemoral prior of a carried bone (the patella, :data:`CARRIER`) against
-        its carrier's estimate (the femur), else None."""
+        its carrier's estimate (the femur), else None: a function of the pose whose squared
+        norm is the prior's cost (its shift and the three components of its tilt, each
+        scaled, so a least-squares residual stays smooth at zero)."""
         s = self.settings
         carrier = CARRIER.get(name)
         if carrier not in poses or s.patellofemoral_sigma is None:
@@ -548,9 +636,10 @@ class Tracker:
         T_femur, center = poses[carrier], self.bones[name].centroid_mm
         axis = self.view.normal  # a lateral view looks along the static scan's ML axis
 
-        def prior(T: np.ndarray) -> float:
-            shift, tilt = patellofemoral_deviation(T_femur, T, center, axis)
-            return s.prior_weight * ((shift / sigma_mm) ** 2 + (tilt / sigma_deg) ** 2)
+        scale = math.sqrt(s.prior_weight) / np.array([sigma_mm, sigma_deg, sigma_deg, sigma_deg])
+
+        def prior(T: np.ndarray) -> np.ndarray:
+            return scale * patellofemoral_offsets(T_femur, T, center, axis)
 
         return prior
 
@@ -598,6 +687,50 @@ class Tracker:
             evaluations += objective.evaluations
         return poses[name], evaluations
 
+    def _least_squares(
+        self, frame: int, name: str, poses: dict[str, np.ndarray], polish: bool = False
+    ) -> tuple[np.ndarray, int, tuple[float, float]]:
+        """Levenberg-Marquardt (scipy's MINPACK) on :meth:`_Objective.residuals`, the
+        Jacobian by central differences of ``ls_step`` (12 renders): on the coarse levels
+        (every level when there is one, or one pass), or on the finest (``polish``: the later
+        pass), at most ``ls_max_steps`` steps each. Returns the pose, the evaluations and the
+        scores at the pose (NCC, gradient NCC, on the finest level)."""
+        s = self.settings
+        if polish:
+            levels = self.levels[-1:]
+        elif len(self.levels) > 1 and s.passes > 1:
+            levels = self.levels[:-1]
+        else:
+            levels = self.levels
+        steps = np.repeat(np.asarray(s.ls_step, dtype=np.float64), 3)
+        evaluations = 0
+        for level in levels:
+            objective = self._objective(frame, level, name, poses)
+
+            def jacobian(x: np.ndarray, objective=objective) -> np.ndarray:
+                return np.column_stack(
+                    [
+                        (objective.residuals(x + d) - objective.residuals(x - d)) / (2 * h)
+                        for d, h in zip(np.diag(steps), steps, strict=True)
+                    ]
+                )
+
+            x = least_squares(
+                objective.residuals,
+                np.zeros(6),
+                jac=jacobian,
+                method="lm",
+                x_scale=steps,
+                xtol=1e-4,
+                ftol=1e-8,
+                max_nfev=s.ls_max_steps[int(level == self.levels[-1])],
+            ).x
+            poses = {**poses, name: compose(x, poses[name], self.bones[name].centroid_mm)}
+            evaluations += objective.evaluations
+        if levels[-1] == self.levels[-1]:
+            return poses[name], evaluations, objective.scores(poses[name])
+        return poses[name], evaluations, self._score(frame, name, poses)
+
     def _global(
         self,
         frame: int,
@@ -642,16 +775,10 @@ class Tracker:
     def _penalty(self, name: str, poses: dict[str, np.ndarray]) -> float:
         """The prior's cost of bone ``name`` at ``poses`` (0 without a prior)."""
         prior = self._prior(name, poses)
-        return 0.0 if prior is None else prior(poses[name])
+        return 0.0 if prior is None else float(np.sum(prior(poses[name]) ** 2))
 
     def _score(self, frame: int, name: str, poses: dict[str, np.ndarray]) -> tuple[float, float]:
-        level = self.levels[-1]
-        objective = self._objective(frame, level, name, poses)
-        image = objective.image(poses[name])
-        return (
-            ncc(objective.target, image, objective.mask),
-            gradient_ncc(objective.target, image, objective.mask),
-        )
+        return self._objective(frame, self.levels[-1], name, poses).scores(poses[name])
 
     def _kpm(self, frame: int, name: str, poses, history) -> tuple[np.ndarray, int]:
         """Line search along the kinematic direction: the last frame-to-frame motion, or at a
@@ -714,6 +841,7 @@ class Tracker:
         s = self.settings
         result = FrameResult(frame)
         poses = dict(poses)
+        self._knees.clear()
         self._deformed.clear()
         self._split.clear()
         self._targets = {k: t for k, t in self._targets.items() if k[0] == frame}
@@ -750,8 +878,11 @@ class Tracker:
                     continue
                 start = time.perf_counter()
                 try:
-                    pose, n = self._refine(frame, name, poses, scale=0.4, polish=bool(history))
-                    score, grad = self._score(frame, name, {**poses, name: pose})
+                    if self._placed_by_kpm(history):
+                        pose, n, (score, grad) = self._least_squares(frame, name, poses, True)
+                    else:
+                        pose, n = self._refine(frame, name, poses, 0.4, polish=bool(history))
+                        score, grad = self._score(frame, name, {**poses, name: pose})
                 except OutOfView:  # the refinement walked off the panel: keep the first pass
                     pose, n, score, grad = bone.pose, 0, -math.inf, math.nan
                 before = bone.ncc - self._penalty(name, poses)
@@ -761,6 +892,13 @@ class Tracker:
                 bone.seconds += time.perf_counter() - start
                 bone.evaluations += n
         return result
+
+    def _placed_by_kpm(self, history: list) -> bool:
+        """Whether the KPM places the bones of a frame with this ``history`` (the second
+        frame's at their last poses, carried) and the least-squares refinement takes them
+        from there (:attr:`Settings.warm_refinement`)."""
+        s = self.settings
+        return s.kpm and bool(history) and s.warm_refinement == "least_squares"
 
     def _match_resolution(
         self, frame: int, poses: dict[str, np.ndarray], result: FrameResult
@@ -803,9 +941,12 @@ class Tracker:
             evaluations += n
         elif s.kpm and history and name in CARRIER:  # carried at its last relative pose
             poses[name] = _carrier_pose(name, poses) @ _carried_pose(name, history[-1])
-        poses[name], n = self._refine(frame, name, poses)
+        if self._placed_by_kpm(history):
+            poses[name], n, (score, grad) = self._least_squares(frame, name, poses)
+        else:
+            poses[name], n = self._refine(frame, name, poses)
+            score, grad = self._score(frame, name, poses)
         evaluations += n
-        score, grad = self._score(frame, name, poses)
         previous = self._last_ncc.get(name, score)
         if s.kpm and history and (score < s.fail_ncc or score < previous - s.drop_ncc):
             # the prediction failed: widen the search about the last frame's pose (carried by
