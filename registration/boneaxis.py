@@ -87,11 +87,13 @@ EDGE_ON_DEG = 45.0
 within this angle (registration.drr.cut_outlines); seen more face-on, what it leaves out
 thins out to nothing at its outline."""
 
-DEFORMATION_REUSE_MM = 0.5
+DEFORMATION_REUSE_MM = 1.0
+DEFORMATION_CARRY_MM = 5.0
 DEFORMATION_REUSE_REACH_MM = 60.0
 """The soft tissue deformed by a pair of femur and tibia poses is reused for poses that move
 no corner of the cube of this half-width about the joint centre by more than
-DEFORMATION_REUSE_MM (its lattice is ~2 mm; the bone carries its share from there)."""
+DEFORMATION_REUSE_MM (its lattice is ~2 mm), or DEFORMATION_CARRY_MM for the bone registered,
+which carries its share of the tissue from its pose in the deformation (to first order)."""
 
 FRAME_BLUR_MM = np.arange(0.0, 3.01, 0.5)
 """Candidate blurs of the frames along each panel axis (Gaussian sigma, mm) for resolution
@@ -147,8 +149,9 @@ class Settings(BaseModel):
         "least_squares",
         description="refinement once the KPM has placed a bone (every frame after the first): "
         "Levenberg-Marquardt on the residual whose half squared norm is 1 - NCC (Jacobian by "
-        "central differences of ls_step), the coarse levels in the first pass and the finest "
-        "in the second, or the derivative-free passes of the first frame",
+        "central differences of ls_step), the coarse levels in a first pass over the bones and "
+        "the finest in a second (whatever passes says), or the derivative-free passes of the "
+        "first frame",
     )
     ls_step: tuple[PositiveFloat, PositiveFloat] = Field(
         (0.25, 0.25), description="least squares: central-difference steps, (mm, deg)"
@@ -228,7 +231,8 @@ class _Objective:
     """-NCC of one bone at one pyramid level against a frame, the rest of the scene fixed.
 
     The soft tissue is deformed by the bones' estimates at the start; the bone carries its
-    share of it (``carried``, rendered moved by the bone's motion from its start pose). The
+    share of it (``carried``: its projector and the bone's pose in the deformation, rendered
+    moved by the bone's motion from there). The
     similarity is taken over the bone's silhouette at the start pose (and at the ``reach``
     poses), dilated, less the ``excluded`` pixels (the frame's 2D mask), in a crop of the
     view around it; the fixed rest of the scene (``background``: its line integrals through a
@@ -241,7 +245,7 @@ class _Objective:
         target_hp: np.ndarray,
         background: Callable[[View], np.ndarray],
         bone: BoneModel,
-        carried: JosephProjector | None,
+        carried: tuple[JosephProjector, np.ndarray] | None,
         T0: np.ndarray,
         sigma_px: float,
         dilation_px: int,
@@ -275,7 +279,7 @@ class _Objective:
         inner = (slice(r0 - h0, r1 - h0), slice(c0 - g0, c1 - g0))
         self.background = highpass(background(outer), sigma_px)[inner]
         self.bone, self.carried, self.T0 = bone, carried, T0
-        self._T0_inv = np.linalg.inv(T0)
+        self._deformed_inv = None if carried is None else np.linalg.inv(carried[1])
         self.sigma, self.coarse, self.prior = sigma_px, coarse, prior
         self.evaluations = 0
         self._unit_target: np.ndarray | None = None
@@ -283,7 +287,7 @@ class _Objective:
     def image(self, T: np.ndarray) -> np.ndarray:
         moving = self.bone.render(self.view, T, self.coarse, self.spans)
         if self.carried is not None:
-            moving += self.carried.project_moved(self.view, T @ self._T0_inv, self.spans)
+            moving += self.carried[0].project_moved(self.view, T @ self._deformed_inv, self.spans)
         return self.background + highpass(moving, self.sigma)
 
     def __call__(self, x: np.ndarray) -> float:
@@ -468,6 +472,8 @@ class Tracker:
         self._views = {b: view.binned(b) for b in self.levels}
         self._targets: dict[tuple[int, int, tuple[float, float], int], np.ndarray] = {}
         """High-passed frames by (frame, level, blur_mm, turn_deg) (:meth:`_target`)."""
+        self._blurred: dict[tuple[int, tuple[float, float], int], np.ndarray] = {}
+        """The frames blurred, before binning, by (frame, blur_mm, turn_deg)."""
         blur = self.settings.frame_blur_mm or (0.0, 0.0)
         self.frame_blur_mm = {name: tuple(blur) for name in bones}
         """Per bone: the frames' matching blur along (u, v), panel mm (estimated on the first
@@ -496,12 +502,16 @@ class Tracker:
             turn_deg = 0  # a round blur does not turn
         key = (frame, level, blur_mm, turn_deg)
         if key not in self._targets:
-            image = self.frames[frame]
-            sigma_px = (blur_mm[0] / self.view.pitch_u_mm, blur_mm[1] / self.view.pitch_v_mm)
-            if turn_deg:
-                image = turned_gaussian(image, sigma_px, math.radians(turn_deg))
-            elif any(blur_mm):
-                image = gaussian_filter(image, sigma_px[::-1], mode="nearest")
+            blurred = key[:1] + key[2:]
+            if blurred not in self._blurred:  # shared by the levels
+                image = self.frames[frame]
+                sigma_px = (blur_mm[0] / self.view.pitch_u_mm, blur_mm[1] / self.view.pitch_v_mm)
+                if turn_deg:
+                    image = turned_gaussian(image, sigma_px, math.radians(turn_deg))
+                elif any(blur_mm):
+                    image = gaussian_filter(image, sigma_px[::-1], mode="nearest")
+                self._blurred[blurred] = image
+            image = self._blurred[blurred]
             if level > 1:
                 rows, cols = self._views[level].rows, self._views[level].cols
                 image = (
@@ -587,39 +597,43 @@ class Tracker:
         near = distance_transform_edt(~hit, sampling=(view.pitch_v_mm, view.pitch_u_mm))
         return (near <= band_mm)[pad:-pad, pad:-pad]
 
-    def _near(self, *poses: np.ndarray) -> bool:
-        """Whether the pairs of poses (femur, femur', tibia, tibia') move no corner of the
-        knee's cube (:data:`DEFORMATION_REUSE_REACH_MM`) further apart than
-        :data:`DEFORMATION_REUSE_MM`."""
+    def _near(self, name: str, knee: tuple[np.ndarray, np.ndarray], poses) -> bool:
+        """Whether the (femur, tibia) poses ``knee`` and those in ``poses`` move no corner of
+        the knee's cube (:data:`DEFORMATION_REUSE_REACH_MM`) further apart than
+        :data:`DEFORMATION_REUSE_MM` (:data:`DEFORMATION_CARRY_MM` for bone ``name``, which
+        carries its share of the tissue)."""
         corners = self._knee_corners
         return all(
             np.abs(corners @ (A[:3, :3] - B[:3, :3]).T + (A[:3, 3] - B[:3, 3])).max()
-            <= DEFORMATION_REUSE_MM
-            for A, B in (poses[:2], poses[2:])
+            <= (DEFORMATION_CARRY_MM if bone == name else DEFORMATION_REUSE_MM)
+            for bone, A, B in zip(
+                ("femur", "tibia_fibula"),
+                knee,
+                (poses["femur"], poses["tibia_fibula"]),
+                strict=True,
+            )
         )
 
     def _soft_tissue(
         self, name: str, poses: dict[str, np.ndarray]
-    ) -> tuple[JosephProjector, JosephProjector | None]:
+    ) -> tuple[JosephProjector, tuple[JosephProjector, np.ndarray] | None]:
         """The soft tissue deformed by ``poses``: what stays when bone ``name`` moves, and
         what it carries (registration.drr.SoftTissue.carried, averaged over pairs of slices
-        along the rays: rendered every evaluation); kept for the frame being registered and
-        reused for poses within :data:`DEFORMATION_REUSE_MM` (the carried part follows the
-        bone from there)."""
-        T_femur, T_tibia = poses["femur"], poses["tibia_fibula"]
-        knee = next(
-            (k for k, (Tf, Tt) in self._knees.items() if self._near(Tf, T_femur, Tt, T_tibia)),
-            None,
-        )
+        along the rays: rendered every evaluation) with the bone's pose in the deformation;
+        kept for the frame being registered and reused for poses nearby (:meth:`_near`)."""
+        knee = next((k for k, pair in self._knees.items() if self._near(name, pair, poses)), None)
         if knee is None:
             knee = len(self._knees)
-            self._knees[knee] = (T_femur, T_tibia)
-            self._deformed[knee] = self.soft_tissue.deformed(T_femur, T_tibia, self.view)
+            self._knees[knee] = (poses["femur"], poses["tibia_fibula"])
+            self._deformed[knee] = self.soft_tissue.deformed(*self._knees[knee], self.view)
         if (knee, name) not in self._split:
             deformed = self._deformed[knee]
             stays, carried = self.soft_tissue.carried(deformed, name)
             axis = int(np.argmax(np.abs(self.view.normal)))  # the rays' main axis
-            moving = None if carried is None else along_axis(carried, deformed[2], axis)
+            moving = None
+            if carried is not None:
+                pose = self._knees[knee][name != "femur"]
+                moving = (along_axis(carried, deformed[2], axis), pose)
             self._split[knee, name] = (JosephProjector(stays, deformed[2]), moving)
         return self._split[knee, name]
 
@@ -688,20 +702,13 @@ class Tracker:
         return poses[name], evaluations
 
     def _least_squares(
-        self, frame: int, name: str, poses: dict[str, np.ndarray], polish: bool = False
-    ) -> tuple[np.ndarray, int, tuple[float, float]]:
-        """Levenberg-Marquardt (scipy's MINPACK) on :meth:`_Objective.residuals`, the
-        Jacobian by central differences of ``ls_step`` (12 renders): on the coarse levels
-        (every level when there is one, or one pass), or on the finest (``polish``: the later
-        pass), at most ``ls_max_steps`` steps each. Returns the pose, the evaluations and the
-        scores at the pose (NCC, gradient NCC, on the finest level)."""
+        self, frame: int, name: str, poses: dict[str, np.ndarray], levels: tuple[int, ...]
+    ) -> tuple[np.ndarray, int, _Objective]:
+        """Levenberg-Marquardt (scipy's MINPACK) on :meth:`_Objective.residuals` on each of
+        ``levels`` in turn, at most ``ls_max_steps`` steps each (coarse, finest), the Jacobian
+        by central differences of ``ls_step`` (12 renders). Returns the pose, the evaluations
+        and the last level's objective."""
         s = self.settings
-        if polish:
-            levels = self.levels[-1:]
-        elif len(self.levels) > 1 and s.passes > 1:
-            levels = self.levels[:-1]
-        else:
-            levels = self.levels
         steps = np.repeat(np.asarray(s.ls_step, dtype=np.float64), 3)
         evaluations = 0
         for level in levels:
@@ -727,9 +734,7 @@ class Tracker:
             ).x
             poses = {**poses, name: compose(x, poses[name], self.bones[name].centroid_mm)}
             evaluations += objective.evaluations
-        if levels[-1] == self.levels[-1]:
-            return poses[name], evaluations, objective.scores(poses[name])
-        return poses[name], evaluations, self._score(frame, name, poses)
+        return poses[name], evaluations, objective
 
     def _global(
         self,
@@ -801,9 +806,8 @@ class Tracker:
             return start @ _exp(lam * xi)
 
         line = start @ _exp(KPM_LAMBDA[:, None] * xi)
-        objective = self._objective(
-            frame, self.levels[0], name, {**poses, name: start}, reach=(line[0], line[-1])
-        )
+        # about the frame's prediction: the soft tissue deformed as the other bones' objectives
+        objective = self._objective(frame, self.levels[0], name, poses, reach=(line[0], line[-1]))
         costs = [objective.cost(T) for T in line]
         k = int(np.argmin(costs))
         lo, hi = KPM_LAMBDA[max(k - 1, 0)], KPM_LAMBDA[min(k + 1, len(KPM_LAMBDA) - 1)]
@@ -845,11 +849,14 @@ class Tracker:
         self._deformed.clear()
         self._split.clear()
         self._targets = {k: t for k, t in self._targets.items() if k[0] == frame}
+        self._blurred = {k: b for k, b in self._blurred.items() if k[0] == frame}
         if s.kpm and len(history) >= 2:  # every bone at its constant-velocity prediction first
             poses = {
                 b: predict(history[-2][b], history[-1][b], self.bones[b].centroid_mm)
                 for b in TRACK_ORDER
             }
+        if self._placed_by_kpm(history):
+            return self._register_warm(frame, poses, history)
         spent = {name: (0.0, 0) for name in TRACK_ORDER}
         if not history and s.global_init:
             for name in TRACK_ORDER:
@@ -878,11 +885,8 @@ class Tracker:
                     continue
                 start = time.perf_counter()
                 try:
-                    if self._placed_by_kpm(history):
-                        pose, n, (score, grad) = self._least_squares(frame, name, poses, True)
-                    else:
-                        pose, n = self._refine(frame, name, poses, 0.4, polish=bool(history))
-                        score, grad = self._score(frame, name, {**poses, name: pose})
+                    pose, n = self._refine(frame, name, poses, 0.4, polish=bool(history))
+                    score, grad = self._score(frame, name, {**poses, name: pose})
                 except OutOfView:  # the refinement walked off the panel: keep the first pass
                     pose, n, score, grad = bone.pose, 0, -math.inf, math.nan
                 before = bone.ncc - self._penalty(name, poses)
@@ -891,6 +895,61 @@ class Tracker:
                     bone.scored(score, grad, s.fail_ncc)
                 bone.seconds += time.perf_counter() - start
                 bone.evaluations += n
+        return result
+
+    def _register_warm(
+        self, frame: int, poses: dict[str, np.ndarray], history: list[dict[str, np.ndarray]]
+    ) -> FrameResult:
+        """A frame after the first with the least-squares refinement: each bone placed by the
+        KPM (the second frame's at its last pose, carried) and refined on the coarse levels,
+        then each on the finest level against the others' new estimates and scored there;
+        a bone whose score fails or drops (``fail_ncc``, ``drop_ncc``) is searched again about
+        its last frame's pose (differential evolution in half the first frame's box, then the
+        least squares on every level), keeping the better."""
+        s = self.settings
+        result = FrameResult(frame)
+        coarse, finest = self.levels[:-1] or self.levels, self.levels[-1:]
+        for name in TRACK_ORDER:  # first pass: the KPM and the coarse levels
+            start, n = time.perf_counter(), 0
+            try:
+                if len(history) >= 2:
+                    poses[name], n = self._kpm(frame, name, poses, history)
+                elif name in CARRIER:  # carried at its last relative pose
+                    poses[name] = _carrier_pose(name, poses) @ _carried_pose(name, history[-1])
+                poses[name], m, _ = self._least_squares(frame, name, poses, coarse)
+                bone = BoneResult(poses[name], math.nan, math.nan, 0.0, n + m, False)
+            except OutOfView as err:
+                bone = BoneResult(poses[name], math.nan, math.nan, 0.0, n, True, str(err))
+            bone.seconds = time.perf_counter() - start
+            result.bones[name] = bone
+        for name, bone in result.bones.items():  # second pass: the finest level, the check
+            if bone.failed:
+                continue
+            start = time.perf_counter()
+            try:
+                pose, n, objective = self._least_squares(frame, name, poses, finest)
+                bone.pose = poses[name] = pose
+                score, grad = objective.scores(pose)
+            except OutOfView as err:
+                bone.failed, bone.reason = True, str(err)
+                continue
+            previous = self._last_ncc.get(name, score)
+            if score < s.fail_ncc or score < previous - s.drop_ncc:
+                wide = {
+                    **poses,
+                    name: _carrier_pose(name, poses) @ _carried_pose(name, history[-1]),
+                }
+                wide[name], m = self._global(frame, name, wide, scale=0.5)
+                wide[name], k, objective = self._least_squares(frame, name, wide, self.levels)
+                wide_score, wide_grad = objective.scores(wide[name])
+                n += m + k
+                if wide_score - self._penalty(name, wide) > score - self._penalty(name, poses):
+                    bone.pose = poses[name] = wide[name]
+                    score, grad = wide_score, wide_grad
+            self._last_ncc[name] = score
+            bone.scored(score, grad, s.fail_ncc)
+            bone.seconds += time.perf_counter() - start
+            bone.evaluations += n
         return result
 
     def _placed_by_kpm(self, history: list) -> bool:
@@ -930,6 +989,7 @@ class Tracker:
             self._last_ncc[name] = bone.ncc
         chosen = set(self.frame_blur_mm.values())
         self._targets = {k: t for k, t in self._targets.items() if k[2] in chosen}
+        self._blurred = {k: b for k, b in self._blurred.items() if k[1] in chosen}
 
     def _track_bone(self, frame: int, name: str, poses: dict[str, np.ndarray], history):
         """KPM prediction (warm frames), refinement, and a wider search if the score fails."""
@@ -941,11 +1001,8 @@ class Tracker:
             evaluations += n
         elif s.kpm and history and name in CARRIER:  # carried at its last relative pose
             poses[name] = _carrier_pose(name, poses) @ _carried_pose(name, history[-1])
-        if self._placed_by_kpm(history):
-            poses[name], n, (score, grad) = self._least_squares(frame, name, poses)
-        else:
-            poses[name], n = self._refine(frame, name, poses)
-            score, grad = self._score(frame, name, poses)
+        poses[name], n = self._refine(frame, name, poses)
+        score, grad = self._score(frame, name, poses)
         evaluations += n
         previous = self._last_ncc.get(name, score)
         if s.kpm and history and (score < s.fail_ncc or score < previous - s.drop_ncc):
