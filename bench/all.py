@@ -37,7 +37,7 @@ BENCH = Path(__file__).resolve().parent
 ROOT = BENCH.parent
 OUT = BENCH / "out" / "all.json"
 NOT_BENCHMARKS = {"all", "table"}
-FULL: dict[str, list[str]] = {}  # e.g. {"registration": ["--ablation-sequences", "1"]}
+FULL: dict[str, list[str]] = {"registration": ["--ablation-sequences", "1"]}
 """Arguments of the full runs (the ones the README publishes); others run without any."""
 QUICK: dict[str, list[str]] = {
     "calibration": ["--views", "90"],
