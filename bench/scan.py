@@ -11,8 +11,8 @@ competing for the same two cores).
 - ``per_view_overhead_ms``: wall time per view between the first and the last stored view,
   less the simulated panel's image formation (the phantom's projection and its quantum noise,
   ``SimDetector.read_frame`` timed around each call): the state machine, the other device
-  models, the conversion to line integrals, the storage and the recording, on cores the
-  reconstruction shares.
+  models, the conversion to line integrals and the storage, on cores the reconstruction's
+  and the recording's worker threads share.
 - ``recon_ready_after_last_view_s``: from the moment the last view is stored to the volume on
   disk (``recon/volume.mha`` written; the NIfTI, the DICOM series and the rest of the stage
   follow).

@@ -306,29 +306,77 @@ def write_projections(
     """
     path = _check_suffix(Path(path), PROJECTION_SUFFIXES, "projection stack")
     _check_parent(path)
+    data, pitch, origin = _checked_projections(projections, pixel_pitch_mm, origin_uv_mm, path)
+    image = sitk.GetImageFromArray(data)
+    image.SetSpacing((pitch, pitch, 1.0))
+    image.SetOrigin((float(origin[0]), float(origin[1]), 0.0))
+    _write_image(image, path)
+    return path
+
+
+def encode_projections(
+    projections: np.ndarray,
+    pixel_pitch_mm: float,
+    origin_uv_mm: tuple[float, float] | None = None,
+) -> tuple[bytes, np.ndarray]:
+    """The ``.mha`` file :func:`write_projections` writes, in memory: its header and its
+    pixels, to be hashed and written without a round trip through a file.
+
+    Args: as :func:`write_projections`.
+
+    Returns:
+        The header (ASCII) and the pixels, float32 little-endian and C-contiguous (the input
+        itself when it is such an array, not a copy); the file is the one after the other,
+        byte for byte what SimpleITK writes.
+
+    Raises:
+        ValueError: bad shape, pitch, origin, or non-finite values.
+    """
+    data, pitch, origin = _checked_projections(
+        projections, pixel_pitch_mm, origin_uv_mm, "projections"
+    )
+    views, rows, cols = data.shape
+
+    def word(x: float) -> str:  # MetaIO's number format: 17 significant digits, no "-0"
+        return f"{x + 0.0:.17g}"
+
+    header = (
+        "ObjectType = Image\nNDims = 3\nBinaryData = True\nBinaryDataByteOrderMSB = False\n"
+        "CompressedData = False\nTransformMatrix = 1 0 0 0 1 0 0 0 1\n"
+        f"Offset = {word(origin[0])} {word(origin[1])} 0\nCenterOfRotation = 0 0 0\n"
+        f"AnatomicalOrientation = RAI\nElementSpacing = {word(pitch)} {word(pitch)} 1\n"
+        f"DimSize = {cols} {rows} {views}\nElementType = MET_FLOAT\nElementDataFile = LOCAL\n"
+    )
+    return header.encode("ascii"), data
+
+
+def _checked_projections(
+    projections: np.ndarray,
+    pixel_pitch_mm: float,
+    origin_uv_mm: tuple[float, float] | None,
+    name: Path | str,
+) -> tuple[np.ndarray, float, np.ndarray]:
+    """The stack as C-contiguous little-endian float32 (views, rows, cols), the pitch (mm) and
+    the (u, v) origin (mm) after the checks of :func:`write_projections`."""
     pitch = float(pixel_pitch_mm)
     if not (math.isfinite(pitch) and pitch > 0):
-        raise ValueError(f"{path}: pixel_pitch_mm must be a finite pitch > 0 mm, got {pitch!r}")
+        raise ValueError(f"{name}: pixel_pitch_mm must be a finite pitch > 0 mm, got {pitch!r}")
     data = np.asarray(projections)
     if data.ndim != 3 or min(data.shape) == 0:
         raise ValueError(
-            f"{path}: projections must be a non-empty (views, rows, cols) array, "
+            f"{name}: projections must be a non-empty (views, rows, cols) array, "
             f"got shape {data.shape}"
         )
     if not (np.issubdtype(data.dtype, np.integer) or np.issubdtype(data.dtype, np.floating)):
-        raise ValueError(f"{path}: projections must be real numbers, got dtype {data.dtype}")
-    _check_finite(data, path, "projections")
+        raise ValueError(f"{name}: projections must be real numbers, got dtype {data.dtype}")
+    _check_finite(data, name, "projections")
     _, rows, cols = data.shape
     if origin_uv_mm is None:
         origin_uv_mm = centered_origin_uv_mm(rows, cols, pitch, pitch)
     origin = np.asarray(origin_uv_mm, dtype=np.float64)
     if origin.shape != (2,) or not np.all(np.isfinite(origin)):
-        raise ValueError(f"{path}: origin_uv_mm must be 2 finite numbers, got {origin_uv_mm!r}")
-    image = sitk.GetImageFromArray(data.astype(np.float32))
-    image.SetSpacing((pitch, pitch, 1.0))
-    image.SetOrigin((float(origin[0]), float(origin[1]), 0.0))
-    _write_image(image, path)
-    return path
+        raise ValueError(f"{name}: origin_uv_mm must be 2 finite numbers, got {origin_uv_mm!r}")
+    return np.ascontiguousarray(data, dtype="<f4"), pitch, origin
 
 
 def read_stack_header(path: str | Path) -> PanelHeader:
@@ -422,7 +470,7 @@ def _check_no_nifti_twin(path: Path) -> None:
             )
 
 
-def _check_finite(data: np.ndarray, path: Path, what: str) -> None:
+def _check_finite(data: np.ndarray, path: Path | str, what: str) -> None:
     bad = data.size - int(np.count_nonzero(np.isfinite(data)))
     if bad:
         raise ValueError(f"{path}: {what} contain {bad} non-finite values (NaN or inf)")

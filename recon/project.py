@@ -67,13 +67,14 @@ def _view_arrays(geometry: Geometry) -> tuple[np.ndarray, ...]:
     return sources, origins, du, dv
 
 
-@numba.njit(parallel=True, fastmath=True, cache=True, error_model="numpy")
+@numba.njit(parallel=True, fastmath=True, cache=True, error_model="numpy", nogil=True)
 def _joseph_kernel(
     flat, strides, dims, origin, spacing, sources, det_origins, du, dv, spans, out
 ):  # pragma: no cover
     """Joseph line integrals; ``flat`` is the zero-padded volume raveled, strides per (x, y, z);
     row r of every view is traced over columns ``spans[r, 0] <= c < spans[r, 1]``, zero
-    elsewhere."""
+    elsewhere. Runs without the GIL: other threads (a scan's storage, recording and
+    reconstruction while its simulated panel renders) go on meanwhile."""
     n_views, rows, cols = out.shape
     for job in numba.prange(n_views * rows):
         view = job // rows

@@ -309,7 +309,10 @@ class ScanRun:
         exposure = b.generator.expose(timeout)
         frame = b.detector.read_frame(timeout)
         flood = b.detector.flood_counts(exposure.technique)
-        line_integrals = -np.log(np.maximum(frame.counts, 1.0) / flood).astype(np.float32)
+        line_integrals = np.maximum(frame.counts, 1.0) / flood  # -ln(I / I0), then in place
+        np.log(line_integrals, out=line_integrals)
+        np.negative(line_integrals, out=line_integrals)
+        line_integrals = line_integrals.astype(np.float32, copy=False)
         record = ViewRecord(
             view=k,
             planned_time_s=float(self.plan.view_times_s[k]),

@@ -12,10 +12,18 @@ sequence:
 
 The file streams to ``<name>.partial`` and is renamed when the acquisition ends (also after a
 fault: what was recorded is kept). A resumed scan writes ``recording-2.rrd`` and so on.
+
+The recording is not the scan's record (the stored views are): it is written on a worker
+thread, off the exposure loop, which only queues each view and waits only when the recording
+is :data:`QUEUE_VIEWS` views behind. A failure of the worker stops the scan at the next view,
+as it did when the loop logged the views itself.
 """
 
 from __future__ import annotations
 
+import queue
+import threading
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +36,8 @@ from trajectories.recording import frustum
 
 TIMELINE = "scan_time"
 VIEW_TIMELINE = "view"
+QUEUE_VIEWS = 8
+"""Views queued for the recording before the exposure loop waits for the worker."""
 
 
 class ScanRecorder:
@@ -48,8 +58,51 @@ class ScanRecorder:
         self.rec = rr.RecordingStream("dualarm-cbct")
         self.rec.save(self.partial)
         self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        self._queue: queue.Queue[Callable[[], None] | None] = queue.Queue(QUEUE_VIEWS)
+        self._failure: BaseException | None = None
+        self._reported = False
+        self._worker = threading.Thread(target=self._work, name="scan-recording", daemon=True)
+        self._worker.start()
 
     def view(self, record: ViewRecord, image: np.ndarray) -> None:
+        """Queue a stored view (its joints, geometry and image, float32 (rows, cols), which
+        must not change afterwards) for the recording; raises if the worker failed."""
+        self._raise_failure()
+        self._queue.put(lambda: self._log_view(record, image))
+
+    def event(self, text: str, level: str = "INFO") -> None:
+        """Queue a text event after the views queued so far."""
+        self._raise_failure()
+        self._queue.put(lambda: self.rec.log(f"{self.stage}/events", rr.TextLog(text, level=level)))
+
+    def close(self) -> Path:
+        """Record what is queued, finish the file and record its checksum in the study;
+        raises if the worker failed and no :meth:`view` has said so yet."""
+        self._queue.put(None)
+        self._worker.join()
+        self.rec.flush()
+        self.rec.disconnect()
+        self.partial.rename(self.path)
+        self.study.adopt(self.path.relative_to(self.study.path).as_posix())
+        self.study.save()
+        self._raise_failure()
+        return self.path
+
+    def _raise_failure(self) -> None:
+        failure = self._failure
+        if failure is not None and not self._reported:
+            self._reported = True
+            raise RuntimeError(f"the scan's rerun recording failed: {failure}") from failure
+
+    def _work(self) -> None:
+        while (job := self._queue.get()) is not None:
+            if self._failure is None:  # after a failure keep draining: the loop never blocks
+                try:
+                    job()
+                except Exception as err:
+                    self._failure = err
+
+    def _log_view(self, record: ViewRecord, image: np.ndarray) -> None:
         rec = self.rec
         rec.set_time(TIMELINE, duration=record.planned_time_s)
         rec.set_time(VIEW_TIMELINE, sequence=record.view)
@@ -65,7 +118,7 @@ class ScanRecorder:
             rr.Points3D([view.detector_center_mm], colors=[(60, 130, 220)]),
         )
         rec.log(f"world/{self.stage}/frustum", rr.LineStrips3D(frustum(view)))
-        rec.log(f"{self.stage}/projection", rr.Image(image.astype(np.float32)))
+        rec.log(f"{self.stage}/projection", rr.Image(np.asarray(image, dtype=np.float32)))
         rec.log(
             f"{self.stage}/events",
             rr.TextLog(
@@ -73,15 +126,3 @@ class ScanRecorder:
                 f"(pulse {record.exposure_sequence})"
             ),
         )
-
-    def event(self, text: str, level: str = "INFO") -> None:
-        self.rec.log(f"{self.stage}/events", rr.TextLog(text, level=level))
-
-    def close(self) -> Path:
-        """Finish the file and record its checksum in the study."""
-        self.rec.flush()
-        self.rec.disconnect()
-        self.partial.rename(self.path)
-        self.study.adopt(self.path.relative_to(self.study.path).as_posix())
-        self.study.save()
-        return self.path

@@ -27,7 +27,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from recon.geometry import DetectorSpec, Geometry, View
-from recon.io import read_projections, write_projections
+from recon.io import encode_projections, read_projections, write_projections
 from recon.rtk_xml import write_rtk_geometry
 from scanner.study import Study, StudyError, sha256
 
@@ -138,19 +138,25 @@ class ScanStore:
         return View.from_matrix(self.records[k].matrix, p.pixel_pitch_mm, p.rows, p.cols)
 
     def put(self, record: ViewRecord, line_integrals: np.ndarray, counts: np.ndarray) -> None:
-        """Store one view: both images, then its record, which carries their sha256. The
-        manifest is saved with the stage's status (done, or SAFE); a view stored after its
-        last save is verified against its record on reopening (:meth:`_load`)."""
+        """Store one view: both images, then its record, which carries their sha256, each
+        fsynced under a temporary name, the record renamed into place last
+        (:meth:`scanner.study.Study.write_with_record`). The manifest is saved with the
+        stage's status (done, or SAFE); a view stored after its last save is verified against
+        its record on reopening (:meth:`_load`)."""
         k = record.view
         if k in self.records:
             raise StudyError(f"view {k} is already stored: acquired views are never replaced")
         pitch = self.panel.pixel_pitch_mm
         base = self._name(k)
-        files = {}
-        for suffix, image in ((".mha", line_integrals), ("_counts.mha", counts)):
-            self.study.write(base + suffix, lambda p, a=image: write_projections(p, a[None], pitch))
-            files[base + suffix] = self.study.manifest["files"][base + suffix]
-        self.study.write_json(base + ".json", {**record.to_json(), "files": files})
+        images = {
+            base + ".mha": encode_projections(line_integrals[None], pitch),
+            base + "_counts.mha": encode_projections(counts[None], pitch),
+        }
+
+        def content(digests: dict[str, str]) -> bytes:
+            return json.dumps({**record.to_json(), "files": digests}, indent=2).encode("utf-8")
+
+        self.study.write_with_record(images, base + ".json", content)
         self.records[k] = record
 
     def mark_incomplete(self, reason: str, failed_in: str) -> None:

@@ -5,6 +5,9 @@ each stage's status (``complete`` or ``incomplete`` with the reason), and the sh
 file written. Every file goes through :meth:`Study.write`: written to a temporary name in its
 folder, flushed to disk, then renamed into place, so a file either exists whole or not at all;
 an existing file is never replaced. The manifest itself is replaced atomically the same way.
+Files in memory with a record of them (an acquired view's images and the record naming their
+sha256) go through :meth:`Study.write_with_record`: written and fsynced concurrently, hashed
+from memory, the record renamed into place last.
 """
 
 from __future__ import annotations
@@ -13,7 +16,8 @@ import datetime as dt
 import hashlib
 import json
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor, wait
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
@@ -30,6 +34,11 @@ STAGES = (
     "assessment",
     "recording",
 )
+
+
+_IO = ThreadPoolExecutor(max_workers=2, thread_name_prefix="study-io")
+"""Threads that write and fsync files while the caller hashes them (os.fsync and hashlib
+release the GIL)."""
 
 
 class StudyError(RuntimeError):
@@ -53,6 +62,32 @@ def software_version() -> str:
 
 def _now() -> str:
     return dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
+
+
+def _temporary(target: Path) -> Path:
+    """The name a file of the study is written under before it is renamed to ``target``."""
+    return target.with_name(f".{target.stem}.tmp{target.name[len(target.stem) :]}")
+
+
+def _sha256_of(parts: Sequence) -> str:
+    """The sha256 of ``parts`` (bytes-like) one after the other."""
+    digest = hashlib.sha256()
+    for part in parts:
+        digest.update(part)
+    return digest.hexdigest()
+
+
+def _write_synced(path: Path, parts: Sequence) -> None:
+    """Write ``parts`` to ``path`` (created or truncated) and fsync it."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+    try:
+        for part in parts:
+            view = memoryview(part).cast("B")
+            while view:
+                view = view[os.write(fd, view) :]
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def _replace_atomically(path: Path, data: bytes) -> None:
@@ -120,7 +155,7 @@ class Study:
         if target.exists():
             raise StudyError(f"{target} exists: files of a study are never rewritten")
         target.parent.mkdir(parents=True, exist_ok=True)
-        tmp = target.with_name(f".{target.stem}.tmp{target.name[len(target.stem) :]}")
+        tmp = _temporary(target)
         tmp.unlink(missing_ok=True)
         try:
             writer(tmp)
@@ -132,6 +167,45 @@ class Study:
             raise
         self.manifest["files"][relpath] = sha256(target)
         return target
+
+    def write_with_record(
+        self,
+        files: dict[str, Sequence],
+        record: str,
+        content: Callable[[dict[str, str]], bytes],
+    ) -> None:
+        """Write new files from memory and then the record of them, e.g. a view's images and
+        the JSON that names their sha256.
+
+        ``files`` maps each path to its parts (bytes-like, C-contiguous; written one after the
+        other). Each file is written and fsynced under its temporary name on a worker thread
+        while this thread hashes the parts and writes ``content(sha256 of each file)`` as the
+        ``record``, fsynced too; then the files are renamed into place and the record last, so
+        the record exists only once its files do. Every sha256 is recorded in the manifest
+        (hashed from memory: nothing is read back). Refuses a file that exists; on failure no
+        temporary file is left."""
+        targets = {relpath: self.path / relpath for relpath in (*files, record)}
+        for target in targets.values():
+            if target.exists():
+                raise StudyError(f"{target} exists: files of a study are never rewritten")
+            target.parent.mkdir(parents=True, exist_ok=True)
+        tmps = {relpath: _temporary(target) for relpath, target in targets.items()}
+        pending = [_IO.submit(_write_synced, tmps[r], parts) for r, parts in files.items()]
+        try:
+            digests = {relpath: _sha256_of(parts) for relpath, parts in files.items()}
+            data = content(dict(digests))
+            _write_synced(tmps[record], (data,))
+            for done in pending:
+                done.result()
+            for relpath, target in targets.items():
+                os.replace(tmps[relpath], target)
+        except BaseException:
+            wait(pending)
+            for tmp in tmps.values():
+                tmp.unlink(missing_ok=True)
+            raise
+        digests[record] = _sha256_of((data,))
+        self.manifest["files"].update(digests)
 
     def write_json(self, relpath: str, payload: dict) -> Path:
         text = json.dumps(payload, indent=2)

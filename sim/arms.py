@@ -95,7 +95,7 @@ class SimWorld:
         idx = GROUPS[group]
         with self.lock:
             self._moves.pop(group, None)
-            self._ramp_from[idx] = self._setpoint(self.t)[idx]
+            self._ramp_from[idx] = self._setpoints(np.array([self.t]))[0, idx]
             self._ramp_to[idx] = q
             self._ramp_t0[idx] = self.t
             self._ramp_t1[idx] = self.t + max(dt_s, 0.0)
@@ -117,25 +117,31 @@ class SimWorld:
             self._moves[group] = (self.t, segment)
         return float(segment.duration)
 
-    def _setpoint(self, t: float) -> np.ndarray:
+    def _setpoints(self, times: np.ndarray) -> np.ndarray:
+        """The set-points at virtual times ``times`` (n,), (n, 14)."""
         span = np.maximum(self._ramp_t1 - self._ramp_t0, 1e-12)
-        w = np.clip((t - self._ramp_t0) / span, 0.0, 1.0)
+        w = np.clip((times[:, None] - self._ramp_t0) / span, 0.0, 1.0)
         out = self._ramp_from + w * (self._ramp_to - self._ramp_from)
         for group, (t0, segment) in self._moves.items():
-            out[GROUPS[group]] = segment.evaluate(min(t - t0, segment.duration))[0]
+            for row, t in zip(out, times, strict=True):
+                row[GROUPS[group]] = segment.evaluate(min(t - t0, segment.duration))[0]
         return out
 
     def advance(self, t_s: float) -> None:
-        """Integrate the arms' tracking up to virtual time ``t_s``."""
+        """Integrate the arms' tracking up to virtual time ``t_s`` (steps of at most
+        :data:`STEP_S`, the set-points of all steps computed at once)."""
         with self.lock:
             steps = math.ceil((t_s - self.t) / STEP_S - 1e-9)
             if steps <= 0:
                 return
             h = (t_s - self.t) / steps
             alpha = 1.0 - math.exp(-h / self.lag_s) if self.lag_s > 0 else 1.0
-            for _ in range(steps):
+            times = np.empty(steps)
+            for k in range(steps):  # the clock's own sum, step by step
                 self.t += h
-                self.filtered += alpha * (self._setpoint(self.t) - self.filtered)
+                times[k] = self.t
+            for setpoint in self._setpoints(times):
+                self.filtered += alpha * (setpoint - self.filtered)
             self.q_true = self.filtered + self._rng.normal(0.0, self.tracking_noise, 14)
 
 

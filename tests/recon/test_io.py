@@ -15,6 +15,7 @@ from recon.dicom import CT_IMAGE_STORAGE, rescale_for, write_dicom_series
 from recon.io import (
     ImageFileError,
     ProjectionStack,
+    encode_projections,
     read_projections,
     read_volume,
     write_projections,
@@ -361,6 +362,25 @@ def test_rtk_reads_our_projection_stack(tmp_path):
     np.testing.assert_allclose(list(image.GetSpacing()), [0.25, 0.25, 1.0])
     np.testing.assert_allclose(list(image.GetOrigin()), [-0.75, -0.5, 0.0])
     np.testing.assert_array_equal(itk.array_from_image(image), data)
+
+
+@pytest.mark.parametrize(
+    ("shape", "dtype", "pitch", "origin"),
+    [
+        ((3, 4, 6), np.float32, 0.2, None),
+        ((1, 1, 5), np.float64, 0.776, None),  # one row: a centred v origin of -0.0
+        ((2, 3, 3), np.float32, 1 / 3, (-7.123456789012345e-7, 2.5e6)),
+        ((1, 2, 2), np.int16, 123.456, (0.0, -0.0)),
+    ],
+)
+def test_encoded_projections_are_the_written_file(tmp_path, shape, dtype, pitch, origin):
+    """The in-memory .mha (header, then pixels) is SimpleITK's file byte for byte, and the
+    pixels of a float32 stack are not copied."""
+    data = (np.random.default_rng(2).normal(size=shape) * 100).astype(dtype)
+    path = write_projections(tmp_path / "p.mha", data, pitch, origin_uv_mm=origin)
+    header, pixels = encode_projections(data, pitch, origin)
+    assert header + pixels.tobytes() == path.read_bytes()
+    assert (pixels is data) == (dtype is np.float32)
 
 
 @pytest.mark.parametrize("pitch", [0.0, -0.1, float("nan")])

@@ -1,0 +1,84 @@
+"""Storage of acquired views: files written from memory with the record naming them, and the
+scan's rerun recording on its worker thread."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import threading
+
+import numpy as np
+import pytest
+
+from scanner.scan_recording import ScanRecorder
+from scanner.storage import ViewRecord
+from scanner.study import Study, StudyError
+
+
+def test_record_is_written_last_and_names_the_files_it_follows(tmp_path):
+    study = Study.create(tmp_path / "s", {})
+    image = np.arange(12, dtype=np.float32).reshape(3, 4)
+    files = {"scan/views/a.mha": (b"header\n", image), "scan/views/b.bin": (b"counts",)}
+    seen = {}
+
+    def content(digests: dict[str, str]) -> bytes:
+        seen.update(digests)
+        assert not (study.path / "scan/views/a.mha").exists()  # nothing renamed before it
+        return json.dumps(digests).encode()
+
+    study.write_with_record(files, "scan/views/a.json", content)
+    expected = {
+        "scan/views/a.mha": hashlib.sha256(b"header\n" + image.tobytes()).hexdigest(),
+        "scan/views/b.bin": hashlib.sha256(b"counts").hexdigest(),
+    }
+    assert seen == expected
+    assert (study.path / "scan/views/a.mha").read_bytes() == b"header\n" + image.tobytes()
+    assert json.loads((study.path / "scan/views/a.json").read_text()) == expected
+    assert study.verify() == []
+    assert sorted(p.name for p in (study.path / "scan/views").iterdir()) == [
+        "a.json",
+        "a.mha",
+        "b.bin",
+    ]
+
+
+def test_a_failed_record_leaves_nothing_and_nothing_is_rewritten(tmp_path):
+    study = Study.create(tmp_path / "s", {})
+
+    def broken(_digests: dict[str, str]) -> bytes:
+        raise OSError("disk full")
+
+    with pytest.raises(OSError, match="disk full"):
+        study.write_with_record({"v/a.mha": (b"a",)}, "v/a.json", broken)
+    assert list((study.path / "v").iterdir()) == []  # no temporary file, no half view
+    study.write_with_record({"v/a.mha": (b"a",)}, "v/a.json", lambda _d: b"{}")
+    with pytest.raises(StudyError, match="never rewritten"):
+        study.write_with_record({"v/a.mha": (b"b",)}, "v/b.json", lambda _d: b"{}")
+    assert (study.path / "v/a.mha").read_bytes() == b"a"
+
+
+def _record(k: int) -> ViewRecord:
+    matrix = np.array([[1000.0, 0, 32, 0], [0, 0, 32, 0], [0, 0, 1, 1000.0]])
+    return ViewRecord(k, 0.1 * k, 0.1 * k, 0.1 * k, np.zeros(2), matrix, np.zeros(3), 80, 1, 10, k)
+
+
+def test_recording_failure_stops_the_scan_at_a_later_view(tmp_path, monkeypatch):
+    """The recording runs on a worker; its failure is raised by a later view() (the scan
+    goes to SAFE as before) and only once, and the file is still finished on close."""
+    study = Study.create(tmp_path / "s", {})
+    recorder = ScanRecorder(study, ("rotary", "lift"), 1.0)
+    failed = threading.Event()
+
+    def broken(_record, _image):
+        failed.set()
+        raise ValueError("no space for the recording")
+
+    monkeypatch.setattr(recorder, "_log_view", broken)
+    image = np.zeros((64, 64), dtype=np.float32)
+    recorder.view(_record(0), image)
+    failed.wait(5.0)
+    with pytest.raises(RuntimeError, match="recording failed: no space"):
+        for k in range(1, 100):  # the worker records its failure right after raising
+            recorder.view(_record(k), image)
+    assert recorder.close() == study.path / "scan" / "recording.rrd"
+    assert "scan/recording.rrd" in study.manifest["files"]
