@@ -14,12 +14,13 @@ b) kinematic priority module (KPM), from the third frame: the pose is predicted 
    turning point, where the last motion nearly stops, S is the motion before it); the search
    widens (a small DE box) only when the similarity after refinement says the prediction
    failed;
-c) refinement: on the first frame Powell then Nelder-Mead, coarse (binned panel) to fine, and a
-   second pass that refines each bone against the others' new estimates; on every later
-   frame Levenberg-Marquardt on the residual whose half squared norm is 1 - NCC (plus the
-   prior), its Jacobian by central differences, on the coarse level in the first pass and on
-   the finest in the second (a quarter of the renders of the derivative-free passes, and
-   the same accuracy).
+c) refinement: Levenberg-Marquardt on the residual whose half squared norm is 1 - NCC (plus
+   the prior), its Jacobian by central differences: on the first frame coarse (binned panel)
+   to fine after the DE, then a second pass on the finest level against the others' new
+   estimates; on later frames the coarse level in a first pass over the bones and the finest
+   in a second, where each is scored and, if it failed, searched again (a quarter of the
+   renders of the derivative-free passes, Powell then Nelder-Mead, which are kept for the
+   tracker without the KPM and as a setting).
 
 A single lateral view barely sees the patella's medial-lateral shift and its tilt and spin
 (depth along the ray and rotations out of the image plane; measured on the quick demo: a
@@ -145,13 +146,14 @@ class Settings(BaseModel):
         "accuracy)",
     )
     nelder_mead_maxfev: PositiveInt = 120
-    warm_refinement: Literal["least_squares", "powell_nelder_mead"] = Field(
+    refinement: Literal["least_squares", "powell_nelder_mead"] = Field(
         "least_squares",
-        description="refinement once the KPM has placed a bone (every frame after the first): "
-        "Levenberg-Marquardt on the residual whose half squared norm is 1 - NCC (Jacobian by "
-        "central differences of ls_step), the coarse levels in a first pass over the bones and "
-        "the finest in a second (whatever passes says), or the derivative-free passes of the "
-        "first frame",
+        description="with the KPM, how a bone is refined once differential evolution (first "
+        "frame) or the KPM (later frames) has placed it: Levenberg-Marquardt on the residual "
+        "whose half squared norm is 1 - NCC (Jacobian by central differences of ls_step); on "
+        "later frames the coarse levels in a first pass over the bones and the finest in a "
+        "second, whatever passes says. powell_nelder_mead: the derivative-free passes, which "
+        "are also what the tracker without the KPM uses",
     )
     ls_step: tuple[PositiveFloat, PositiveFloat] = Field(
         (0.25, 0.25), description="least squares: central-difference steps, (mm, deg)"
@@ -855,7 +857,7 @@ class Tracker:
                 b: predict(history[-2][b], history[-1][b], self.bones[b].centroid_mm)
                 for b in TRACK_ORDER
             }
-        if self._placed_by_kpm(history):
+        if history and self._by_least_squares():
             return self._register_warm(frame, poses, history)
         spent = {name: (0.0, 0) for name in TRACK_ORDER}
         if not history and s.global_init:
@@ -885,8 +887,13 @@ class Tracker:
                     continue
                 start = time.perf_counter()
                 try:
-                    pose, n = self._refine(frame, name, poses, 0.4, polish=bool(history))
-                    score, grad = self._score(frame, name, {**poses, name: pose})
+                    if self._by_least_squares():
+                        finest = self.levels[-1:]
+                        pose, n, objective = self._least_squares(frame, name, poses, finest)
+                        score, grad = objective.scores(pose)
+                    else:
+                        pose, n = self._refine(frame, name, poses, 0.4, polish=bool(history))
+                        score, grad = self._score(frame, name, {**poses, name: pose})
                 except OutOfView:  # the refinement walked off the panel: keep the first pass
                     pose, n, score, grad = bone.pose, 0, -math.inf, math.nan
                 before = bone.ncc - self._penalty(name, poses)
@@ -900,7 +907,7 @@ class Tracker:
     def _register_warm(
         self, frame: int, poses: dict[str, np.ndarray], history: list[dict[str, np.ndarray]]
     ) -> FrameResult:
-        """A frame after the first with the least-squares refinement: each bone placed by the
+        """A frame after the first, refined by least squares: each bone placed by the
         KPM (the second frame's at its last pose, carried) and refined on the coarse levels,
         then each on the finest level against the others' new estimates and scored there;
         a bone whose score fails or drops (``fail_ncc``, ``drop_ncc``) is searched again about
@@ -952,12 +959,9 @@ class Tracker:
             bone.evaluations += n
         return result
 
-    def _placed_by_kpm(self, history: list) -> bool:
-        """Whether the KPM places the bones of a frame with this ``history`` (the second
-        frame's at their last poses, carried) and the least-squares refinement takes them
-        from there (:attr:`Settings.warm_refinement`)."""
-        s = self.settings
-        return s.kpm and bool(history) and s.warm_refinement == "least_squares"
+    def _by_least_squares(self) -> bool:
+        """Whether bones are refined by least squares (:attr:`Settings.refinement`)."""
+        return self.settings.kpm and self.settings.refinement == "least_squares"
 
     def _match_resolution(
         self, frame: int, poses: dict[str, np.ndarray], result: FrameResult
@@ -1001,8 +1005,12 @@ class Tracker:
             evaluations += n
         elif s.kpm and history and name in CARRIER:  # carried at its last relative pose
             poses[name] = _carrier_pose(name, poses) @ _carried_pose(name, history[-1])
-        poses[name], n = self._refine(frame, name, poses)
-        score, grad = self._score(frame, name, poses)
+        if self._by_least_squares():
+            poses[name], n, objective = self._least_squares(frame, name, poses, self.levels)
+            score, grad = objective.scores(poses[name])
+        else:
+            poses[name], n = self._refine(frame, name, poses)
+            score, grad = self._score(frame, name, poses)
         evaluations += n
         previous = self._last_ncc.get(name, score)
         if s.kpm and history and (score < s.fail_ncc or score < previous - s.drop_ncc):
