@@ -36,7 +36,13 @@ import numpy as np
 import scipy.fft
 
 from recon.geometry import Geometry, View
-from recon.project import COUNT_WEIGHT, FDK_WEIGHT, backproject_weighted, check_in_front
+from recon.project import (
+    COUNT_WEIGHT,
+    FDK_WEIGHT,
+    backproject_weighted,
+    check_in_front,
+    pixel_pairs,
+)
 from recon.turned_panel import AlignedPanels, align_to_motion
 from recon.volume import Volume, VolumeGrid
 
@@ -404,7 +410,11 @@ class FDKAccumulator:
             if self._parker is None
             else self._parker[index, None, :].astype(np.float32)
         )
-        support = aligned.images(np.broadcast_to(self._taper, (n, *self._taper.shape)), first)
+        support = (
+            aligned.images(np.broadcast_to(self._taper, (n, *self._taper.shape)), first)
+            if aligned.turned
+            else self._taper[None]
+        )
         batch = aligned.images(proj, first)
         weighted = np.empty_like(batch) if batch is proj else batch
         for k, view in enumerate(virtual):
@@ -413,11 +423,11 @@ class FDKAccumulator:
         spec = scipy.fft.rfft(weighted, n=self._n_fft, axis=2, workers=-1)
         spec *= self._ramp
         filtered = scipy.fft.irfft(spec, n=self._n_fft, axis=2, workers=-1)
-        filtered = np.multiply(filtered[:, :, : virtual.cols], support, out=weighted)
-        backproject_weighted(filtered, virtual, self.grid, FDK_WEIGHT, self._num)
+        pairs = pixel_pairs(filtered[:, :, : virtual.cols], support)
+        backproject_weighted(pairs, virtual, self.grid, FDK_WEIGHT, self._num)
         # the views' weighted count: dbeta * SOD * SDD * w / L_perp^2, in degrees
         jac = np.degrees(orbit.dbeta_rad[index]) * orbit.sod_mm[index] * sdd
-        weights = pre * support * jac[:, None, None].astype(np.float32)
+        weights = pixel_pairs(support, pre * jac[:, None, None].astype(np.float32))
         backproject_weighted(
             weights, virtual, self._coarse, COUNT_WEIGHT, self._count, axis=orbit.axis
         )
