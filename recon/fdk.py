@@ -335,6 +335,7 @@ class FDKAccumulator:
         self._taper = np.outer(
             _taper(geometry.rows, edge_taper_px), _taper(geometry.cols, edge_taper_px)
         ).astype(np.float32)
+        self._taper_pairs = pixel_pairs(self._taper[None])
         self.aligned = motion_aligned(geometry)
         self.orbit = estimate_orbit(self.aligned.geometry)
         virtual = self.aligned.geometry
@@ -405,11 +406,7 @@ class FDKAccumulator:
         sdd = np.array([v.sdd_mm for v in virtual])
         pitch = np.array([v.pitch_u_mm for v in virtual])
         scale = orbit.dbeta_rad[index] * orbit.sod_mm[index] / (sdd * pitch)
-        pre = (
-            np.ones((n, 1, virtual.cols), dtype=np.float32)
-            if self._parker is None
-            else self._parker[index, None, :].astype(np.float32)
-        )
+        pre = None if self._parker is None else self._parker[index, None, :].astype(np.float32)
         support = (
             aligned.images(np.broadcast_to(self._taper, (n, *self._taper.shape)), first)
             if aligned.turned
@@ -419,7 +416,7 @@ class FDKAccumulator:
         weighted = np.empty_like(batch) if batch is proj else batch
         for k, view in enumerate(virtual):
             np.multiply(batch[k], self._cosine_weights(view), out=weighted[k])
-            weighted[k] *= np.float32(scale[k]) * pre[k]
+            weighted[k] *= np.float32(scale[k]) if pre is None else np.float32(scale[k]) * pre[k]
         spec = scipy.fft.rfft(weighted, n=self._n_fft, axis=2, workers=-1)
         spec *= self._ramp
         filtered = scipy.fft.irfft(spec, n=self._n_fft, axis=2, workers=-1)
@@ -427,9 +424,11 @@ class FDKAccumulator:
         backproject_weighted(pairs, virtual, self.grid, FDK_WEIGHT, self._num)
         # the views' weighted count: dbeta * SOD * SDD * w / L_perp^2, in degrees
         jac = np.degrees(orbit.dbeta_rad[index]) * orbit.sod_mm[index] * sdd
-        weights = pixel_pairs(support, pre * jac[:, None, None].astype(np.float32))
+        weights = (
+            self._taper_pairs if pre is None and not aligned.turned else pixel_pairs(support, pre)
+        )
         backproject_weighted(
-            weights, virtual, self._coarse, COUNT_WEIGHT, self._count, axis=orbit.axis
+            weights, virtual, self._coarse, COUNT_WEIGHT, self._count, orbit.axis, jac
         )
         self.added[start : start + n] = True
 

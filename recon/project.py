@@ -236,12 +236,13 @@ FDK_WEIGHT, ADJOINT_WEIGHT, COUNT_WEIGHT = 0, 1, 2
 
 @numba.njit(fastmath=True, error_model="numpy", boundscheck=False, inline="always")
 def _row_samples(
-    n, x0, h, s, umax, vmax, cols, mode, d0, dd, axis, idx, fu, fv, wt
+    n, x0, h, s, umax, vmax, cols, mode, scale, d0, dd, axis, idx, fu, fv, wt
 ):  # pragma: no cover
     """Detector sample positions and weights of ``n`` voxels from ``x0`` along one row.
 
     ``h`` and ``s`` hold (u*w, v*w, w) at voxel x = 0 and its step per voxel; ``d0``, ``dd``
-    the voxel-minus-source vector at x = 0 and its step (modes 1 and 2).
+    the voxel-minus-source vector at x = 0 and its step (modes 1 and 2); ``scale`` multiplies
+    every weight.
     """
     zero = np.float32(0.0)
     for k in range(n):
@@ -256,17 +257,17 @@ def _row_samples(
         fv[k] = v - np.float32(iv)
         idx[k] = np.uint32(iv * np.int32(cols) + iu)
         if mode == 0:
-            wt[k] = inv * inv
+            wt[k] = inv * inv * scale
         else:
             dx = d0[0] + xf * dd[0]
             dy = d0[1] + xf * dd[1]
             dz = d0[2] + xf * dd[2]
             dist2 = dx * dx + dy * dy + dz * dz
             if mode == 1:
-                wt[k] = math.sqrt(dist2) * inv * inv * inv
+                wt[k] = math.sqrt(dist2) * inv * inv * inv * scale
             else:
                 along = dx * axis[0] + dy * axis[1] + dz * axis[2]
-                wt[k] = w / (dist2 - along * along)
+                wt[k] = w * scale / (dist2 - along * along)
 
 
 @numba.njit(fastmath=True, error_model="numpy", boundscheck=False, inline="always")
@@ -293,14 +294,18 @@ def _row_gather(n, pairs, cols, idx, fu, fv, wt, top, bottom, acc):  # pragma: n
 @numba.njit(
     parallel=True, fastmath=True, cache=True, error_model="numpy", boundscheck=False, nogil=True
 )
-def _backproject_kernel(pairs, mats, sources, axis, mode, origin, spacing, out):  # pragma: no cover
-    """out[z, y, x] += sum over views of weight(mode) * bilinear(image) at P x; ``pairs`` holds
-    the images as :func:`pixel_pairs` viewed as uint64, (views, rows, cols)."""
-    n_views, rows, cols = pairs.shape
+def _backproject_kernel(
+    pairs, scale, mats, sources, axis, mode, origin, spacing, out
+):  # pragma: no cover
+    """out[z, y, x] += sum over views of scale * weight(mode) * bilinear(image) at P x;
+    ``pairs`` holds the images (one per view, or one for all) as :func:`pixel_pairs` viewed as
+    uint64, (views or 1, rows, cols)."""
+    n_images, rows, cols = pairs.shape
+    n_views = len(mats)
     nz, ny, nx = out.shape
     umax = np.float32(cols - 1.0)
     vmax = np.float32(rows - 1.0)
-    flat = pairs.reshape(n_views, rows * cols)
+    flat = pairs.reshape(n_images, rows * cols)
     ax32 = axis.astype(np.float32)
     for job in numba.prange(nz * ny):
         z = job // ny
@@ -347,11 +352,13 @@ def _backproject_kernel(pairs, mats, sources, axis, mode, origin, spacing, out):
             n = min(nx - 1, math.floor(hi)) - x0 + 1
             if n <= 0:
                 continue
+            sc = scale[view]
             if mode == FDK_WEIGHT:  # the hot path, compiled with the weight's branch folded
-                _row_samples(n, x0, h, s, umax, vmax, cols, 0, d0, dd, ax32, idx, fu, fv, wt)
+                _row_samples(n, x0, h, s, umax, vmax, cols, 0, sc, d0, dd, ax32, idx, fu, fv, wt)
             else:
-                _row_samples(n, x0, h, s, umax, vmax, cols, mode, d0, dd, ax32, idx, fu, fv, wt)
-            _row_gather(n, flat[view], cols, idx, fu, fv, wt, top, bottom, acc[x0:])
+                _row_samples(n, x0, h, s, umax, vmax, cols, mode, sc, d0, dd, ax32, idx, fu, fv, wt)
+            image = flat[min(view, n_images - 1)]
+            _row_gather(n, image, cols, idx, fu, fv, wt, top, bottom, acc[x0:])
         for x in range(nx):
             out[z, y, x] += acc[x]
 
@@ -397,13 +404,16 @@ def backproject_weighted(
     mode: int,
     out: np.ndarray,
     axis: np.ndarray | None = None,
+    scale: np.ndarray | None = None,
 ) -> None:
     """Accumulate voxel-driven backprojections of ``images`` into ``out``.
 
-    ``images`` are (V, rows, cols), or already laid out by :func:`pixel_pairs` (V, rows, cols,
-    2). Each voxel adds ``weight * bilinear(image)`` where its centre projects inside the panel;
-    the weight is chosen by ``mode`` (:data:`FDK_WEIGHT`, :data:`ADJOINT_WEIGHT`,
-    :data:`COUNT_WEIGHT`, the latter needing the rotation ``axis``). float32 throughout.
+    ``images`` are (V, rows, cols), one per view of ``geometry``, or (1, rows, cols), one for
+    all of them; either laid out by :func:`pixel_pairs` (a trailing axis of 2) or plain. Each
+    voxel adds ``scale[view] * weight * bilinear(image)`` where its centre projects inside the
+    panel; the weight is chosen by ``mode`` (:data:`FDK_WEIGHT`, :data:`ADJOINT_WEIGHT`,
+    :data:`COUNT_WEIGHT`, the latter needing the rotation ``axis``); ``scale`` (V,) defaults
+    to 1. float32 throughout.
     """
     if out.shape != grid.shape or out.dtype != np.float32:
         raise ValueError(f"out must be float32 of shape {grid.shape}")
@@ -411,8 +421,11 @@ def backproject_weighted(
     if pairs.ndim == 3:
         pairs = pixel_pairs(pairs)
     pairs = np.ascontiguousarray(pairs, dtype=np.float32)
+    if len(pairs) not in (1, len(geometry)):
+        raise ValueError(f"{len(pairs)} images for {len(geometry)} views")
     _backproject_kernel(
         pairs.view(np.uint64)[..., 0],
+        np.ones(len(geometry), np.float32) if scale is None else np.asarray(scale, np.float32),
         np.asarray(geometry.matrices),
         np.asarray(geometry.sources_mm),
         np.zeros(3) if axis is None else np.asarray(axis, dtype=np.float64),
