@@ -245,8 +245,8 @@ def _row_samples(
     every weight.
     """
     zero = np.float32(0.0)
+    xf = np.float32(x0)  # a float counter (exact) vectorises better than converting k
     for k in range(n):
-        xf = np.float32(x0 + k)
         w = h[2] + xf * s[2]
         inv = np.float32(1.0) / w
         u = min(max((h[0] + xf * s[0]) * inv, zero), umax)
@@ -268,6 +268,7 @@ def _row_samples(
             else:
                 along = dx * axis[0] + dy * axis[1] + dz * axis[2]
                 wt[k] = w * scale / (dist2 - along * along)
+        xf += np.float32(1.0)
 
 
 @numba.njit(fastmath=True, error_model="numpy", boundscheck=False, inline="always")
