@@ -277,13 +277,20 @@ def _row_gather(n, pairs, cols, idx, fu, fv, wt, top, bottom, acc):  # pragma: n
 
     ``pairs`` is the view's :func:`pixel_pairs` raveled as uint64, so that one 8-byte load
     fetches a pixel and its right-hand neighbour; ``top`` and ``bottom`` (uint64) are scratch.
-    The scalar gather only moves those pairs, the interpolation runs vectorised after it.
+    The scalar gather only moves those pairs, two samples a step (``idx`` holds a valid index
+    past the n-th), and the interpolation runs vectorised after it.
     """
     ucols = np.uint64(cols)
-    for k in range(n):
-        i = np.uint64(idx[k])
-        top[k] = pairs[i]
-        bottom[k] = pairs[i + ucols]
+    one = np.uint64(1)
+    for k in range(0, n, 2):
+        k0 = np.uint64(k)  # unsigned indices: no wrap-around checks in the unrolled step
+        k1 = k0 + one
+        i0 = np.uint64(idx[k0])
+        i1 = np.uint64(idx[k1])
+        top[k0] = pairs[i0]
+        bottom[k0] = pairs[i0 + ucols]
+        top[k1] = pairs[i1]
+        bottom[k1] = pairs[i1 + ucols]
     t = top.view(np.float32)
     b = bottom.view(np.float32)
     for k in range(n):
@@ -314,12 +321,12 @@ def _backproject_kernel(
         wz = origin[2] + z * spacing[2]
         wy = origin[1] + y * spacing[1]
         acc = np.zeros(nx, dtype=np.float32)
-        idx = np.empty(nx, dtype=np.uint32)
+        idx = np.zeros(nx + 1, dtype=np.uint32)  # any entry is a valid pixel index
         fu = np.empty(nx, dtype=np.float32)
         fv = np.empty(nx, dtype=np.float32)
         wt = np.empty(nx, dtype=np.float32)
-        top = np.empty(nx, dtype=np.uint64)
-        bottom = np.empty(nx, dtype=np.uint64)
+        top = np.empty(nx + 1, dtype=np.uint64)
+        bottom = np.empty(nx + 1, dtype=np.uint64)
         h = np.empty(3, dtype=np.float32)
         s = np.empty(3, dtype=np.float32)
         d0 = np.empty(3, dtype=np.float32)
