@@ -417,11 +417,11 @@ class FDKAccumulator:
         for k, view in enumerate(virtual):
             np.multiply(batch[k], self._cosine_weights(view), out=weighted[k])
             weighted[k] *= np.float32(scale[k]) if pre is None else np.float32(scale[k]) * pre[k]
-        spec = scipy.fft.rfft(weighted, n=self._n_fft, axis=2, workers=-1)
-        spec *= self._ramp
-        filtered = scipy.fft.irfft(spec, n=self._n_fft, axis=2, workers=-1)
-        pairs = pixel_pairs(filtered[:, :, : virtual.cols], support)
+        # the spectrum and the filtered batch are temporaries: only the pixel pairs stay
+        # alive during the backprojection
+        pairs = pixel_pairs(self._filter(weighted)[:, :, : virtual.cols], support)
         backproject_weighted(pairs, virtual, self.grid, FDK_WEIGHT, self._num)
+        del pairs
         # the views' weighted count: dbeta * SOD * SDD * w / L_perp^2, in degrees
         jac = np.degrees(orbit.dbeta_rad[index]) * orbit.sod_mm[index] * sdd
         weights = (
@@ -431,6 +431,12 @@ class FDKAccumulator:
             weights, virtual, self._coarse, COUNT_WEIGHT, self._count, orbit.axis, jac
         )
         self.added[start : start + n] = True
+
+    def _filter(self, weighted: np.ndarray) -> np.ndarray:
+        """Ramp-filtered rows of ``weighted`` (n, rows, cols), zero-padded to the FFT length."""
+        spec = scipy.fft.rfft(weighted, n=self._n_fft, axis=2, workers=-1)
+        spec *= self._ramp
+        return scipy.fft.irfft(spec, n=self._n_fft, axis=2, workers=-1)
 
     def result(self) -> FDKResult:
         """The volume of the views added so far (all of them for a complete scan)."""

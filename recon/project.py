@@ -395,7 +395,7 @@ def pixel_pairs(images: np.ndarray, factor: np.ndarray | None = None) -> np.ndar
     ``images`` and ``factor`` are (V or 1, rows or 1, cols), broadcast against each other.
     """
     a = np.asarray(images, dtype=np.float32)
-    b = np.ones((1, 1, a.shape[2]), np.float32) if factor is None else np.asarray(factor)
+    b = np.ones((1, 1, a.shape[-1]), np.float32) if factor is None else np.asarray(factor)
     b = b.astype(np.float32, copy=False)
     if a.ndim != 3 or b.ndim != 3 or a.shape[2] != b.shape[2]:
         raise ValueError(f"images {a.shape} and factor {b.shape} must be 3-d with equal columns")
@@ -429,8 +429,11 @@ def backproject_weighted(
     if pairs.ndim == 3:
         pairs = pixel_pairs(pairs)
     pairs = np.ascontiguousarray(pairs, dtype=np.float32)
-    if len(pairs) not in (1, len(geometry)):
-        raise ValueError(f"{len(pairs)} images for {len(geometry)} views")
+    if pairs.shape[1:] != (geometry.rows, geometry.cols, 2) or len(pairs) not in (1, len(geometry)):
+        raise ValueError(
+            f"images of shape {pairs.shape} for {len(geometry)} views of {geometry.rows} x "
+            f"{geometry.cols} pixels"
+        )
     _backproject_kernel(
         pairs.view(np.uint64)[..., 0],
         np.ones(len(geometry), np.float32) if scale is None else np.asarray(scale, np.float32),
