@@ -36,7 +36,13 @@ import numpy as np
 import scipy.fft
 
 from recon.geometry import Geometry, View
-from recon.project import COUNT_WEIGHT, FDK_WEIGHT, backproject_weighted, check_in_front
+from recon.project import (
+    COUNT_WEIGHT,
+    FDK_WEIGHT,
+    backproject_weighted,
+    check_in_front,
+    pixel_pairs,
+)
 from recon.turned_panel import AlignedPanels, align_to_motion
 from recon.volume import Volume, VolumeGrid
 
@@ -329,6 +335,7 @@ class FDKAccumulator:
         self._taper = np.outer(
             _taper(geometry.rows, edge_taper_px), _taper(geometry.cols, edge_taper_px)
         ).astype(np.float32)
+        self._taper_pairs = pixel_pairs(self._taper[None])
         self.aligned = motion_aligned(geometry)
         self.orbit = estimate_orbit(self.aligned.geometry)
         virtual = self.aligned.geometry
@@ -399,29 +406,37 @@ class FDKAccumulator:
         sdd = np.array([v.sdd_mm for v in virtual])
         pitch = np.array([v.pitch_u_mm for v in virtual])
         scale = orbit.dbeta_rad[index] * orbit.sod_mm[index] / (sdd * pitch)
-        pre = (
-            np.ones((n, 1, virtual.cols), dtype=np.float32)
-            if self._parker is None
-            else self._parker[index, None, :].astype(np.float32)
+        pre = None if self._parker is None else self._parker[index, None, :].astype(np.float32)
+        support = (
+            aligned.images(np.broadcast_to(self._taper, (n, *self._taper.shape)), first)
+            if aligned.turned
+            else self._taper[None]
         )
-        support = aligned.images(np.broadcast_to(self._taper, (n, *self._taper.shape)), first)
         batch = aligned.images(proj, first)
         weighted = np.empty_like(batch) if batch is proj else batch
         for k, view in enumerate(virtual):
             np.multiply(batch[k], self._cosine_weights(view), out=weighted[k])
-            weighted[k] *= np.float32(scale[k]) * pre[k]
-        spec = scipy.fft.rfft(weighted, n=self._n_fft, axis=2, workers=-1)
-        spec *= self._ramp
-        filtered = scipy.fft.irfft(spec, n=self._n_fft, axis=2, workers=-1)
-        filtered = np.multiply(filtered[:, :, : virtual.cols], support, out=weighted)
-        backproject_weighted(filtered, virtual, self.grid, FDK_WEIGHT, self._num)
+            weighted[k] *= np.float32(scale[k]) if pre is None else np.float32(scale[k]) * pre[k]
+        # the spectrum and the filtered batch are temporaries: only the pixel pairs stay
+        # alive during the backprojection
+        pairs = pixel_pairs(self._filter(weighted)[:, :, : virtual.cols], support)
+        backproject_weighted(pairs, virtual, self.grid, FDK_WEIGHT, self._num)
+        del pairs
         # the views' weighted count: dbeta * SOD * SDD * w / L_perp^2, in degrees
         jac = np.degrees(orbit.dbeta_rad[index]) * orbit.sod_mm[index] * sdd
-        weights = pre * support * jac[:, None, None].astype(np.float32)
+        weights = (
+            self._taper_pairs if pre is None and not aligned.turned else pixel_pairs(support, pre)
+        )
         backproject_weighted(
-            weights, virtual, self._coarse, COUNT_WEIGHT, self._count, axis=orbit.axis
+            weights, virtual, self._coarse, COUNT_WEIGHT, self._count, orbit.axis, jac
         )
         self.added[start : start + n] = True
+
+    def _filter(self, weighted: np.ndarray) -> np.ndarray:
+        """Ramp-filtered rows of ``weighted`` (n, rows, cols), zero-padded to the FFT length."""
+        spec = scipy.fft.rfft(weighted, n=self._n_fft, axis=2, workers=-1)
+        spec *= self._ramp
+        return scipy.fft.irfft(spec, n=self._n_fft, axis=2, workers=-1)
 
     def result(self) -> FDKResult:
         """The volume of the views added so far (all of them for a complete scan)."""

@@ -237,16 +237,17 @@ FDK_WEIGHT, ADJOINT_WEIGHT, COUNT_WEIGHT = 0, 1, 2
 
 @numba.njit(fastmath=True, error_model="numpy", boundscheck=False, inline="always")
 def _row_samples(
-    n, x0, h, s, umax, vmax, cols, mode, d0, dd, axis, idx, fu, fv, wt
+    n, x0, h, s, umax, vmax, cols, mode, scale, d0, dd, axis, idx, fu, fv, wt
 ):  # pragma: no cover
     """Detector sample positions and weights of ``n`` voxels from ``x0`` along one row.
 
     ``h`` and ``s`` hold (u*w, v*w, w) at voxel x = 0 and its step per voxel; ``d0``, ``dd``
-    the voxel-minus-source vector at x = 0 and its step (modes 1 and 2).
+    the voxel-minus-source vector at x = 0 and its step (modes 1 and 2); ``scale`` multiplies
+    every weight.
     """
     zero = np.float32(0.0)
+    xf = np.float32(x0)  # a float counter (exact) vectorises better than converting k
     for k in range(n):
-        xf = np.float32(x0 + k)
         w = h[2] + xf * s[2]
         inv = np.float32(1.0) / w
         u = min(max((h[0] + xf * s[0]) * inv, zero), umax)
@@ -257,45 +258,63 @@ def _row_samples(
         fv[k] = v - np.float32(iv)
         idx[k] = np.uint32(iv * np.int32(cols) + iu)
         if mode == 0:
-            wt[k] = inv * inv
+            wt[k] = inv * inv * scale
         else:
             dx = d0[0] + xf * dd[0]
             dy = d0[1] + xf * dd[1]
             dz = d0[2] + xf * dd[2]
             dist2 = dx * dx + dy * dy + dz * dz
             if mode == 1:
-                wt[k] = math.sqrt(dist2) * inv * inv * inv
+                wt[k] = math.sqrt(dist2) * inv * inv * inv * scale
             else:
                 along = dx * axis[0] + dy * axis[1] + dz * axis[2]
-                wt[k] = w / (dist2 - along * along)
+                wt[k] = w * scale / (dist2 - along * along)
+        xf += np.float32(1.0)
 
 
 @numba.njit(fastmath=True, error_model="numpy", boundscheck=False, inline="always")
-def _row_gather(n, img, cols, idx, fu, fv, wt, acc):  # pragma: no cover
-    """acc[k] += wt[k] * bilinear(img) for the samples of :func:`_row_samples`."""
-    one = np.uint64(1)
+def _row_gather(n, pairs, cols, idx, fu, fv, wt, top, bottom, acc):  # pragma: no cover
+    """acc[k] += wt[k] * bilinear(image) for the samples of :func:`_row_samples`.
+
+    ``pairs`` is the view's :func:`pixel_pairs` raveled as uint64, so that one 8-byte load
+    fetches a pixel and its right-hand neighbour; ``top`` and ``bottom`` (uint64) are scratch.
+    The scalar gather only moves those pairs, two samples a step (``idx`` holds a valid index
+    past the n-th), and the interpolation runs vectorised after it.
+    """
     ucols = np.uint64(cols)
+    one = np.uint64(1)
+    for k in range(0, n, 2):
+        k0 = np.uint64(k)  # unsigned indices: no wrap-around checks in the unrolled step
+        k1 = k0 + one
+        i0 = np.uint64(idx[k0])
+        i1 = np.uint64(idx[k1])
+        top[k0] = pairs[i0]
+        bottom[k0] = pairs[i0 + ucols]
+        top[k1] = pairs[i1]
+        bottom[k1] = pairs[i1 + ucols]
+    t = top.view(np.float32)
+    b = bottom.view(np.float32)
     for k in range(n):
-        i = np.uint64(idx[k])
-        a = img[i]
-        b = img[i + one]
-        c = img[i + ucols]
-        d = img[i + ucols + one]
-        r0 = a + fu[k] * (b - a)
-        r1 = c + fu[k] * (d - c)
+        r0 = t[2 * k] + fu[k] * (t[2 * k + 1] - t[2 * k])
+        r1 = b[2 * k] + fu[k] * (b[2 * k + 1] - b[2 * k])
         acc[k] += (r0 + fv[k] * (r1 - r0)) * wt[k]
 
 
 @numba.njit(
     parallel=True, fastmath=True, cache=True, error_model="numpy", boundscheck=False, nogil=True
 )
-def _backproject_kernel(q, mats, sources, axis, mode, origin, spacing, out):  # pragma: no cover
-    """out[z, y, x] += sum over views of weight(mode) * bilinear(q[view]) at P x."""
-    n_views, rows, cols = q.shape
+def _backproject_kernel(
+    pairs, scale, mats, sources, axis, mode, origin, spacing, out
+):  # pragma: no cover
+    """out[z, y, x] += sum over views of scale * weight(mode) * bilinear(image) at P x;
+    ``pairs`` holds the images (one per view, or one for all) as :func:`pixel_pairs` viewed as
+    uint64, (views or 1, rows, cols)."""
+    n_images, rows, cols = pairs.shape
+    n_views = len(mats)
     nz, ny, nx = out.shape
     umax = np.float32(cols - 1.0)
     vmax = np.float32(rows - 1.0)
-    flat = q.reshape(n_views, rows * cols)
+    flat = pairs.reshape(n_images, rows * cols)
     ax32 = axis.astype(np.float32)
     for job in numba.prange(nz * ny):
         z = job // ny
@@ -303,10 +322,12 @@ def _backproject_kernel(q, mats, sources, axis, mode, origin, spacing, out):  # 
         wz = origin[2] + z * spacing[2]
         wy = origin[1] + y * spacing[1]
         acc = np.zeros(nx, dtype=np.float32)
-        idx = np.empty(nx, dtype=np.uint32)
+        idx = np.zeros(nx + 1, dtype=np.uint32)  # any entry is a valid pixel index
         fu = np.empty(nx, dtype=np.float32)
         fv = np.empty(nx, dtype=np.float32)
         wt = np.empty(nx, dtype=np.float32)
+        top = np.empty(nx + 1, dtype=np.uint64)
+        bottom = np.empty(nx + 1, dtype=np.uint64)
         h = np.empty(3, dtype=np.float32)
         s = np.empty(3, dtype=np.float32)
         d0 = np.empty(3, dtype=np.float32)
@@ -340,13 +361,49 @@ def _backproject_kernel(q, mats, sources, axis, mode, origin, spacing, out):  # 
             n = min(nx - 1, math.floor(hi)) - x0 + 1
             if n <= 0:
                 continue
+            sc = scale[view]
             if mode == FDK_WEIGHT:  # the hot path, compiled with the weight's branch folded
-                _row_samples(n, x0, h, s, umax, vmax, cols, 0, d0, dd, ax32, idx, fu, fv, wt)
+                _row_samples(n, x0, h, s, umax, vmax, cols, 0, sc, d0, dd, ax32, idx, fu, fv, wt)
             else:
-                _row_samples(n, x0, h, s, umax, vmax, cols, mode, d0, dd, ax32, idx, fu, fv, wt)
-            _row_gather(n, flat[view], cols, idx, fu, fv, wt, acc[x0:])
+                _row_samples(n, x0, h, s, umax, vmax, cols, mode, sc, d0, dd, ax32, idx, fu, fv, wt)
+            image = flat[min(view, n_images - 1)]
+            _row_gather(n, image, cols, idx, fu, fv, wt, top, bottom, acc[x0:])
         for x in range(nx):
             out[z, y, x] += acc[x]
+
+
+@numba.njit(parallel=True, fastmath=True, cache=True, error_model="numpy", nogil=True)
+def _pairs_kernel(a, b, out):  # pragma: no cover
+    """out[k, r, c] = (p[k, r, c], p[k, r, c + 1]), p = a * b broadcast over axes 0 and 1."""
+    n, rows, cols = out.shape[:3]
+    for job in numba.prange(n * rows):
+        k = job // rows
+        r = job - k * rows
+        ra = a[min(k, a.shape[0] - 1), min(r, a.shape[1] - 1)]
+        rb = b[min(k, b.shape[0] - 1), min(r, b.shape[1] - 1)]
+        row = out[k, r]
+        for c in range(cols):
+            row[c, 0] = ra[c] * rb[c]
+        for c in range(cols - 1):
+            row[c, 1] = row[c + 1, 0]
+        row[cols - 1, 1] = 0.0
+
+
+def pixel_pairs(images: np.ndarray, factor: np.ndarray | None = None) -> np.ndarray:
+    """``images * factor`` laid out for :func:`backproject_weighted`: every pixel followed by its
+    right-hand neighbour (0 after the last column), float32 (V, rows, cols, 2).
+
+    ``images`` and ``factor`` are (V or 1, rows or 1, cols), broadcast against each other.
+    """
+    a = np.asarray(images, dtype=np.float32)
+    b = np.ones((1, 1, a.shape[-1]), np.float32) if factor is None else np.asarray(factor)
+    b = b.astype(np.float32, copy=False)
+    if a.ndim != 3 or b.ndim != 3 or a.shape[2] != b.shape[2]:
+        raise ValueError(f"images {a.shape} and factor {b.shape} must be 3-d with equal columns")
+    shape = np.broadcast_shapes(a.shape, b.shape)
+    out = np.empty((*shape, 2), dtype=np.float32)
+    _pairs_kernel(a, b, out)
+    return out
 
 
 def backproject_weighted(
@@ -356,17 +413,31 @@ def backproject_weighted(
     mode: int,
     out: np.ndarray,
     axis: np.ndarray | None = None,
+    scale: np.ndarray | None = None,
 ) -> None:
-    """Accumulate voxel-driven backprojections of ``images`` (V, rows, cols) into ``out``.
+    """Accumulate voxel-driven backprojections of ``images`` into ``out``.
 
-    Each voxel adds ``weight * bilinear(image)`` where its centre projects inside the panel;
-    the weight is chosen by ``mode`` (:data:`FDK_WEIGHT`, :data:`ADJOINT_WEIGHT`,
-    :data:`COUNT_WEIGHT`, the latter needing the rotation ``axis``). float32 throughout.
+    ``images`` are (V, rows, cols), one per view of ``geometry``, or (1, rows, cols), one for
+    all of them; either laid out by :func:`pixel_pairs` (a trailing axis of 2) or plain. Each
+    voxel adds ``scale[view] * weight * bilinear(image)`` where its centre projects inside the
+    panel; the weight is chosen by ``mode`` (:data:`FDK_WEIGHT`, :data:`ADJOINT_WEIGHT`,
+    :data:`COUNT_WEIGHT`, the latter needing the rotation ``axis``); ``scale`` (V,) defaults
+    to 1. float32 throughout.
     """
     if out.shape != grid.shape or out.dtype != np.float32:
         raise ValueError(f"out must be float32 of shape {grid.shape}")
+    pairs = np.asarray(images)
+    if pairs.ndim == 3:
+        pairs = pixel_pairs(pairs)
+    pairs = np.ascontiguousarray(pairs, dtype=np.float32)
+    if pairs.shape[1:] != (geometry.rows, geometry.cols, 2) or len(pairs) not in (1, len(geometry)):
+        raise ValueError(
+            f"images of shape {pairs.shape} for {len(geometry)} views of {geometry.rows} x "
+            f"{geometry.cols} pixels"
+        )
     _backproject_kernel(
-        np.ascontiguousarray(images, dtype=np.float32),
+        pairs.view(np.uint64)[..., 0],
+        np.ones(len(geometry), np.float32) if scale is None else np.asarray(scale, np.float32),
         np.asarray(geometry.matrices),
         np.asarray(geometry.sources_mm),
         np.zeros(3) if axis is None else np.asarray(axis, dtype=np.float64),
