@@ -93,7 +93,7 @@ def registration_table(result: dict) -> str:
                 reg(e["out_of_plane_mm_rms"]),
                 f"{fixed(e['rsr_pct'], 1)} ({bones})",
                 f"{reg(e['mtrans_mm'])} / {reg(e['mrot_deg'])}",
-                fixed(e["s_per_frame"], 1) if "s_per_frame" in e else "",
+                sig(e["s_per_frame"], 2) if "s_per_frame" in e else "",
                 fixed(e["s_first_frame"], 1) if "s_first_frame" in e else "",
                 fixed(e["drr_ms_256"], 2),
             ]

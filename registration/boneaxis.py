@@ -18,7 +18,7 @@ c) refinement: Levenberg-Marquardt on the residual whose half squared norm is 1 
    the prior), its Jacobian by central differences: on the first frame coarse (binned panel)
    to fine after the DE, then a second pass on the finest level against the others' new
    estimates; on later frames the coarse level in a first pass over the bones and the finest
-   in a second, where each is scored and, if it failed, searched again (a quarter of the
+   in a second, where each is scored and, if it failed, searched again (under 30 % of the
    renders of the derivative-free passes, Powell then Nelder-Mead, which are kept for the
    tracker without the KPM and as a setting).
 
@@ -159,7 +159,7 @@ class Settings(BaseModel):
         (0.25, 0.25), description="least squares: central-difference steps, (mm, deg)"
     )
     ls_max_steps: tuple[PositiveInt, PositiveInt] = Field(
-        (5, 4),
+        (5, 5),
         description="least squares: residual evaluations as MINPACK counts them (each step "
         "also takes a Jacobian: 12 renders) on the coarse levels and on the finest",
     )
