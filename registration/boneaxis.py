@@ -14,13 +14,13 @@ b) kinematic priority module (KPM), from the third frame: the pose is predicted 
    turning point, where the last motion nearly stops, S is the motion before it); the search
    widens (a small DE box) only when the similarity after refinement says the prediction
    failed;
-c) refinement: Levenberg-Marquardt on the residual whose half squared norm is 1 - NCC (plus
-   the prior), its Jacobian by central differences: on the first frame coarse (binned panel)
-   to fine after the DE, then a second pass on the finest level against the others' new
-   estimates; on later frames the coarse level in a first pass over the bones and the finest
-   in a second, where each is scored and, if it failed, searched again (under 30 % of the
-   renders of the derivative-free passes, Powell then Nelder-Mead, which are kept for the
-   tracker without the KPM and as a setting).
+c) refinement: on the first frame Powell then Nelder-Mead, coarse (binned panel) to fine, and
+   a second pass that refines each bone against the others' new estimates; on later frames
+   Levenberg-Marquardt on the residual whose half squared norm is 1 - NCC (plus the prior),
+   its Jacobian by central differences, on the coarse level in a first pass over the bones
+   and on the finest in a second, where each is scored and, if it failed, searched again
+   (under 30 % of the renders of the derivative-free passes, which are kept for the tracker
+   without the KPM and as a setting).
 
 A single lateral view barely sees the patella's medial-lateral shift and its tilt and spin
 (depth along the ray and rotations out of the image plane; measured on the quick demo: a
@@ -148,12 +148,13 @@ class Settings(BaseModel):
     nelder_mead_maxfev: PositiveInt = 120
     refinement: Literal["least_squares", "powell_nelder_mead"] = Field(
         "least_squares",
-        description="with the KPM, how a bone is refined once differential evolution (first "
-        "frame) or the KPM (later frames) has placed it: Levenberg-Marquardt on the residual "
-        "whose half squared norm is 1 - NCC (Jacobian by central differences of ls_step); on "
-        "later frames the coarse levels in a first pass over the bones and the finest in a "
-        "second, whatever passes says. powell_nelder_mead: the derivative-free passes, which "
-        "are also what the tracker without the KPM uses",
+        description="with the KPM, how a bone is refined once the KPM has placed it (every "
+        "frame after the first): Levenberg-Marquardt on the residual whose half squared norm "
+        "is 1 - NCC (Jacobian by central differences of ls_step), the coarse levels in a "
+        "first pass over the bones and the finest in a second, whatever passes says; or "
+        "powell_nelder_mead, the derivative-free passes of the first frame (where the DE's "
+        "pose may be a few mm off, which Powell's box search recovers and least squares did "
+        "not: a tibia 3.3 mm off in the demo) and of the tracker without the KPM",
     )
     ls_step: tuple[PositiveFloat, PositiveFloat] = Field(
         (0.25, 0.25), description="least squares: central-difference steps, (mm, deg)"
@@ -887,13 +888,8 @@ class Tracker:
                     continue
                 start = time.perf_counter()
                 try:
-                    if self._by_least_squares():
-                        finest = self.levels[-1:]
-                        pose, n, objective = self._least_squares(frame, name, poses, finest)
-                        score, grad = objective.scores(pose)
-                    else:
-                        pose, n = self._refine(frame, name, poses, 0.4, polish=bool(history))
-                        score, grad = self._score(frame, name, {**poses, name: pose})
+                    pose, n = self._refine(frame, name, poses, 0.4, polish=bool(history))
+                    score, grad = self._score(frame, name, {**poses, name: pose})
                 except OutOfView:  # the refinement walked off the panel: keep the first pass
                     pose, n, score, grad = bone.pose, 0, -math.inf, math.nan
                 before = bone.ncc - self._penalty(name, poses)
@@ -1005,12 +1001,8 @@ class Tracker:
             evaluations += n
         elif s.kpm and history and name in CARRIER:  # carried at its last relative pose
             poses[name] = _carrier_pose(name, poses) @ _carried_pose(name, history[-1])
-        if self._by_least_squares():
-            poses[name], n, objective = self._least_squares(frame, name, poses, self.levels)
-            score, grad = objective.scores(poses[name])
-        else:
-            poses[name], n = self._refine(frame, name, poses)
-            score, grad = self._score(frame, name, poses)
+        poses[name], n = self._refine(frame, name, poses)
+        score, grad = self._score(frame, name, poses)
         evaluations += n
         previous = self._last_ncc.get(name, score)
         if s.kpm and history and (score < s.fail_ncc or score < previous - s.drop_ncc):
