@@ -915,10 +915,7 @@ class Tracker:
         for name in TRACK_ORDER:  # first pass: the KPM and the coarse levels
             start, n = time.perf_counter(), 0
             try:
-                if len(history) >= 2:
-                    poses[name], n = self._kpm(frame, name, poses, history)
-                elif name in CARRIER:  # carried at its last relative pose
-                    poses[name] = _carrier_pose(name, poses) @ _carried_pose(name, history[-1])
+                poses[name], n = self._place(frame, name, poses, history)
                 poses[name], m, _ = self._least_squares(frame, name, poses, coarse)
                 bone = BoneResult(poses[name], math.nan, math.nan, 0.0, n + m, False)
             except OutOfView as err:
@@ -991,16 +988,25 @@ class Tracker:
         self._targets = {k: t for k, t in self._targets.items() if k[2] in chosen}
         self._blurred = {k: b for k, b in self._blurred.items() if k[1] in chosen}
 
+    def _place(
+        self, frame: int, name: str, poses: dict[str, np.ndarray], history
+    ) -> tuple[np.ndarray, int]:
+        """Bone ``name``'s start in ``frame`` with the KPM, and the evaluations it took: its
+        line search from the third frame; on the second, a carried bone at its last pose
+        relative to its carrier; else ``poses[name]`` as it is."""
+        if len(history) >= 2:
+            return self._kpm(frame, name, poses, history)
+        if history and name in CARRIER:  # carried at its last relative pose
+            return _carrier_pose(name, poses) @ _carried_pose(name, history[-1]), 0
+        return poses[name], 0
+
     def _track_bone(self, frame: int, name: str, poses: dict[str, np.ndarray], history):
         """KPM prediction (warm frames), refinement, and a wider search if the score fails."""
         s = self.settings
         evaluations = 0
         poses = dict(poses)
-        if s.kpm and len(history) >= 2:
-            poses[name], n = self._kpm(frame, name, poses, history)
-            evaluations += n
-        elif s.kpm and history and name in CARRIER:  # carried at its last relative pose
-            poses[name] = _carrier_pose(name, poses) @ _carried_pose(name, history[-1])
+        if s.kpm:
+            poses[name], evaluations = self._place(frame, name, poses, history)
         poses[name], n = self._refine(frame, name, poses)
         score, grad = self._score(frame, name, poses)
         evaluations += n
