@@ -33,11 +33,12 @@ CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 
 
 def views_progress() -> Progress:
-    """A progress bar of views done, with elapsed and remaining time, on the console."""
+    """Progress bars of counted work (views, frames, ...), with elapsed and remaining time, on
+    the console."""
     return Progress(
         TextColumn("{task.description}"),
         BarColumn(),
-        TextColumn("{task.completed}/{task.total} views"),
+        TextColumn("{task.completed}/{task.total} {task.fields[unit]}"),
         TimeElapsedColumn(),
         TimeRemainingColumn(),
         console=console,
@@ -45,14 +46,14 @@ def views_progress() -> Progress:
     )
 
 
-def views_done(bar: Progress, description: str) -> Callable[[int, int], None]:
-    """A progress callback that shows its bar from the first report on."""
+def views_done(bar: Progress, description: str, unit: str = "views") -> Callable[[int, int], None]:
+    """A progress callback that shows its bar (``done/total unit``) from the first report on."""
     task = None
 
     def update(done: int, total: int) -> None:
         nonlocal task
         if task is None:
-            task = bar.add_task(description, total=total)
+            task = bar.add_task(description, total=total, unit=unit)
         bar.update(task, completed=done, total=total)
 
     return update

@@ -319,11 +319,15 @@ def assess(
     plateau_offset_mm: Annotated[
         float, typer.Option(help="shift of the TP plane along its normal, mm")
     ] = 0.0,
+    volume: Annotated[
+        Path | None, typer.Option(help="static scan for the 3D Slicer scene (file or DICOM)")
+    ] = None,
 ) -> None:
-    """Knee kinematics, TP-condyle distances and flags: report.html, metrics.csv, plots, 4D."""
+    """Knee kinematics, TP-condyle distances and flags: report.html, metrics.csv, plots, 4D,
+    and export/ (ITK transforms, Autoscoper .tra, a 3D Slicer scene)."""
     try:
         result = jobs.assess_files(
-            poses, labels, out, side, tka=tka, plateau_offset_mm=plateau_offset_mm
+            poses, labels, out, side, tka=tka, plateau_offset_mm=plateau_offset_mm, volume=volume
         )
     except (ValueError, OSError) as err:
         fail(str(err))
@@ -332,6 +336,41 @@ def assess(
         f"[green]wrote[/] {out / 'report.html'}: {len(kin.frames)} frames, flexion "
         f"{kin.flexion_deg.min():.0f}..{kin.flexion_deg.max():.0f} deg, max |MLD| "
         f"{abs(kin.mld_mm).max():.2f} mm, {int(kin.flagged.sum())} frame(s) flagged",
+        soft_wrap=True,
+        highlight=False,
+    )
+
+
+@app.command()
+def export(
+    out: Annotated[Path, typer.Option(help="new output folder")],
+    study: Annotated[
+        Path | None,
+        typer.Option(help="a study folder: its poses, labels and volume (instead of the three)"),
+    ] = None,
+    poses: Annotated[Path | None, typer.Option(help="poses.csv (frame, bone, 4x4, ...)")] = None,
+    labels: Annotated[Path | None, typer.Option(help="label volume of the static scan")] = None,
+    volume: Annotated[
+        Path | None, typer.Option(help="static scan for the 3D Slicer scene (file or DICOM)")
+    ] = None,
+) -> None:
+    """The tracked bones for other tools: per-frame ITK transforms (SimpleITK, ITK-SNAP, 3D
+    Slicer), Autoscoper .tra files, and a 3D Slicer scene (scene.mrml) that plays the motion."""
+    if study is not None:
+        if poses is not None or labels is not None:
+            fail("--study names the poses and labels: drop --poses and --labels")
+        poses = study / "registration" / "poses.csv"
+        labels = study / "segmentation" / "labels.nii.gz"
+        volume = volume or study / "recon" / "volume.nii.gz"
+    elif poses is None or labels is None:
+        fail("give --study, or --poses and --labels (and --volume for the Slicer scene)")
+    try:
+        written = jobs.export_files(poses, labels, out, volume)
+    except (ValueError, OSError) as err:
+        fail(str(err))
+    console.print(
+        f"[green]wrote[/] {len(written)} files to {out}: 3D Slicer scene {out / 'scene.mrml'}, "
+        f"ITK transforms in {out / 'itk'}, Autoscoper tracks in {out / 'autoscoper'}",
         soft_wrap=True,
         highlight=False,
     )
@@ -436,7 +475,7 @@ def demo(
                 quick=quick,
                 resume=resume,
                 status=lambda msg: console.print(f"  {msg}", highlight=False),
-                progress=views_done(bar, "calibration / weighted FDK"),
+                bars=lambda description, unit: views_done(bar, description, unit),
             )
     except ScanFault as err:
         fail(f"{err}\n  continue with: cbct demo --resume --out {out}")

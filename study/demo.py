@@ -26,6 +26,7 @@ is missing (the scans continue from their last stored view).
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -56,6 +57,15 @@ from study.stages import (
     run_stage,
     segmentation_stage,
 )
+
+Bars = Callable[[str, str], Progress]
+"""A factory of progress callbacks: (description, unit) -> callback(done, total)."""
+
+
+def _bar(bars: Bars | None, description: str, unit: str) -> Progress:
+    """The callback ``bars`` makes, or one that shows nothing."""
+    return bars(description, unit) if bars is not None else lambda _done, _total: None
+
 
 FULL = {
     "views": 180,
@@ -123,7 +133,7 @@ def acquire(
     seed: int = 0,
     varus_deg: float = VARUS_DEG,
     say: Say = lambda _m: None,
-    progress: Progress | None = None,
+    bars: Bars | None = None,
     live_recon: bool = True,
 ) -> None:
     """The simulated acquisitions of one study: steel-ball calibration scan and fit, the knee
@@ -131,7 +141,8 @@ def acquire(
     (stages ``calibration_scan``, ``calibration``, ``scan``, ``fluoro``; complete ones skipped).
     ``live_recon``: the knee scan reconstructs while it acquires and writes the ``recon`` stage
     (a cohort's studies leave it to ``cbct batch``). ``seed`` varies the arms' tracking noise,
-    the panels' quantum noise and the fluoroscopy's."""
+    the panels' quantum noise and the fluoroscopy's. ``bars(description, unit)`` gives a
+    progress callback per long step (views scanned, views fitted)."""
     protocol, cal_protocol = _protocols(configs, size)
     knee = load_config(configs / "phantoms" / "knee.yaml", KneePhantomSpec)
     bb = load_config(configs / "phantoms" / "bb_helix.yaml", BBPhantomSpec)
@@ -159,7 +170,15 @@ def acquire(
     def scan(name: str, p: ScanProtocol, phantom: str, sink: LiveRecon | None = None) -> None:
         started_before = name in study.manifest["config"]
         new_inputs = None if started_before else inputs(p, phantom)
-        scan_stage(study, new_inputs, name, say=say, sink=sink)
+        counts = _bar(bars, f"{name}: views stored", "views")
+        scan_stage(
+            study,
+            new_inputs,
+            name,
+            say=say,
+            sink=sink,
+            progress=lambda p: counts(p.views_done, p.views),
+        )
 
     run_stage(
         study,
@@ -171,7 +190,8 @@ def acquire(
     def calibration() -> dict:
         stack = read_projections(study.path / "calibration_scan" / "projections.mha")
         planned = cal_protocol.orbit.geometry(cal_protocol.detector)
-        cal = calibrate(stack.data, planned, bb, cal_protocol, progress=progress)
+        fitted = _bar(bars, "calibration: views fitted", "views")
+        cal = calibrate(stack.data, planned, bb, cal_protocol, progress=fitted)
         cal.save(study.path / "calibration")
         study.adopt("calibration")
         summary = cal.summary()
@@ -244,9 +264,11 @@ def run(
     quick: bool = False,
     resume: bool = False,
     status: Status | None = None,
-    progress: Progress | None = None,
+    bars: Bars | None = None,
 ) -> str:
-    """Run the demo into the new folder ``out`` (or continue it); returns the summary."""
+    """Run the demo into the new folder ``out`` (or continue it); returns the summary.
+    ``status`` takes a line per stage, ``bars(description, unit)`` a progress callback per
+    long step (views scanned and fitted, views reconstructed, frames registered)."""
     say = status or (lambda _msg: None)
     size = QUICK if quick else FULL
     settings = load_config(configs / "registration.yaml", Settings)
@@ -257,7 +279,7 @@ def run(
     else:
         study = Study.create(out, {"demo": {"size": size, "varus_deg": VARUS_DEG}})
     started = time.perf_counter()
-    acquire(study, configs, size, say=say, progress=progress)
+    acquire(study, configs, size, say=say, bars=bars)
 
     def stage(k: int, name: str, title: str) -> Say:
         say(f"stage {k}/{len(STAGES)} {name}: {title}")
@@ -266,11 +288,16 @@ def run(
     recon_stage(
         study,
         size["recon_voxel_mm"],
-        progress,
+        _bar(bars, "recon: views backprojected", "views"),
         stage(5, "recon", "weighted FDK with the calibrated geometry"),
     )
     segmentation_stage(study, stage(6, "segmentation", "bones from the reconstruction"))
-    registration_stage(study, settings, stage(7, "registration", "BoneAxis-Reg tracking"))
+    registration_stage(
+        study,
+        settings,
+        stage(7, "registration", "BoneAxis-Reg tracking"),
+        _bar(bars, "registration: frames tracked", "frames"),
+    )
     assessment_stage(
         study,
         "Demo: registered weight-bearing flexion-extension",

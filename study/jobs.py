@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from assessment.handoff import Motion, write_handoff
 from assessment.knee import BONE_LABELS, KneeAssessment, assess_knee
 from assessment.report import write_report
 from assessment.series import bone_mesh, export_series, record_series
@@ -111,9 +112,12 @@ def write_assessment(
     tka: bool = False,
     plateau_offset_mm: float = 0.0,
     title: str = "Knee kinematics",
+    volume: Path | None = None,
 ) -> KneeAssessment:
-    """Assess the motion and write the report, metrics.csv, plots and the 4D series (meshes
-    per frame and a rerun recording) into the new folder ``out``."""
+    """Assess the motion and write the report, metrics.csv, plots, the 4D series (meshes
+    per frame and a rerun recording) and the hand-off for other tools (``export/``: ITK
+    transforms, Autoscoper .tra, a 3D Slicer scene with the static ``volume`` when given) into
+    the new folder ``out``."""
     result = assess_knee(labels, poses, side, tka=tka, plateau_offset_mm=plateau_offset_mm)
     new_folder(out)
     plane = "polyethylene insert" if tka else "fitted tibial plateau"
@@ -124,6 +128,7 @@ def write_assessment(
     meshes = {bone: bone_mesh(labels, BONE_LABELS[bone]) for bone in bones}
     export_series(meshes, frames, stacks, out / "series")
     record_series(meshes, frames, stacks, out / "series.rrd")
+    write_handoff(out / "export", Motion(frames, stacks), meshes, volume)
     return result
 
 
@@ -135,6 +140,7 @@ def assess_files(
     *,
     tka: bool = False,
     plateau_offset_mm: float = 0.0,
+    volume: Path | None = None,
 ) -> KneeAssessment:
     """``cbct assess``: read poses.csv and the label volume, then :func:`write_assessment`."""
     if out.exists():
@@ -149,7 +155,27 @@ def assess_files(
         tka=tka,
         plateau_offset_mm=plateau_offset_mm,
         title=f"Knee kinematics: {poses_path.name}",
+        volume=volume,
     )
+
+
+def export_files(
+    poses_path: Path, labels_path: Path, out: Path, volume: Path | None = None
+) -> list[Path]:
+    """``cbct export``: the tracked motion of poses.csv for 3D Slicer, ITK and Autoscoper
+    (assessment.handoff) in the new folder ``out``; bone models from the label volume."""
+    if out.exists():
+        raise FileExistsError(f"{out} exists: choose a new output folder")
+    poses = read_poses(poses_path)
+    labels = read_volume(labels_path, unit="label")
+    motion = Motion.of(poses)
+    unknown = sorted(set(motion.poses) - set(BONE_LABELS))
+    if unknown:
+        raise ValueError(
+            f"{poses_path}: unknown bone name(s) {unknown}; known: {sorted(BONE_LABELS)}"
+        )
+    meshes = {bone: bone_mesh(labels, BONE_LABELS[bone]) for bone in motion.poses}
+    return write_handoff(out, motion, meshes, volume)
 
 
 def calibrate_to_study(

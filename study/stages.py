@@ -220,11 +220,16 @@ def segmentation_stage(study: Study, say: Say = print) -> bool:
     )
 
 
-def registration_stage(study: Study, settings: Settings | None = None, say: Say = print) -> bool:
+def registration_stage(
+    study: Study,
+    settings: Settings | None = None,
+    say: Say = print,
+    progress: Progress | None = None,
+) -> bool:
     """BoneAxis-Reg of ``fluoro/`` against the segmented volume -> ``registration/``
     (metrics.json when the sequence has ground truth); the frames are dewarped first when
     ``fluoro/`` holds an exposure of the dewarp grid (``dewarp_grid.mha`` and its
-    ``dewarp_grid.yaml``)."""
+    ``dewarp_grid.yaml``). ``progress(done, total)`` counts frames (else ``say`` does)."""
 
     def work() -> dict:
         target = study.path / "registration"
@@ -250,7 +255,7 @@ def registration_stage(study: Study, settings: Settings | None = None, say: Say 
             truth_path=truth if truth.exists() else None,
             distortion=distortion,
             settings=settings,
-            progress=lambda done, total: say(f"registered frame {done}/{total}"),
+            progress=progress or (lambda done, total: say(f"registered frame {done}/{total}")),
         )
         study.adopt("registration")
         study.save()
@@ -281,7 +286,8 @@ def assessment_stage(study: Study, title: str = "Knee kinematics", say: Say = pr
         poses = read_poses(study.path / "registration" / "poses.csv")
         side = study.stage("segmentation")["side"]
         folder.rmdir()  # write_assessment makes its own new folder
-        kin = write_assessment(labels, poses, folder, side, title=title).kinematics
+        volume = study.path / "recon" / "volume.nii.gz"
+        kin = write_assessment(labels, poses, folder, side, title=title, volume=volume).kinematics
         return {
             "frames": len(kin.frames),
             "max_abs_mld_mm": float(np.abs(kin.mld_mm).max()),

@@ -10,11 +10,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rerun as rr
+import SimpleITK as sitk
 from scipy.ndimage import binary_erosion
 from typer.testing import CliRunner
 
+from assessment.handoff import pose_of_itk
+from assessment.slicer_scene import referenced_files
 from recon.io import read_volume
 from registration.labels import LABELS
+from registration.poses import read_poses
 from scanner.study import Study
 from sim.phantoms.knee import KneePhantomSpec, attenuation_per_mm, rasterize_knee
 from study.cli import app
@@ -54,6 +58,17 @@ def test_every_stage_is_complete_and_every_file_checked(demo: Path):
         "recording.rrd",
     ):
         assert name in files, name
+
+
+def test_the_assessment_hands_the_motion_to_slicer_itk_and_autoscoper(demo: Path):
+    export = demo / "assessment" / "export"
+    named = referenced_files(export / "scene.mrml")
+    assert export / "static.nii.gz" in named and all(p.is_file() for p in named)
+    poses = read_poses(demo / "registration" / "poses.csv")
+    last = max(p.frame for p in poses)
+    for pose in (p for p in poses if p.frame == last):
+        tfm = sitk.ReadTransform(str(export / "itk" / pose.bone / f"frame_{last:04d}.tfm"))
+        np.testing.assert_allclose(pose_of_itk(tfm), pose.T_world_bone, atol=1e-9)
 
 
 def test_report_has_its_plots(demo: Path):
