@@ -5,10 +5,16 @@ folder of them (one series, ordered by instance number), or a multi-frame XA/RF 
 the one place where DICOM pixels become registration frames:
 
 - values are taken after the modality rescale (SimpleITK applies RescaleSlope/Intercept);
-- displayed brightness follows the photometric interpretation: MONOCHROME2 as stored,
-  MONOCHROME1 inverted (``max - value``: its minimum is displayed white);
-- radiographs are displayed with attenuation bright and approximately log-encoded, so the
-  brightness stands in for the line integral up to scale and offset, which the registration's
+- where the X-ray image says how its values relate to the beam (Pixel Intensity Relationship
+  (0028,1040) LIN or LOG, and its Sign (0028,1041), +1 when lower values mean less beam
+  intensity: required in DX, XA and RF images), that decides: LIN +1 values are intensities,
+  so the line integral is ``-ln(value)`` up to an offset; LOG +1 values are its negative
+  (``-value``); Sign -1 values grow with attenuation as they are. Fluoroscopy (XA/RF) commonly
+  stores intensity, bone dark: reading it by its display would invert every frame;
+- otherwise (DISP, or no tags) the displayed brightness stands in: MONOCHROME2 as stored,
+  MONOCHROME1 inverted (``max - value``: its minimum is displayed white), radiographs being
+  displayed with attenuation bright and approximately log-encoded;
+- the stand-in equals the line integral up to scale and offset, which the registration's
   similarity (NCC) ignores; each sequence is normalised to 0..1 by its 0.5 and 99.5
   percentiles;
 - pixel spacing from Imager Pixel Spacing (0018,1164), else Pixel Spacing (0028,0030), else
@@ -40,12 +46,15 @@ class Frames:
         header: where the pixels lie in RTK's projection plane (pitch, origin, direction).
         times_s: frame times (F,) or None.
         photometric: "line integrals", "MONOCHROME1" or "MONOCHROME2".
+        stand_in: how the values became the line integral's stand-in, e.g.
+            "-ln(value) (LIN, sign +1)" or "max - value (MONOCHROME1)".
     """
 
     data: np.ndarray
     header: PanelHeader
     times_s: np.ndarray | None
     photometric: str
+    stand_in: str = "line integrals"
 
     @property
     def pixel_pitch_mm(self) -> tuple[float, float]:
@@ -77,7 +86,7 @@ def read_frames(path: str | Path, pixel_pitch_mm: float | None = None) -> Frames
         stack = read_projections(path)
         return Frames(stack.data, stack.header, None, "line integrals")
     files = _dicom_files(path)
-    arrays, times, spacing, photometric = [], [], None, None
+    arrays, times, spacing, photometric, stand_in = [], [], None, None, None
     for name in files:
         reader = sitk.ImageFileReader()
         reader.SetFileName(name)
@@ -97,7 +106,12 @@ def read_frames(path: str | Path, pixel_pitch_mm: float | None = None) -> Frames
         photometric = kind
         pixels = sitk.GetArrayFromImage(image).astype(np.float64)
         pixels = pixels.reshape(-1, *pixels.shape[-2:])
-        arrays.append(pixels.max() - pixels if kind == "MONOCHROME1" else pixels)
+        relation = (_tag(reader, "0028|1040") or "").upper(), _tag(reader, "0028|1041")
+        how, attenuation = _stand_in(pixels, kind, *relation, name)
+        if stand_in not in (None, how):
+            raise ValueError(f"{name}: values are {how} in a series of {stand_in}")
+        stand_in = how
+        arrays.append(attenuation)
         spacing = spacing or _spacing(reader)
         times.extend(_times(reader, len(pixels), len(times)))
     data = np.concatenate(arrays)
@@ -112,7 +126,29 @@ def read_frames(path: str | Path, pixel_pitch_mm: float | None = None) -> Frames
     normalised = ((data - low) / max(high - low, 1e-12)).astype(np.float32)
     times_s = np.array(times) if len(times) == len(data) and None not in times else None
     header = PanelHeader.centered(data.shape[1], data.shape[2], *spacing, source=str(path))
-    return Frames(normalised, header, times_s, photometric)
+    return Frames(normalised, header, times_s, photometric, stand_in)
+
+
+def _stand_in(
+    pixels: np.ndarray, photometric: str, relation: str, sign: str | None, name: str
+) -> tuple[str, np.ndarray]:
+    """How the values stand in for the line integral, and the values that do."""
+    if relation in ("LIN", "LOG") and sign is not None:
+        try:
+            positive = {1: True, -1: False}[int(float(sign))]
+        except (ValueError, KeyError):
+            raise ValueError(
+                f"{name}: Pixel Intensity Relationship Sign (0028,1041) is {sign!r}; "
+                "DICOM allows +1 or -1"
+            ) from None
+        if not positive:
+            return f"value ({relation}, sign -1)", pixels
+        if relation == "LOG":
+            return "-value (LOG, sign +1)", -pixels
+        return "-ln(value) (LIN, sign +1)", -np.log(np.maximum(pixels, 1.0))
+    if photometric == "MONOCHROME1":
+        return "max - value (MONOCHROME1)", pixels.max() - pixels
+    return "value (MONOCHROME2)", pixels
 
 
 def _spacing(reader) -> tuple[float, float] | None:

@@ -115,7 +115,7 @@ def register_files(
     _check_in_view(view, models, start, f"{frames.header.source} with {geometry_path}")
     tracker = Tracker(view, frames.data, models, settings, SoftTissue.of(volume, labels))
     results = tracker.track(start, progress=progress)
-    _write(out, results, models, view, tracker, truth, distortion, source)
+    _write(out, results, models, view, tracker, truth, distortion, source, frames)
     return results
 
 
@@ -140,7 +140,15 @@ def _check_in_view(view: View, models: dict, start: dict, where: str) -> None:
 
 
 def _write(
-    out, results, models, view, tracker: Tracker, truth, distortion, source: StaticSource
+    out,
+    results,
+    models,
+    view,
+    tracker: Tracker,
+    truth,
+    distortion,
+    source: StaticSource,
+    frames: Frames,
 ) -> None:
     out.mkdir(parents=True)
     if distortion is not None:
@@ -167,6 +175,7 @@ def _write(
     ]
     report = {
         "static_volume": source.summary(),
+        "fluoroscopy": {"source": frames.header.source, "values": frames.stand_in},
         "settings": tracker.settings.model_dump(),
         "frame_blur_mm": tracker.frame_blur_mm,
         "dewarp": None if distortion is None else distortion.summary(),

@@ -330,6 +330,8 @@ def _summary(study: Study, out: Path, seconds: float) -> str:
         f"  report:     {out}/assessment/report.html (max |MLD| "
         f"{assess['max_abs_mld_mm']:.2f} mm, {len(assess['flagged_frames'])} frames flagged)\n"
         f"  recording:  rerun {out}/recording.rrd\n"
+        f"  3D Slicer:  {out}/assessment/export/scene.mrml (ITK transforms and Autoscoper "
+        f".tra beside it)\n"
         f"  volume:     {out}/recon/volume.nii.gz (+ .mha, dicom/), preview "
         f"{out}/recon/slices.png; RMSE vs phantom {recon['rmse_calibrated_per_mm']:.5f} /mm "
         f"with the calibrated geometry ({recon['rmse_recorded_per_mm']:.5f} recorded, "

@@ -77,3 +77,52 @@ def test_an_mha_stack_is_taken_as_line_integrals(tmp_path) -> None:
 def test_missing_frames_are_named(tmp_path) -> None:
     with pytest.raises(FileNotFoundError, match=r"nope\.mha"):
         read_frames(tmp_path / "nope.mha")
+
+
+def _xa_multiframe(path: Path, stored: np.ndarray, relation: str, sign: str) -> Path:
+    """One multi-frame XA file (GDCM writes a 3-D image as one), 0.3 mm imager pixels."""
+    image = sitk.GetImageFromArray(stored)
+    image.SetSpacing((0.3, 0.3, 1.0))
+    for key, value in {
+        "0008|0060": "XA",
+        "0028|0004": "MONOCHROME2",
+        "0028|1040": relation,
+        "0028|1041": sign,
+        "0018|1063": "66.7",
+    }.items():
+        image.SetMetaData(key, value)
+    writer = sitk.ImageFileWriter()
+    writer.KeepOriginalImageUIDOn()
+    writer.SetFileName(str(path))
+    writer.Execute(image)
+    return path
+
+
+@pytest.mark.parametrize(
+    ("relation", "sign", "encode"),
+    [
+        ("LIN", "1", lambda p: 3000.0 * np.exp(-p)),  # intensity: bone dark
+        ("LOG", "1", lambda p: 1000.0 * (5.0 - p)),  # log intensity: bone dark
+        ("LOG", "-1", lambda p: 1000.0 * p + 100.0),  # attenuation: bone bright
+    ],
+)
+def test_fluoroscopy_values_follow_their_pixel_intensity_relationship(
+    tmp_path, relation, sign, encode
+) -> None:
+    """Whatever the encoding, the frames come out as an affine image of the line integral
+    (correlation 1 up to the 16-bit rounding), never inverted."""
+    rng = np.random.default_rng(4)
+    line_integrals = np.cumsum(rng.random((3, 24, 32)), axis=2) / 8.0  # 0..4, smooth ramps
+    stored = np.round(encode(line_integrals)).astype(np.uint16)
+    frames = read_frames(_xa_multiframe(tmp_path / "xa.dcm", stored, relation, sign))
+    assert frames.data.shape == (3, 24, 32) and frames.pixel_pitch_mm == (0.3, 0.3)
+    assert frames.times_s == pytest.approx([0.0, 0.0667, 0.1334])
+    assert relation in frames.stand_in and sign.lstrip("+") in frames.stand_in
+    r = np.corrcoef(frames.data.ravel(), line_integrals.ravel())[0, 1]
+    assert r > 0.9999
+
+
+def test_a_sign_dicom_does_not_allow_is_refused_with_its_tag(tmp_path) -> None:
+    stored = np.full((2, 8, 8), 100, np.uint16)
+    with pytest.raises(ValueError, match=r"\(0028,1041\) is '2'"):
+        read_frames(_xa_multiframe(tmp_path / "xa.dcm", stored, "LIN", "2"))

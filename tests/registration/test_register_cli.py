@@ -80,6 +80,34 @@ def test_register_writes_poses_and_metrics(inputs) -> None:
     assert again.exit_code == 2 and "exists" in again.output
 
 
+def test_register_takes_an_image_intensifier_fluoroscopy_as_dicom(inputs, knee_case) -> None:
+    """The frames as a fluoroscopy unit stores them: one multi-frame XA file of 12-bit
+    intensities (LIN, sign +1: bone dark), MONOCHROME2, imager pixel spacing, a circular
+    image-intensifier field with black outside. They register as the line integrals do."""
+    folder, paths = inputs
+    line_integrals = knee_case.frames[:FRAMES].astype(np.float64)
+    stored = 4000.0 * np.exp(-(line_integrals - line_integrals.min()))
+    n = stored.shape[-1]
+    v, u = np.mgrid[:n, :n] - (n - 1) / 2.0
+    stored[:, np.hypot(u, v) > 0.5 * n] = 0.0  # the intensifier's round field
+    image = sitk.GetImageFromArray(np.round(stored).astype(np.uint16))
+    image.SetSpacing((knee_case.view.pitch_u_mm, knee_case.view.pitch_v_mm, 1.0))
+    tags = {"0008|0060": "XA", "0028|0004": "MONOCHROME2", "0028|1040": "LIN", "0028|1041": "1"}
+    for key, value in tags.items():
+        image.SetMetaData(key, value)
+    writer = sitk.ImageFileWriter()
+    writer.KeepOriginalImageUIDOn()
+    writer.SetFileName(str(folder / "fluoro_xa.dcm"))
+    writer.Execute(image)
+    out = folder / "from-xa"
+    given = {"frames": folder / "fluoro_xa.dcm", "truth": paths["truth"]}
+    result = runner.invoke(app, _args(paths, out, initial=paths["initial"], **given))
+    assert result.exit_code == 0, result.output
+    assert json.loads((out / "metrics.json").read_text())["tre_mm_median"] < 1.0
+    report = json.loads((out / "registration.json").read_text())
+    assert report["fluoroscopy"]["values"] == "-ln(value) (LIN, sign +1)"
+
+
 def test_register_refuses_bad_inputs_before_work(inputs, knee_case) -> None:
     folder, paths = inputs
     out = folder / "bad"
