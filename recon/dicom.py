@@ -9,7 +9,8 @@ DICOM's patient frame, so no conversion happens here.
 
 Import (:func:`read_dicom_series`): one CT series from a folder, slices ordered by position
 along their normal (GDCM), the modality rescale applied (values in HU), axes that are a
-signed permutation of LPS reoriented like recon.io's volumes, oblique series, unequal slice
+signed permutation of LPS reoriented like recon.io's volumes and tilted ones resampled onto an
+axis-aligned grid (recon.io.identity_oriented), unequal slice
 gaps and other modalities refused with the folder and the tag named.
 """
 
@@ -206,7 +207,7 @@ def read_dicom_series(folder: str | Path) -> Volume:
         FileNotFoundError: ``folder`` does not exist.
         ImageFileError: no DICOM series in it, or a slice GDCM cannot read.
         ValueError: several series, a modality other than CT (0008,0060), slices whose gaps
-            differ by more than 1 % of the spacing, an oblique orientation.
+            differ by more than 1 % of the spacing, an orientation that is not a rotation.
     """
     folder = Path(folder)
     if not folder.is_dir():

@@ -67,6 +67,9 @@ _INTEGER_PIXEL_IDS = frozenset(
     }
 )
 _UNIT_RE = re.compile(r"\bunit=(1/mm|HU|label)(?:\s|$)")
+_ORTHONORMAL_ATOL = 1e-4
+"""Largest |D^T D - I| entry of an image direction taken as a rotation (DICOM's orientation
+cosines carry about six digits)."""
 _DIRECTION_ATOL = 1e-4
 _VIEWS_PER_READ = 32
 _GZIP_CHUNK_BYTES = 1 << 22
@@ -116,7 +119,8 @@ def read_volume(path: str | Path, unit: Unit | None = None) -> Volume:
 
     Files whose axes are a signed permutation of the LPS axes are reoriented (array flipped
     and transposed) so the returned grid has identity direction and the same world position
-    for every voxel.
+    for every voxel; oblique ones are resampled onto an axis-aligned grid
+    (:func:`identity_oriented`).
 
     Args:
         path: the file.
@@ -129,8 +133,8 @@ def read_volume(path: str | Path, unit: Unit | None = None) -> Volume:
     Raises:
         FileNotFoundError: ``path`` does not exist.
         ImageFileError: not an image, truncated, or unreadable.
-        ValueError: not a scalar 3-D image, an oblique direction, a missing or conflicting
-            unit, or a label file with non-integer pixels.
+        ValueError: not a scalar 3-D image, a direction that is not a rotation, a missing or
+            conflicting unit, or a label file with non-integer pixels.
     """
     path = _check_suffix(Path(path), VOLUME_SUFFIXES, "volume")
     reader = _open_image(path)
@@ -141,8 +145,7 @@ def read_volume(path: str | Path, unit: Unit | None = None) -> Volume:
             f"{path}: label volume must have integer pixels, "
             f"got {sitk.GetPixelIDValueAsString(reader.GetPixelID())}"
         )
-    _signed_permutation(np.reshape(reader.GetDirection(), (3, 3)), path)  # before reading
-    data, grid = identity_oriented(_execute(reader, path), path)
+    data, grid = identity_oriented(_execute(reader, path), path, label=resolved == "label")
     if resolved != "label":
         data = data.astype(np.float32, copy=False)
     return Volume(data=data, grid=grid, unit=resolved)
@@ -155,10 +158,19 @@ def volume_unit_note(path: str | Path) -> Unit | None:
     return _unit_from_notes(_open_image(path))
 
 
-def identity_oriented(image: sitk.Image, path: Path) -> tuple[np.ndarray, VolumeGrid]:
+def identity_oriented(
+    image: sitk.Image, path: Path, label: bool = False
+) -> tuple[np.ndarray, VolumeGrid]:
     """A 3-D SimpleITK image's array [z, y, x] and grid with identity direction: files whose
     axes are a signed permutation of the LPS axes are flipped and transposed (every voxel keeps
-    its world position); oblique ones are refused (ValueError naming ``path``)."""
+    its world position); oblique ones (a tilted gantry, an oblique acquisition) are resampled
+    onto the axis-aligned grid that covers their voxel centres, cubic voxels of their finest
+    spacing: trilinear for values (outside: the image's minimum, air), nearest for ``label``
+    volumes (outside: 0). Two files on the same oblique grid land on the same grid."""
+    direction = np.reshape(image.GetDirection(), (3, 3))
+    _check_rotation(direction, path)
+    if not _is_signed_permutation(direction):
+        image = _axis_aligned(image, label)
     signed_perm = _signed_permutation(np.reshape(image.GetDirection(), (3, 3)), path)
     data, spacing, origin = _reorient_to_identity(
         sitk.GetArrayFromImage(image), image.GetSpacing(), image.GetOrigin(), signed_perm
@@ -236,20 +248,64 @@ def _reorient_to_identity(
     return data, tuple(new_spacing), tuple(float(x) for x in new_origin)
 
 
-def _signed_permutation(direction: np.ndarray, path: Path) -> np.ndarray:
-    """The signed permutation matrix ``direction`` is (within tolerance), else ValueError."""
+def _is_signed_permutation(direction: np.ndarray) -> bool:
     rounded = np.round(direction)
-    is_perm = (
+    return bool(
         np.all(np.abs(direction - rounded) <= _DIRECTION_ATOL)
         and np.all(np.abs(rounded).sum(axis=0) == 1)
         and np.all(np.abs(rounded).sum(axis=1) == 1)
     )
-    if not is_perm:
+
+
+def _signed_permutation(direction: np.ndarray, path: Path) -> np.ndarray:
+    """The signed permutation matrix ``direction`` is (within tolerance), else ValueError."""
+    if not _is_signed_permutation(direction):
         raise ValueError(
-            f"{path}: oblique image direction {np.round(direction, 6).tolist()} (columns are "
-            "the file's axes in LPS); only axis-aligned volumes are supported, resample first"
+            f"{path}: image direction {np.round(direction, 6).tolist()} is not axis-aligned"
         )
-    return rounded
+    return np.round(direction)
+
+
+def _check_rotation(direction: np.ndarray, path: Path) -> None:
+    """ValueError naming ``path`` unless the direction's columns are orthonormal."""
+    error = float(np.abs(direction.T @ direction - np.eye(3)).max())
+    if not np.all(np.isfinite(direction)) or error > _ORTHONORMAL_ATOL:
+        raise ValueError(
+            f"{path}: image direction {np.round(direction, 6).tolist()} (columns are the "
+            f"file's axes in LPS) is not a rotation (|D^T D - I| = {error:.2g}, tolerance "
+            f"{_ORTHONORMAL_ATOL:g})"
+        )
+
+
+def _axis_aligned(image: sitk.Image, label: bool) -> sitk.Image:
+    """An oblique image resampled onto the identity-direction grid covering its voxel centres
+    (cubic voxels of its finest spacing): linear for values, nearest for labels."""
+    size = np.array(image.GetSize())
+    corners = np.array(
+        [
+            image.TransformContinuousIndexToPhysicalPoint([float(c) for c in corner])
+            for corner in np.stack(np.meshgrid(*([0, n - 1] for n in size)), -1).reshape(-1, 3)
+        ]
+    )
+    spacing = float(min(image.GetSpacing()))
+    low, high = corners.min(axis=0), corners.max(axis=0)
+    shape = np.floor((high - low) / spacing + 1e-6).astype(int) + 1
+    if label:
+        interpolator, pixel, outside = sitk.sitkNearestNeighbor, image.GetPixelID(), 0.0
+    else:
+        interpolator, pixel = sitk.sitkLinear, sitk.sitkFloat32
+        outside = float(sitk.GetArrayViewFromImage(image).min())
+    return sitk.Resample(
+        image,
+        [int(n) for n in shape],
+        sitk.Transform(),
+        interpolator,
+        low.tolist(),
+        [spacing] * 3,
+        np.eye(3).ravel().tolist(),
+        outside,
+        pixel,
+    )
 
 
 # -- projection stacks ------------------------------------------------------------------------

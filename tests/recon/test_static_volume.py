@@ -175,3 +175,54 @@ def test_broken_series_are_refused_with_the_tag_named(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(OSError, match="no DICOM series"):
         read_dicom_series(tmp_path / "empty")
+
+
+def test_a_tilted_ct_series_reads_in_hu_where_its_voxels_are(tmp_path):
+    """A series whose slices are tilted 15 deg about x (Image Orientation (1,0,0, 0,c,s)),
+    written slice by slice by GDCM, holding CT numbers that vary linearly in space: read onto
+    an axis-aligned grid, each voxel inside the tilted block holds the CT number of its own
+    world position (trilinear interpolation reproduces a linear field; int16 storage rounds by
+    0.5 HU)."""
+    folder = tmp_path / "tilted"
+    folder.mkdir()
+    c, s = np.cos(np.radians(15)), np.sin(np.radians(15))
+    direction = np.array([[1.0, 0, 0], [0, c, -s], [0, s, c]])  # columns: row, column, normal
+    spacing, shape = np.array([0.7, 0.8, 1.2]), (8, 10, 12)  # (x, y, z) spacing; [k, j, i]
+    origin = np.array([-4.0, 6.0, 300.0])
+    gradient, series = np.array([2.0, -3.0, 5.0]), f"2.25.{uuid.uuid4().int}"
+    writer = sitk.ImageFileWriter()
+    writer.KeepOriginalImageUIDOn()
+    for k in range(shape[0]):
+        j, i = np.indices(shape[1:])
+        position = origin + direction[:, 2] * spacing[2] * k
+        world = (
+            position + (direction[:, :2] @ (spacing[:2, None] * np.stack([i.ravel(), j.ravel()]))).T
+        )
+        image = sitk.GetImageFromArray(
+            np.round(world @ gradient).reshape(1, *shape[1:]).astype(np.int16)
+        )
+        image.SetSpacing(spacing.tolist())
+        image.SetOrigin(position.tolist())
+        image.SetDirection(direction.ravel().tolist())
+        tags = {
+            "0008|0060": "CT",
+            "0008|0016": "1.2.840.10008.5.1.4.1.1.2",
+            "0020|000e": series,
+            "0020|0013": str(k + 1),
+            "0020|0032": "\\".join(f"{x:.6f}" for x in position),
+            "0020|0037": "\\".join(f"{x:.6f}" for x in direction[:, :2].T.ravel()),
+        }
+        for key, value in tags.items():
+            image.SetMetaData(key, value)
+        writer.SetFileName(str(folder / f"IM{k:04d}.dcm"))
+        writer.Execute(image)
+    volume = read_dicom_series(folder)
+    assert volume.unit == "HU" and volume.grid.spacing_mm == (0.7, 0.7, 0.7)
+    zz, yy, xx = np.indices(volume.grid.shape).reshape(3, -1)
+    centres = np.asarray(volume.grid.origin_mm) + 0.7 * np.stack([xx, yy, zz], axis=1)
+    index = np.linalg.solve(direction, (centres - origin).T).T / spacing
+    inside = np.all((index >= 0) & (index <= np.array(shape[::-1]) - 1), axis=1)
+    assert inside.sum() > 0.2 * inside.size
+    np.testing.assert_allclose(
+        volume.data.ravel()[inside], centres[inside] @ gradient, atol=0.5 + 1e-3
+    )
