@@ -209,3 +209,32 @@ def test_scan_moves_to_its_start_and_parks_after_a_fault(scanner, tmp_path):
     moves = Study.open(tmp_path / "study").manifest["moves"]
     assert len(moves) == 3 and moves[-1]["status"] == "done"
     np.testing.assert_allclose(moves[-1]["from"], other, atol=0.05)
+
+    # resume from yet another pose: to the start, the missing views, park after DONE
+    again = random_rest_pose(model, np.random.default_rng(13))
+    run_session(
+        tmp_path / "study",
+        None,
+        resume=True,
+        backend_override=SimBackendSpec(seed=3, start_pose=start_pose(again)),
+        move_to_start=True,
+        park=True,
+    )
+    study = Study.open(tmp_path / "study")
+    assert study.stage("scan")["status"] == "complete" and study.verify() == []
+    moves = study.manifest["moves"]
+    assert [m["target"] for m in moves[3:]] == ["the plan's start", "park"]
+    assert all(m["status"] == "done" and m["error"] <= TOLERANCE for m in moves)
+
+
+def test_park_after_a_protective_stop_is_refused_and_recorded(scanner, tmp_path):
+    """A protective stop is the operator's to clear on the pendant: park refuses to move, says
+    so, records it, and the scan's fault stands."""
+    inputs, _ = session_inputs(tmp_path, park_pose(scanner[0]), protective_stop_at_view=3)
+    said = []
+    with pytest.raises(ScanFault, match="protective stop"):
+        run_session(tmp_path / "study", inputs, park=True, say=said.append)
+    (park,) = Study.open(tmp_path / "study").manifest["moves"]
+    assert park["target"] == "park" and park["status"] == "failed"
+    assert "nothing moved" in park["reason"] and "source_arm: protective stop" in park["reason"]
+    assert any(line.startswith("PARK NOT DONE") for line in said)
