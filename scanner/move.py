@@ -31,6 +31,7 @@ from scanner.scan import (
     measured_joints,
     stop_safely,
 )
+from trajectories.errors import PlanningError
 from trajectories.model import ScannerModel
 from trajectories.move import JointMove, plan_move
 
@@ -47,12 +48,15 @@ class MoveResult:
     """A finished move.
 
     Attributes:
-        move: the planned move that ran.
+        target: what it went to, in words.
+        move: the planned move that ran; None when the scanner already stood within the
+            start tolerance of the goal (nothing moved, nothing was asked).
         reached_q: the measured joints once settled (14,), plan units.
         error: largest |reached - goal| over the joints, deg (mm for the lift).
     """
 
-    move: JointMove
+    target: str
+    move: JointMove | None
     reached_q: np.ndarray
     error: float
 
@@ -75,14 +79,24 @@ def move_scanner(
     """
     settings = settings or ScanSettings()
     timeout = settings.device_timeout_s
+    goal_q = np.asarray(goal_q, dtype=np.float64)
     try:
         for device in (*backend.groups, backend.generator):
             device.connect(timeout)
         _check_interlocks(backend, timeout)
         start = measured_joints(backend, timeout)
+        offset = float(np.abs(start - goal_q).max())
+        if offset <= settings.start_tolerance:
+            say(
+                f"already at {target}: largest joint offset {offset:.3f} (tolerance "
+                f"{settings.start_tolerance}); nothing to move"
+            )
+            return MoveResult(target, None, start, offset)
         move = plan_move(model, start, goal_q, target)
-    except Exception as err:  # a device's or the planner's refusal: before anything moved
-        raise PreflightError(f"move to {target} refused, nothing moved: {err}") from err
+    except PlanningError as err:
+        raise PreflightError(f"{err}: nothing moved") from err
+    except Exception as err:  # a device's refusal or failure, before anything moved
+        raise PreflightError(f"move to {target} refused: {err}: nothing moved") from err
     say(f"move to {target}: {move.headline()}\n{move.table()}")
     if not confirm(f"Move the scanner to {target}? {move.headline()}"):
         raise OperatorDeclined(f"operator declined the move to {target}: nothing moved")
@@ -105,7 +119,7 @@ def move_scanner(
         raise MoveFault(f"move to {target} stopped: {reason} ({outcome}{where})") from err
     error = float(np.abs(reached - move.goal_q).max())
     say(f"at {target}: largest joint error {error:.3f} (tolerance {settings.start_tolerance})")
-    return MoveResult(move, reached, error)
+    return MoveResult(target, move, reached, error)
 
 
 def _check_interlocks(backend: Backend, timeout_s: float) -> None:

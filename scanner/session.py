@@ -355,10 +355,10 @@ def move_recorded(
         raise
     else:
         entry.update(
-            status="done",
+            status="done" if result.move else "already there",
             reached=np.round(result.reached_q, 3).tolist(),
             error=round(result.error, 4),
-            **result.move.summary(),
+            **(result.move.summary() if result.move else {}),
         )
         return result
     finally:

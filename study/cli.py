@@ -219,7 +219,7 @@ def scan(
 
     Any fault (device error, protective stop, off-pose arm, open interlock, Ctrl-C) switches
     the X-ray off, then stops the arms, and marks the study incomplete; --resume continues it.
-    --move-to-start and --park move the scanner as ``cbct move`` does, in the same session.
+    --move-to-start and --park move the scanner as cbct move does, in the same session.
     """
     config = backend_config or CONFIGS / "backends" / f"{backend}.yaml"
     try:
@@ -344,9 +344,13 @@ def move(
         )
     except (ValueError, OSError, RuntimeError) as err:
         fail(str(err))
+    how = (
+        f" after {result.move.duration_s:.1f} s ({result.move.route} route)"
+        if result.move
+        else " (nothing moved)"
+    )
     console.print(
-        f"[green]at {result.move.target}[/] after {result.move.duration_s:.1f} s "
-        f"({result.move.route} route): largest joint error {result.error:.3f} deg/mm",
+        f"[green]at {result.target}[/]{how}: largest joint error {result.error:.3f} deg (mm)",
         soft_wrap=True,
         highlight=False,
     )

@@ -121,8 +121,8 @@ def plan_move(
     """Plan the move from ``start_q`` to ``goal_q`` (plan units, (14,)); raises a
     :class:`~trajectories.errors.PlanningError` naming the joint or link pair, the value and
     the limit when an end is beyond a limit or no route keeps the clearance margin."""
-    start = _checked_end(model, start_q, f"move to {target}: the scanner stands", "start_q")
-    goal = _checked_end(model, goal_q, f"move to {target}: the goal", "goal_q")
+    start = _checked_end(model, start_q, f"move to {target} refused: the scanner stands", "start_q")
+    goal = _checked_end(model, goal_q, f"move to {target} refused: the goal", "goal_q")
     margin_m = model.config.obstacles.clearance_margin_mm / 1000.0
     direct = [_leg(model, start, goal, "straight")]
     if direct[0][2].distance_m >= margin_m:

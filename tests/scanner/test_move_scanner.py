@@ -109,7 +109,7 @@ def test_a_move_beyond_a_limit_is_refused_before_anything_moves(scanner):
     pose[0] = 380.0  # a turn and a bit: beyond the cable wrap
     backend, simulated = sim_at(scanner, pose)
     try:
-        with pytest.raises(PreflightError, match=r"nothing moved: .* joint rotary at 380"):
+        with pytest.raises(PreflightError, match=r"stands with joint rotary at 380.*nothing moved"):
             move_scanner(backend, scanner[0], plan.q[0], "the plan's start")
     finally:
         backend.close()
@@ -130,6 +130,19 @@ def test_open_interlock_or_no_refuses_before_anything_moves(scanner):
             move_scanner(backend, model, plan.q[0], "the plan's start", confirm=lambda _q: False)
     finally:
         backend.close()
+    assert simulated.world.t == 0.0
+
+
+def test_standing_at_the_goal_moves_nothing_and_asks_nothing(scanner):
+    model, _, plan = scanner
+    backend, simulated = sim_at(scanner, plan.q[0])
+    try:
+        result = move_scanner(
+            backend, model, plan.q[0], "the plan's start", confirm=lambda q: pytest.fail(q)
+        )
+    finally:
+        backend.close()
+    assert result.move is None and result.error <= TOLERANCE
     assert simulated.world.t == 0.0
 
 
@@ -223,8 +236,12 @@ def test_scan_moves_to_its_start_and_parks_after_a_fault(scanner, tmp_path):
     study = Study.open(tmp_path / "study")
     assert study.stage("scan")["status"] == "complete" and study.verify() == []
     moves = study.manifest["moves"]
-    assert [m["target"] for m in moves[3:]] == ["the plan's start", "park"]
-    assert all(m["status"] == "done" and m["error"] <= TOLERANCE for m in moves)
+    # the retreat ends where every plan starts, at park: nothing left to move or to ask
+    assert [(m["target"], m["status"]) for m in moves[3:]] == [
+        ("the plan's start", "done"),
+        ("park", "already there"),
+    ]
+    assert all(m["error"] <= TOLERANCE for m in moves)
 
 
 def test_park_after_a_protective_stop_is_refused_and_recorded(scanner, tmp_path):
