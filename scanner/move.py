@@ -5,7 +5,8 @@ A move runs like a scan without X-rays. Before anything moves: the joint groups 
 generator connect, the interlocks (e-stop, door, deadman) must be closed, the joints are read
 (a protective stop refuses), the move is planned from the measured joints and checked
 (:func:`trajectories.move.plan_move`: limits, clearance along the whole motion, the route),
-shown and confirmed. The generator is never prepared, so no pulse can fire. The move's samples
+shown and confirmed (a scanner already within the scan's start tolerance of the goal is left
+there, nothing asked). The generator is never prepared, so no pulse can fire. The move's samples
 are then streamed to the three joint groups in time, as the scan streams its approach, with
 the interlocks read every :data:`INTERLOCK_POLL_S` of motion; the groups must settle within
 the scan's start tolerance of the goal, and leave streaming mode. Any failure while moving
@@ -79,24 +80,23 @@ def move_scanner(
     """
     settings = settings or ScanSettings()
     timeout = settings.device_timeout_s
-    goal_q = np.asarray(goal_q, dtype=np.float64)
     try:
         for device in (*backend.groups, backend.generator):
             device.connect(timeout)
         _check_interlocks(backend, timeout)
         start = measured_joints(backend, timeout)
-        offset = float(np.abs(start - goal_q).max())
-        if offset <= settings.start_tolerance:
-            say(
-                f"already at {target}: largest joint offset {offset:.3f} (tolerance "
-                f"{settings.start_tolerance}); nothing to move"
-            )
-            return MoveResult(target, None, start, offset)
         move = plan_move(model, start, goal_q, target)
     except PlanningError as err:
         raise PreflightError(f"{err}: nothing moved") from err
     except Exception as err:  # a device's refusal or failure, before anything moved
         raise PreflightError(f"move to {target} refused: {err}: nothing moved") from err
+    offset = float(np.abs(move.goal_q - move.start_q).max())
+    if offset <= settings.start_tolerance:
+        say(
+            f"already at {target}: largest joint offset {offset:.3f} (tolerance "
+            f"{settings.start_tolerance}); nothing to move"
+        )
+        return MoveResult(target, None, start, offset)
     say(f"move to {target}: {move.headline()}\n{move.table()}")
     if not confirm(f"Move the scanner to {target}? {move.headline()}"):
         raise OperatorDeclined(f"operator declined the move to {target}: nothing moved")
