@@ -136,6 +136,8 @@ class ScanRun:
         progress: called after every stored view.
         on_view: called with each stored view (e.g. the rerun recording).
         truth: the true view matrix of the last pulse, where a simulator knows it.
+        close_backend: close the devices when the run ends (False: the caller closes them,
+            e.g. after parking the arms).
     """
 
     backend: Backend
@@ -148,6 +150,7 @@ class ScanRun:
     progress: Callable[[Progress], None] = lambda _p: None
     on_view: Callable[[ViewRecord, np.ndarray], None] = lambda _r, _img: None
     truth: Callable[[], np.ndarray | None] = lambda: None
+    close_backend: bool = True
     state: State = State.PREFLIGHT
     transitions: list[tuple[float, State]] = field(default_factory=list)
 
@@ -241,7 +244,8 @@ class ScanRun:
             raise PreflightError(
                 f"joint {plan.joint_names[worst]} is at {q_now[worst]:.2f}, the plan starts at "
                 f"{plan.q[0, worst]:.2f} (tolerance {self.settings.start_tolerance}): move the "
-                "scanner to the plan's start first"
+                "scanner to the plan's start first (cbct scan --move-to-start, or cbct move "
+                "--to start)"
             )
         return Preflight(
             views=n,
@@ -257,13 +261,7 @@ class ScanRun:
     # -- motion -------------------------------------------------------------------------
 
     def _read_q(self) -> np.ndarray:
-        q = np.empty(14)
-        for group, idx in zip(self.backend.groups, GROUP_SLICES, strict=True):
-            reading = group.state(self.settings.device_timeout_s)
-            if reading.protective_stop:
-                raise DeviceError(f"{group.name}: protective stop")
-            q[idx] = reading.q
-        return q
+        return measured_joints(self.backend, self.settings.device_timeout_s)
 
     def _stream(self, phase: str, acquire: bool = False) -> None:
         """Stream the plan's ``phase`` to the groups in time; acquire the views in it."""
@@ -377,17 +375,7 @@ class ScanRun:
     def _safe(self, err: BaseException) -> None:
         failed_in = self.state
         self._enter(State.SAFE)
-        b, timeout = self.backend, self.settings.device_timeout_s
-        problems = []
-        try:
-            b.generator.abort(timeout)
-        except Exception as abort_err:  # still stop the arms; report loudly
-            problems.append(f"X-RAY OFF NOT CONFIRMED: {abort_err}")
-        for group in b.groups:
-            try:
-                group.stop()
-            except Exception as stop_err:
-                problems.append(f"{group.name} stop failed: {stop_err}")
+        problems = stop_safely(self.backend, self.settings.device_timeout_s)
         if isinstance(err, KeyboardInterrupt):
             reason = "interrupted by the operator (Ctrl-C)"
         else:
@@ -400,7 +388,37 @@ class ScanRun:
         raise ScanFault(failed_in, reason, stored, views) from err
 
     def _shutdown(self) -> None:
+        if not self.close_backend:
+            return
         try:
             self.backend.close()
         except Exception:  # closing after SAFE must not mask the fault
             pass
+
+
+def measured_joints(backend: Backend, timeout_s: float) -> np.ndarray:
+    """The measured joints of all groups in the plan's order and units (14,); raises
+    DeviceError when a group is in a protective stop."""
+    q = np.empty(14)
+    for group, idx in zip(backend.groups, GROUP_SLICES, strict=True):
+        reading = group.state(timeout_s)
+        if reading.protective_stop:
+            raise DeviceError(f"{group.name}: protective stop")
+        q[idx] = reading.q
+    return q
+
+
+def stop_safely(backend: Backend, timeout_s: float) -> list[str]:
+    """SAFE's order: X-ray off first (the generator's abort), then every joint group stops,
+    each attempted whatever the one before did; returns what failed, in words."""
+    problems = []
+    try:
+        backend.generator.abort(timeout_s)
+    except Exception as abort_err:  # still stop the arms; report loudly
+        problems.append(f"X-RAY OFF NOT CONFIRMED: {abort_err}")
+    for group in backend.groups:
+        try:
+            group.stop()
+        except Exception as stop_err:
+            problems.append(f"{group.name} stop failed: {stop_err}")
+    return problems

@@ -23,8 +23,10 @@ from recon.config import ScanProtocol, load_config, load_protocol
 from recon.geometry import DetectorSpec, Geometry, View
 from recon.volume import Volume
 from scanner.backends import BACKEND_SPECS, load_backend_spec, open_backend
+from scanner.hardware import Backend
+from scanner.move import MoveResult, move_scanner
 from scanner.scan import Progress as ScanProgress
-from scanner.scan import ScanRun, ScanSettings
+from scanner.scan import ScanFault, ScanRun, ScanSettings
 from scanner.scan_recording import ScanRecorder
 from scanner.storage import ScanStore, ViewRecord
 from scanner.study import Study, StudyError
@@ -33,6 +35,7 @@ from sim.phantoms.bb import project_bb
 from sim.phantoms.knee import KneePhantomSpec, knee_grid, rasterize_knee
 from trajectories.config import ScannerConfig
 from trajectories.model import ScannerModel
+from trajectories.move import park_pose
 from trajectories.plan import Plan, plan_scan
 from trajectories.recording import record_plan
 
@@ -177,9 +180,12 @@ def run_session(
     say: Say = lambda _m: None,
     settings: ScanSettings | None = None,
     sink: ViewSink | None = None,
+    move_to_start: bool = False,
+    park: bool = False,
 ) -> Study:
     """Plan and scan into ``study_path`` (new), or continue it (``resume``; the backend's
-    config may be given again, e.g. new addresses, or a simulation without the fault)."""
+    config may be given again, e.g. new addresses, or a simulation without the fault).
+    ``move_to_start`` and ``park`` as in :func:`scan_stage`."""
     if resume:
         study = Study.open(study_path)
     else:
@@ -195,6 +201,8 @@ def run_session(
         say=say,
         settings=settings,
         sink=sink,
+        move_to_start=move_to_start,
+        park=park,
     )
     return study
 
@@ -210,11 +218,19 @@ def scan_stage(
     say: Say = lambda _m: None,
     settings: ScanSettings | None = None,
     sink: ViewSink | None = None,
+    move_to_start: bool = False,
+    park: bool = False,
 ) -> None:
     """Scan ``stage`` (``scan`` or ``calibration_scan``) of an open study: with new
     ``inputs`` (recorded as the stage's config snapshot), or, when ``inputs`` is None,
     continue it with its snapshot (and ``backend_override`` if given). ``sink`` takes every
-    view as it is stored (:class:`ViewSink`)."""
+    view as it is stored (:class:`ViewSink`).
+
+    ``move_to_start``: first move the scanner from where it stands to the plan's start
+    (:func:`scanner.move.move_scanner`, confirmed through ``confirm``). ``park``: once the scan
+    is done, or once a fault has reached SAFE, move it to park the same way; a park that is
+    refused or fails is said and recorded in ``study.json`` (``moves``), and the scan's own
+    outcome stands."""
     if study.stage(stage).get("status") == "complete":
         raise StudyError(f"{study.path}: {stage} is complete; nothing to resume")
     configs = study.manifest["config"]
@@ -259,25 +275,46 @@ def scan_stage(
             recorder.view(record, image)
             sink.view(record, image)
 
+    settings = settings or ScanSettings()
     run = ScanRun(
         backend=backend,
         model=model,
         plan=plan,
         protocol=inputs.protocol,
         store=store,
-        settings=settings or ScanSettings(),
+        settings=settings,
         confirm=confirm,
         progress=progress,
         on_view=on_view,
         truth=truth,
+        close_backend=False,
     )
     sessions = study.manifest.setdefault("sessions", [])
     sessions.append({"stage": stage, "backend": inputs.backend.model_dump(mode="json")})
     study.save()
-    say(f"{stage}: acquiring on the {inputs.backend_kind} backend")
+
+    def park_after_scan() -> None:
+        try:
+            move_recorded(study, backend, model, park_pose(model), "park", settings, confirm, say)
+        except (ValueError, RuntimeError) as err:  # the scan's outcome stands
+            say(f"PARK NOT DONE: {err}")
+
     try:
-        run.run()
+        if move_to_start:
+            move_recorded(
+                study, backend, model, plan.q[0], "the plan's start", settings, confirm, say
+            )
+        say(f"{stage}: acquiring on the {inputs.backend_kind} backend")
+        try:
+            run.run()
+        except ScanFault:  # SAFE reached: X-ray off, arms stopped, the views so far kept
+            if park:
+                park_after_scan()
+            raise
+        if park:
+            park_after_scan()
     finally:
+        _close(backend)
         recorder.close()
         if simulated is not None:
             _write_device_events(study, store.folder, simulated.world.events, len(sessions))
@@ -294,3 +331,92 @@ def _write_device_events(study: Study, folder: str, events: list, session: int) 
         f"{folder}/device_events-{session}.csv", lambda p: p.write_text(text, encoding="utf-8")
     )
     study.save()
+
+
+def move_recorded(
+    study: Study,
+    backend: Backend,
+    model: ScannerModel,
+    goal: np.ndarray,
+    target: str,
+    settings: ScanSettings,
+    confirm: Callable[[str], bool],
+    say: Say,
+) -> MoveResult:
+    """:func:`scanner.move.move_scanner`, its outcome appended to ``study.json``'s ``moves``
+    (target, status, the move's summary, the joints reached) whatever it is."""
+    entry: dict = {"target": target, "backend": backend.name}
+    try:
+        result = move_scanner(
+            backend, model, goal, target, settings=settings, confirm=confirm, say=say
+        )
+    except BaseException as err:
+        entry.update(status="failed", reason=f"{type(err).__name__}: {err}")
+        raise
+    else:
+        entry.update(
+            status="done" if result.move else "already there",
+            reached=np.round(result.reached_q, 3).tolist(),
+            error=round(result.error, 4),
+            **(result.move.summary() if result.move else {}),
+        )
+        return result
+    finally:
+        study.manifest.setdefault("moves", []).append(entry)
+        study.save()
+
+
+def move_session(
+    study_path: Path,
+    to: str,
+    *,
+    stage: str = "scan",
+    backend_config: Path | None = None,
+    confirm: Callable[[str], bool] = lambda _q: True,
+    say: Say = lambda _m: None,
+    settings: ScanSettings | None = None,
+) -> MoveResult:
+    """Move the scanner of a study's ``stage`` to ``to`` ("start": its plan's start, made again
+    and checked against the stored plan; "park": :func:`trajectories.move.park_pose`) on the
+    stage's backend (``backend_config``: that backend's config given again, e.g. new
+    addresses)."""
+    if to not in ("start", "park"):
+        raise ValueError(f"move target must be 'start' or 'park', got {to!r}")
+    study = Study.open(study_path)
+    configs = study.manifest["config"]
+    if stage not in configs:
+        raise StudyError(
+            f"{study.path}: no {stage} was started, so there is no plan to move to: start it "
+            "with cbct scan --move-to-start"
+        )
+    inputs = SessionInputs.from_snapshot(configs[stage])
+    if backend_config is not None:
+        inputs = replace(inputs, backend=load_backend_spec(inputs.backend_kind, backend_config))
+    model = ScannerModel(inputs.scanner)
+    if to == "start":
+        goal, target = plan_stage(study, model, inputs.protocol, say).q[0], "the plan's start"
+    else:
+        goal, target = park_pose(model), "park"
+    d = inputs.protocol.detector
+    panel = DetectorSpec(rows=d.rows, cols=d.cols, pixel_pitch_mm=d.pixel_pitch_mm)
+    backend, _ = open_backend(
+        inputs.backend, model, goal, panel, inputs.protocol.orbit.sdd_mm, _no_exposure
+    )
+    try:
+        return move_recorded(
+            study, backend, model, goal, target, settings or ScanSettings(), confirm, say
+        )
+    finally:
+        _close(backend)
+
+
+def _no_exposure(view: View) -> np.ndarray:
+    raise RuntimeError("a move never exposes: the panel has nothing to image")
+
+
+def _close(backend: Backend) -> None:
+    """Close the devices; a failure to close must not mask what happened before."""
+    try:
+        backend.close()
+    except Exception:
+        pass

@@ -2,11 +2,12 @@
 
 :func:`simulated_scanner` builds every simulated device of one scan session from a
 :class:`SimBackendSpec` (``configs/backends/sim.yaml``): the arms start at the plan's first
-configuration, the generator is served over a pty (the scanner drives it with its real serial
-driver), and the panel renders the subject through the view the arms truly realise at each
-pulse, vibration included. Faults are injected from the spec: a protective stop, a generator
-that stops answering, a dropped frame, an interlock that opens, each at a given view (the
-number of views acquired before it happens, counted in this session).
+configuration (or at the spec's ``start_pose``), the generator is served over a pty (the
+scanner drives it with its real serial driver), and the panel renders the subject through the
+view the arms truly realise at each pulse, vibration included. Faults are injected from the
+spec: a protective stop, a generator that stops answering, a dropped frame, an interlock that
+opens, each at a given view (the number of views acquired before it happens, counted in this
+session).
 """
 
 from __future__ import annotations
@@ -41,6 +42,24 @@ class SimFaults(BaseModel):
     interlock_open_at_view: int | None = Field(None, ge=0)
 
 
+class SimStartPose(BaseModel):
+    """Where the simulated scanner stands when a session opens (e.g. where a protective stop or
+    the teach pendant left it)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    rotary_deg: float
+    lift_mm: float
+    source_arm_deg: tuple[float, float, float, float, float, float]
+    detector_arm_deg: tuple[float, float, float, float, float, float]
+
+    def q(self) -> np.ndarray:
+        """The plan's 14-joint vector (rotary deg, lift mm, source and detector arm deg)."""
+        return np.array(
+            [self.rotary_deg, self.lift_mm, *self.source_arm_deg, *self.detector_arm_deg]
+        )
+
+
 class SimBackendSpec(BaseModel):
     """The simulated backend's behaviour (configs/backends/sim.yaml)."""
 
@@ -54,6 +73,9 @@ class SimBackendSpec(BaseModel):
     warmup_s: float = Field(0.05, ge=0.0, le=60.0, description="generator warm-up, s")
     seed: int = 0
     faults: SimFaults = SimFaults()
+    start_pose: SimStartPose | None = Field(
+        None, description="where the scanner stands at the session's start (None: the plan's start)"
+    )
 
 
 def volume_subject(volume: Volume) -> Callable[[View], np.ndarray]:
@@ -91,7 +113,10 @@ def simulated_scanner(
     subject: Callable[[View], np.ndarray],
     spec: SimBackendSpec,
 ) -> SimulatedScanner:
-    """Build the simulated devices; the generator's pty is served from now until close()."""
+    """Build the simulated devices, standing at ``start_q`` unless ``spec.start_pose`` says
+    otherwise; the generator's pty is served from now until close()."""
+    if spec.start_pose is not None:
+        start_q = spec.start_pose.q()
     world = SimWorld(
         model, start_q, lag_s=spec.lag_s, tracking_noise=spec.tracking_noise_deg, seed=spec.seed
     )

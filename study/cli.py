@@ -1,5 +1,6 @@
-"""The operator console ``cbct`` (its entry point): the acquisition commands of scanner.cli and
-the study pipeline's: ``calibrate`` (per-view geometry from a steel-ball phantom scan),
+"""The operator console ``cbct`` (its entry point): the acquisition commands of scanner.cli,
+``scan`` and ``move`` (the scanner to a study plan's start or to park), and the study
+pipeline's: ``calibrate`` (per-view geometry from a steel-ball phantom scan),
 ``calibrate-fluoro`` (the fluoroscopy panel's distortion from a dewarp grid's image), ``recon``
 (weighted FDK of RTK-format inputs), ``register`` (track the bones through a fluoroscopy
 sequence), ``assess`` (knee kinematics report from bone poses), ``demo`` (the main job on the
@@ -30,7 +31,7 @@ from scanner.backends import load_backend_spec
 from scanner.cli import CONFIGS, app, console, fail, views_done, views_progress
 from scanner.scan import Progress as ScanProgress
 from scanner.scan import ScanFault
-from scanner.session import read_inputs, run_session
+from scanner.session import move_session, read_inputs, run_session
 from scanner.study import StudyError
 from study import batch as batch_job
 from study import demo as demo_job
@@ -197,9 +198,19 @@ def scan(
     recon_voxel_mm: Annotated[
         float, typer.Option(help="voxel of the volume reconstructed during the scan, mm")
     ] = 1.0,
-    yes: Annotated[bool, typer.Option("--yes", help="answer yes to both confirmations")] = False,
+    yes: Annotated[bool, typer.Option("--yes", help="answer yes to every confirmation")] = False,
     resume: Annotated[
         bool, typer.Option("--resume", help="continue STUDY with the views not yet stored")
+    ] = False,
+    move_to_start: Annotated[
+        bool,
+        typer.Option(
+            "--move-to-start", help="first move the scanner from where it stands to the start"
+        ),
+    ] = False,
+    park: Annotated[
+        bool,
+        typer.Option("--park", help="park the scanner after the scan, or after a fault's SAFE"),
     ] = False,
 ) -> None:
     """Scan: preflight, approach, acquire view by view (stored as acquired), retreat; every
@@ -208,6 +219,7 @@ def scan(
 
     Any fault (device error, protective stop, off-pose arm, open interlock, Ctrl-C) switches
     the X-ray off, then stops the arms, and marks the study incomplete; --resume continues it.
+    --move-to-start and --park move the scanner as cbct move does, in the same session.
     """
     config = backend_config or CONFIGS / "backends" / f"{backend}.yaml"
     try:
@@ -226,12 +238,7 @@ def scan(
     except (ValueError, OSError) as err:
         fail(str(err))
 
-    def confirm(question: str) -> bool:
-        if yes:
-            console.print(f"{question} [bold]yes[/] (--yes)", soft_wrap=True, highlight=False)
-            return True
-        return typer.confirm(question, default=False, err=True)
-
+    confirm = _confirmation(yes)
     bar = Progress(
         TextColumn("{task.description}"),
         BarColumn(),
@@ -267,6 +274,8 @@ def scan(
                 progress=progress,
                 say=lambda msg: console.print(f"  {msg}", highlight=False),
                 sink=live,
+                move_to_start=move_to_start,
+                park=park,
             )
     except ScanFault as err:
         live.close()
@@ -307,6 +316,56 @@ def scan(
         soft_wrap=True,
         highlight=False,
     )
+
+
+@app.command()
+def move(
+    study: Annotated[Path, typer.Option(help="study folder whose scan was started")],
+    to: Annotated[str, typer.Option(help="start (the plan's first pose) or park")],
+    backend_config: Annotated[
+        Path | None,
+        typer.Option(help="the study's backend YAML given again (default: its snapshot)"),
+    ] = None,
+    yes: Annotated[bool, typer.Option("--yes", help="answer yes to the confirmation")] = False,
+) -> None:
+    """Move the scanner from where it stands to the study plan's start or to park, on the
+    study's backend: planned from the measured joints, checked (joint limits, clearance along
+    the whole motion; straight, else with the arms folded), shown and confirmed; X-ray stays
+    off; any fault switches the X-ray off and stops the arms."""
+    if to not in ("start", "park"):
+        fail(f"--to {to!r}: give start or park")
+    try:
+        result = move_session(
+            study,
+            to,
+            backend_config=backend_config,
+            confirm=_confirmation(yes),
+            say=lambda msg: console.print(msg, highlight=False),
+        )
+    except (ValueError, OSError, RuntimeError) as err:
+        fail(str(err))
+    how = (
+        f" after {result.move.duration_s:.1f} s ({result.move.route} route)"
+        if result.move
+        else " (nothing moved)"
+    )
+    console.print(
+        f"[green]at {result.target}[/]{how}: largest joint error {result.error:.3f} deg (mm)",
+        soft_wrap=True,
+        highlight=False,
+    )
+
+
+def _confirmation(yes: bool):
+    """The operator's yes/no: asked on the console, or answered yes by --yes (and said)."""
+
+    def confirm(question: str) -> bool:
+        if yes:
+            console.print(f"{question} [bold]yes[/] (--yes)", soft_wrap=True, highlight=False)
+            return True
+        return typer.confirm(question, default=False, err=True)
+
+    return confirm
 
 
 @app.command()
