@@ -37,6 +37,7 @@ import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from calibration.calibrate import corrected_geometry, plan_hash
 from calibration.distortion import DewarpGridSpec
 from calibration.phantom import BBPhantomSpec
 from recon.config import load_config, load_protocol
@@ -829,6 +830,33 @@ def test_view_records_of_a_scan(tmp_path, scan_study, examples) -> None:
         st.tuples(st.one_of(corruptions(text), json_value_edits(text)), st.booleans()),
         check,
     )
+
+
+@pytest.fixture(scope="module")
+def calibration_folder(tmp_path_factory) -> tuple[Path, object]:
+    """A calibration of configs/protocols/calibration_spiral.yaml: report.json and its views."""
+    protocol = load_protocol(CONFIGS / "protocols" / "calibration_spiral.yaml")
+    folder = tmp_path_factory.mktemp("calibration")
+    d = protocol.detector
+    write_rtk_geometry(folder / "geometry.xml", circular_orbit(3, 500.0, 800.0, d))
+    summary = {"protocol": protocol.name, "plan_hash": plan_hash(protocol), "views": 3}
+    (folder / "report.json").write_text(json.dumps({"summary": summary, "views": []}))
+    return folder, protocol
+
+
+@pytest.mark.parametrize("examples", EXAMPLES)
+def test_calibration_reports(tmp_path, calibration_folder, examples) -> None:
+    """A calibration's report.json, read to match it to the scan it corrects."""
+    original, protocol = calibration_folder
+    text = (original / "report.json").read_bytes()
+    folder = tmp_path / "calibration"
+    shutil.copytree(original, folder, dirs_exist_ok=True)
+
+    def check(corrupted: bytes) -> None:
+        _write(folder / "report.json", corrupted)
+        loads_or_refuses(lambda p: corrected_geometry(p, protocol).matrices, folder)
+
+    fuzz(examples, st.one_of(corruptions(text), json_value_edits(text)), check)
 
 
 def test_the_harness_catches_an_unclear_error(tmp_path) -> None:
