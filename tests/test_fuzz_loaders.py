@@ -859,6 +859,11 @@ def test_calibration_reports(tmp_path, calibration_folder, examples) -> None:
     fuzz(examples, st.one_of(corruptions(text), json_value_edits(text)), check)
 
 
+def test_the_address_space_is_capped() -> None:
+    with pytest.raises(MemoryError):
+        np.empty(2 * HEADROOM_BYTES, np.uint8)
+
+
 def test_the_harness_catches_an_unclear_error(tmp_path) -> None:
     def careless(path: Path) -> None:
         raise ValueError("bad number")
