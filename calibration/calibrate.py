@@ -274,10 +274,18 @@ def calibrate_balls(
 
 
 def corrected_geometry(folder: Path, protocol: ScanProtocol) -> Geometry:
-    """The calibrated views stored in ``folder`` for a scan of ``protocol``; refuses a
-    calibration made for another protocol or another plan of it."""
+    """The calibrated views stored in ``folder`` for a scan of ``protocol``; refuses (ValueError
+    naming the folder or file) a calibration made for another protocol or another plan of it,
+    and a report.json or geometry.xml that is not one."""
     folder = Path(folder)
-    report = json.loads((folder / "report.json").read_text(encoding="utf-8"))["summary"]
+    path = folder / "report.json"
+    try:
+        report = json.loads(path.read_text(encoding="utf-8"))["summary"]
+        report = {"protocol": str(report["protocol"]), "plan_hash": str(report["plan_hash"])}
+    except (ValueError, KeyError, TypeError) as err:  # JSON and UTF-8 errors are ValueErrors
+        raise ValueError(
+            f"{path}: not a calibration report ({type(err).__name__}: {err})"
+        ) from None
     if report["protocol"] != protocol.name:
         raise ValueError(
             f"{folder}: calibration of protocol {report['protocol']!r} cannot correct a scan "

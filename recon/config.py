@@ -8,6 +8,8 @@ scanning and reconstruction.
 
 from __future__ import annotations
 
+import math
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TypeVar
 
@@ -34,12 +36,15 @@ def _describe(path: Path, err: ValidationError) -> str:
 
 
 def load_config(path: str | Path, model: type[Model]) -> Model:
-    """Read ``path`` (YAML) into ``model``, raising :class:`ConfigError` on any problem."""
+    """Read ``path`` (YAML, UTF-8) into ``model``, raising :class:`ConfigError` on any problem,
+    NaN or infinite numbers included."""
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as err:
         raise ConfigError(f"{path}: cannot read ({err.strerror or err})") from None
+    except UnicodeDecodeError as err:
+        raise ConfigError(f"{path}: not UTF-8 text ({err.reason} at byte {err.start})") from None
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as err:
@@ -47,9 +52,25 @@ def load_config(path: str | Path, model: type[Model]) -> Model:
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping of fields, got {type(data).__name__}")
     try:
-        return model.model_validate(data)
+        config = model.model_validate(data)
     except ValidationError as err:
         raise ConfigError(_describe(path, err)) from None
+    for field, value in _numbers(config.model_dump()):
+        if not math.isfinite(value):
+            raise ConfigError(f"{path}: 1 invalid field(s)\n  {field}: value {value!r}: not finite")
+    return config
+
+
+def _numbers(tree: object, where: str = "") -> Iterator[tuple[str, float]]:
+    """(dotted field, value) of every float in a dumped model."""
+    if isinstance(tree, float):
+        yield where or "(top level)", tree
+    elif isinstance(tree, dict):
+        for key, value in tree.items():
+            yield from _numbers(value, f"{where}.{key}" if where else str(key))
+    elif isinstance(tree, list | tuple):
+        for i, value in enumerate(tree):
+            yield from _numbers(value, f"{where}.{i}" if where else str(i))
 
 
 class ExposureSpec(BaseModel):

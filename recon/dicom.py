@@ -17,6 +17,8 @@ gaps and other modalities refused with the folder and the tag named.
 from __future__ import annotations
 
 import math
+import mmap
+import struct
 import time
 import uuid
 from pathlib import Path
@@ -25,11 +27,17 @@ import numpy as np
 import SimpleITK as sitk
 
 from recon.attenuation import mu_to_hu
-from recon.io import ImageFileError, identity_oriented
+from recon.io import MAX_DEFLATE_RATIO, ImageFileError, identity_oriented
 from recon.volume import Volume
 
 CT_IMAGE_STORAGE = "1.2.840.10008.5.1.4.1.1.2"
 """SOP Class UID of CT Image Storage."""
+
+UNCOMPRESSED_SYNTAXES = frozenset(
+    {"1.2.840.10008.1.2", "1.2.840.10008.1.2.1", "1.2.840.10008.1.2.2"}
+)
+"""Transfer Syntax UIDs (0002,0010) whose pixel data are stored as they are (implicit and
+explicit VR little endian, explicit VR big endian)."""
 
 _INT16_SPAN = 65532  # stored values stay within -32767..32767 around a whole-HU intercept
 _LO_MAX_CHARS = 64  # DICOM "Long String"
@@ -205,19 +213,18 @@ def read_dicom_series(folder: str | Path) -> Volume:
 
     Raises:
         FileNotFoundError: ``folder`` does not exist.
-        ImageFileError: no DICOM series in it, or a slice GDCM cannot read.
+        ImageFileError: no DICOM series in it, a slice GDCM cannot read, or one whose header
+            claims more pixel bytes than it holds.
         ValueError: several series, a modality other than CT (0008,0060), slices whose gaps
-            differ by more than 1 % of the spacing, an orientation that is not a rotation.
+            differ by more than 1 % of the spacing or whose positions are not numbers, an
+            orientation that is not a rotation, NaN or infinite values.
     """
     folder = Path(folder)
     if not folder.is_dir():
         raise FileNotFoundError(f"{folder}: no such folder (a DICOM CT series is a folder)")
-    ids = sitk.ImageSeriesReader.GetGDCMSeriesIDs(str(folder))
-    if not ids:
-        raise ImageFileError(f"{folder}: no DICOM series in this folder")
-    if len(ids) > 1:
-        raise ValueError(f"{folder}: {len(ids)} DICOM series in one folder; give one")
-    files = sitk.ImageSeriesReader.GetGDCMSeriesFileNames(str(folder), ids[0])
+    files = series_files(folder)
+    for name in files:
+        open_dicom(name)
     reader = sitk.ImageSeriesReader()
     reader.SetFileNames(files)
     reader.MetaDataDictionaryArrayUpdateOn()
@@ -237,7 +244,11 @@ def read_dicom_series(folder: str | Path) -> Volume:
         )
     _check_slice_gaps(reader, len(files), image, folder)
     data, grid = identity_oriented(image, folder)
-    return Volume(data.astype(np.float32), grid, "HU")
+    data = data.astype(np.float32)
+    bad = data.size - int(np.count_nonzero(np.isfinite(data)))
+    if bad:
+        raise ValueError(f"{folder}: {bad} voxels are NaN or infinite after the rescale")
+    return Volume(data, grid, "HU")
 
 
 def _check_slice_gaps(reader, count: int, image: sitk.Image, folder: Path) -> None:
@@ -245,9 +256,7 @@ def _check_slice_gaps(reader, count: int, image: sitk.Image, folder: Path) -> No
     if count < 2:
         return
     direction = np.reshape(image.GetDirection(), (3, 3))
-    positions = np.array(
-        [[float(x) for x in reader.GetMetaData(k, "0020|0032").split("\\")] for k in range(count)]
-    )
+    positions = np.array([_position(reader, k, folder) for k in range(count)])
     along = positions @ direction[:, 2]
     gaps = np.diff(along)
     spacing = image.GetSpacing()[2]
@@ -258,3 +267,217 @@ def _check_slice_gaps(reader, count: int, image: sitk.Image, folder: Path) -> No
             f"Image Position Patient (0020,0032), the series' spacing is {spacing:.3f} mm: "
             "unequal slice gaps (a missing slice?)"
         )
+
+
+def _position(reader: sitk.ImageSeriesReader, k: int, folder: Path) -> list[float]:
+    """Image Position Patient (0020,0032) of slice ``k``, LPS mm; ValueError naming the
+    folder and the slice unless it is three finite numbers."""
+    text = reader.GetMetaData(k, "0020|0032") if reader.HasMetaDataKey(k, "0020|0032") else ""
+    try:
+        position = [float(x) for x in text.split("\\")]
+    except ValueError:
+        position = []
+    if len(position) != 3 or not all(math.isfinite(x) for x in position):
+        raise ValueError(
+            f"{folder}: slice {k + 1}: Image Position Patient (0020,0032) is {text!r}, "
+            "not three finite numbers (mm)"
+        )
+    return position
+
+
+def series_files(folder: Path) -> list[str]:
+    """The files of the one DICOM series in ``folder``, in slice order (GDCM); ImageFileError
+    when GDCM finds none or cannot scan a file or a file is not sound DICOM
+    (:func:`check_dicom_lengths`: GDCM scans every file of the folder), ValueError for several
+    series."""
+    for path in sorted(folder.iterdir()):
+        if path.is_file():
+            check_dicom_lengths(path)
+    try:
+        ids = sitk.ImageSeriesReader.GetGDCMSeriesIDs(str(folder))
+        if len(ids) == 1:
+            return list(sitk.ImageSeriesReader.GetGDCMSeriesFileNames(str(folder), ids[0]))
+    except RuntimeError as err:
+        raise ImageFileError(f"{folder}: a file GDCM cannot scan ({_first_line(err)})") from None
+    if not ids:
+        raise ImageFileError(f"{folder}: no DICOM series in this folder")
+    raise ValueError(f"{folder}: {len(ids)} DICOM series in one folder; give one")
+
+
+def open_dicom(path: str | Path) -> sitk.ImageFileReader:
+    """A reader of one DICOM file with its header read, its elements checked to end within it
+    (:func:`check_dicom_lengths`) and the pixel bytes it claims checked against its size
+    (:func:`check_dicom_claim`); ImageFileError naming ``path`` otherwise."""
+    check_dicom_lengths(Path(path))
+    reader = sitk.ImageFileReader()
+    reader.SetFileName(str(path))
+    reader.SetImageIO("GDCMImageIO")
+    try:
+        reader.ReadImageInformation()
+    except RuntimeError as err:
+        raise ImageFileError(f"{path}: not a readable DICOM image ({_first_line(err)})") from None
+    check_dicom_claim(Path(path), reader)
+    return reader
+
+
+def check_dicom_claim(path: Path, reader: sitk.ImageFileReader) -> None:
+    """ImageFileError unless the pixel bytes the header of DICOM file ``path`` claims (Rows x
+    Columns x frames x samples x Bits Allocated) fit in the file: all of them for uncompressed
+    transfer syntaxes, a ``MAX_DEFLATE_RATIO``-th for compressed ones. Checked before any pixel
+    is read, so a corrupt header claiming gigabytes is refused at once."""
+    bits = _int_tag(reader, "0028|0100", 16)
+    samples = _int_tag(reader, "0028|0002", 1)
+    claimed = math.prod(reader.GetSize()) * samples * max(bits, 1) // 8
+    stored = path.stat().st_size
+    syntax = transfer_syntax(path)
+    limit = stored if syntax in UNCOMPRESSED_SYNTAXES else stored * MAX_DEFLATE_RATIO
+    if claimed > limit:
+        raise ImageFileError(
+            f"{path}: truncated or corrupt DICOM file: its header claims {claimed} bytes of "
+            f"pixels ({reader.GetSize()} x {samples} x {bits} bits, transfer syntax {syntax}), "
+            f"the file holds {stored}"
+        )
+
+
+def transfer_syntax(path: Path) -> str:
+    """The Transfer Syntax UID (0002,0010) of a DICOM file's meta header; implicit VR little
+    endian (DICOM's default) when there is none."""
+    with path.open("rb") as handle:
+        head = handle.read(4096)
+    at = head.find(b"\x02\x00\x10\x00UI")
+    if at < 0 or at + 8 > len(head):
+        return "1.2.840.10008.1.2"
+    length = int.from_bytes(head[at + 6 : at + 8], "little")
+    return head[at + 8 : at + 8 + length].rstrip(b"\0 ").decode("ascii", "replace")
+
+
+def _int_tag(reader: sitk.ImageFileReader, key: str, default: int) -> int:
+    try:
+        return int(reader.GetMetaData(key).strip())
+    except (RuntimeError, ValueError):
+        return default
+
+
+def _first_line(err: Exception) -> str:
+    lines = [line.strip() for line in str(err).splitlines() if line.strip()]
+    return lines[-1] if lines else type(err).__name__
+
+
+_VRS = frozenset(
+    b"AE AS AT CS DA DS DT FL FD IS LO LT OB OD OF OL OV OW PN SH SL SQ SS ST SV TM UC UI UL "
+    b"UN UR US UT UV".split()
+)
+_LONG_VRS = frozenset(b"OB OD OF OL OV OW SQ UC UN UR UT UV".split())
+_UNDEFINED = 0xFFFFFFFF
+_ITEM, _ITEM_END, _SEQUENCE_END = 0xE000, 0xE00D, 0xE0DD
+_PIXEL_DATA = (0x7FE0, 0x0010)
+_MAX_NESTING = 16
+
+
+class _Corrupt(Exception):
+    """Raised inside :func:`check_dicom_lengths`' walk; becomes ImageFileError."""
+
+
+def check_dicom_lengths(path: Path) -> None:
+    """ImageFileError unless ``path`` is a DICOM Part 10 file ("DICM" at byte 128) whose
+    elements, items and sequences all end within the file and carry valid VRs.
+
+    GDCM allocates what a length field says before reading, so one corrupt length (e.g. an
+    invalid VR read as a 4-byte length) costs gigabytes; this walk reads lengths only (the file
+    is memory-mapped, nothing is allocated). A deflated data set is checked up to its meta
+    header.
+    """
+    try:
+        with (
+            path.open("rb") as handle,
+            mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ) as buf,
+        ):
+            if len(buf) < 132 or buf[128:132] != b"DICM":
+                raise _Corrupt("not a DICOM file (no 'DICM' at byte 128)")
+            pos = _walk(buf, 132, len(buf), "<", True, 0, meta=True)
+            syntax = transfer_syntax(path)
+            if syntax != "1.2.840.10008.1.2.1.99":  # deflated: nothing more to walk
+                order = ">" if syntax == "1.2.840.10008.1.2.2" else "<"
+                _walk(buf, pos, len(buf), order, syntax != "1.2.840.10008.1.2", 0)
+    except ValueError as err:  # mmap of an empty file
+        raise ImageFileError(f"{path}: not a DICOM file ({err})") from None
+    except _Corrupt as err:
+        raise ImageFileError(f"{path}: corrupt DICOM file: {err}") from None
+
+
+def _walk(buf, pos: int, end: int, order: str, explicit: bool, depth: int, meta=False) -> int:
+    """Walk the elements from ``pos`` to ``end`` (or a delimiter); the position after them.
+    With ``meta``, only the meta header's group 0002 (explicit VR little endian)."""
+    if depth > _MAX_NESTING:
+        raise _Corrupt(f"sequences nested deeper than {_MAX_NESTING} at byte {pos}")
+    while pos < end:
+        if pos + 8 > end:
+            raise _Corrupt(f"an element header is cut off at byte {pos}")
+        group, element = struct.unpack_from(f"{order}HH", buf, pos)
+        if meta and group != 0x0002:
+            return pos
+        if group == 0xFFFE:
+            (length,) = struct.unpack_from(f"{order}I", buf, pos + 4)
+            if depth == 0 or element not in (_ITEM, _ITEM_END, _SEQUENCE_END):
+                raise _Corrupt(f"item or delimiter (FFFE,{element:04X}) misplaced at byte {pos}")
+            pos += 8
+            if element != _ITEM:
+                return pos
+            pos = _value(buf, pos, end, length, order, explicit, depth, items=True)
+            continue
+        vr = b""
+        if explicit:
+            vr = bytes(buf[pos + 4 : pos + 6])
+            if vr not in _VRS:
+                raise _Corrupt(f"element ({group:04X},{element:04X}) at byte {pos}: VR {vr!r}")
+        if not explicit or vr in _LONG_VRS:
+            header = 12 if explicit else 8
+            if pos + header > end:
+                raise _Corrupt(f"an element header is cut off at byte {pos}")
+            (length,) = struct.unpack_from(f"{order}I", buf, pos + header - 4)
+        else:
+            header, (length,) = 8, struct.unpack_from(f"{order}H", buf, pos + 6)
+        pixels = (group, element) == _PIXEL_DATA
+        # an undefined length outside the pixel data: a sequence (UN ones in implicit VR)
+        nested = vr == b"SQ" or (length == _UNDEFINED and not pixels)
+        pos = _value(
+            buf,
+            pos + header,
+            end,
+            length,
+            order,
+            explicit and vr != b"UN",
+            depth,
+            items=nested,
+            fragments=pixels,
+        )
+    return pos
+
+
+def _value(buf, pos, end, length, order, explicit, depth, items=False, fragments=False) -> int:
+    """Skip one value of ``length`` bytes at ``pos`` (walking its items when it holds a data
+    set, an item or a sequence); the position after it."""
+    if length == _UNDEFINED:
+        if fragments:
+            return _fragments(buf, pos, end, order)
+        if not items:
+            raise _Corrupt(f"a value at byte {pos} has an undefined length but holds no items")
+        return _walk(buf, pos, end, order, explicit, depth + 1)
+    if pos + length > end:
+        raise _Corrupt(f"a value of {length} bytes at byte {pos} runs past the file's {end}")
+    if items:
+        _walk(buf, pos, pos + length, order, explicit, depth + 1)
+    return pos + length
+
+
+def _fragments(buf, pos: int, end: int, order: str) -> int:
+    """Skip encapsulated pixel data's items up to its sequence delimiter."""
+    while pos + 8 <= end:
+        group, element, length = struct.unpack_from(f"{order}HHI", buf, pos)
+        pos += 8
+        if (group, element) == (0xFFFE, _SEQUENCE_END):
+            return pos
+        if (group, element) != (0xFFFE, _ITEM) or pos + length > end:
+            raise _Corrupt(f"a pixel data fragment at byte {pos - 8} is corrupt")
+        pos += length
+    raise _Corrupt("encapsulated pixel data without an end")

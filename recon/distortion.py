@@ -114,14 +114,23 @@ class Distortion:
 
     @classmethod
     def read(cls, path: Path) -> Distortion:
-        """A distortion written by :meth:`write` (ValueError naming the file if malformed)."""
+        """A distortion written by :meth:`write`: ValueError naming the file if malformed, a
+        number is not finite, the panel's extent is not positive or the degree not a whole
+        number >= 0 (OSError if unreadable)."""
         try:
             data = json.loads(Path(path).read_text(encoding="utf-8"))
             data["coefficients"] = np.asarray(data["coefficients"], dtype=np.float64)
             distortion = cls(**data)
+            for name, value in asdict(distortion).items():
+                if not np.all(np.isfinite(np.asarray(value, dtype=np.float64))):
+                    raise ValueError(f"{name} is not finite")
+            if not (distortion.width_mm > 0 and distortion.height_mm > 0):
+                raise ValueError(f"panel extent {distortion.width_mm} x {distortion.height_mm} mm")
+            if not isinstance(distortion.degree, int) or distortion.degree < 0:
+                raise ValueError(f"degree {distortion.degree!r} is not a whole number >= 0")
             terms = (distortion.degree + 1) * (distortion.degree + 2) // 2
             if distortion.coefficients.shape != (2, terms):
                 raise ValueError(f"coefficients {distortion.coefficients.shape}, need (2, {terms})")
             return distortion
-        except (KeyError, TypeError, ValueError, json.JSONDecodeError) as err:
+        except (KeyError, TypeError, ValueError) as err:  # JSON and UTF-8 errors are ValueErrors
             raise ValueError(f"{path}: not a distortion file ({err})") from err

@@ -26,7 +26,9 @@ refused for projections: its RAS flip would negate the (u, v) origin.
 Every failure raises before any long work, with the file path and what is wrong:
 :class:`FileNotFoundError` for a missing file, :class:`ImageFileError` (an :class:`OSError`)
 for a file that cannot be read or is truncated, :class:`ValueError` for valid files with the
-wrong content and for bad arguments.
+wrong content (NaN or infinite pixels included) and for bad arguments. The pixel bytes a
+header claims are checked against the bytes that hold them before anything is allocated
+(:func:`check_claimed_bytes`), so a corrupt header claiming gigabytes is refused at once.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ from __future__ import annotations
 import gzip
 import math
 import re
+import struct
 import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -67,6 +70,10 @@ _INTEGER_PIXEL_IDS = frozenset(
     }
 )
 _UNIT_RE = re.compile(r"\bunit=(1/mm|HU|label)(?:\s|$)")
+OBLIQUE_GROWTH = 16
+"""Most voxels an oblique volume's axis-aligned grid may hold, as a multiple of its own (a
+tilt about one axis roughly doubles them; cubic voxels of the finest spacing multiply them by
+the spacing's anisotropy)."""
 _ORTHONORMAL_ATOL = 1e-4
 """Largest |D^T D - I| entry of an image direction taken as a rotation (DICOM's orientation
 cosines carry about six digits)."""
@@ -74,6 +81,13 @@ _DIRECTION_ATOL = 1e-4
 _VIEWS_PER_READ = 32
 _GZIP_CHUNK_BYTES = 1 << 22
 _ITK_CLASS_PREFIX = re.compile(r"^\s*\w+\(0x[0-9a-fA-F]+\):\s*")
+_META_HEADER_MAX_BYTES = 1 << 16
+_META_LOCAL = ("LOCAL", "Local", "local")  # what MetaIO takes for data after the header
+_META_FIELD = re.compile(r"^\s*([^=:]+?)\s*[=:](.*)$")
+
+MAX_DEFLATE_RATIO = 1032
+"""Deflate (zlib, gzip) expands its input at most this many times: a compressed file claiming
+more pixel bytes than this times its size is corrupt."""
 
 
 class ImageFileError(OSError):
@@ -133,8 +147,10 @@ def read_volume(path: str | Path, unit: Unit | None = None) -> Volume:
     Raises:
         FileNotFoundError: ``path`` does not exist.
         ImageFileError: not an image, truncated, or unreadable.
-        ValueError: not a scalar 3-D image, a direction that is not a rotation, a missing or
-            conflicting unit, or a label file with non-integer pixels.
+        ValueError: not a scalar 3-D image, a direction that is not a rotation, an oblique
+            volume whose axis-aligned grid would be too large, a spacing or origin that is not
+            finite and positive, a missing or conflicting unit, NaN or infinite values, or a
+            label file with non-integer pixels.
     """
     path = _check_suffix(Path(path), VOLUME_SUFFIXES, "volume")
     reader = _open_image(path)
@@ -148,6 +164,7 @@ def read_volume(path: str | Path, unit: Unit | None = None) -> Volume:
     data, grid = identity_oriented(_execute(reader, path), path, label=resolved == "label")
     if resolved != "label":
         data = data.astype(np.float32, copy=False)
+        _check_finite(data, path, "volume data")
     return Volume(data=data, grid=grid, unit=resolved)
 
 
@@ -170,12 +187,15 @@ def identity_oriented(
     direction = np.reshape(image.GetDirection(), (3, 3))
     _check_rotation(direction, path)
     if not _is_signed_permutation(direction):
-        image = _axis_aligned(image, label)
+        image = _axis_aligned(image, label, path)
     signed_perm = _signed_permutation(np.reshape(image.GetDirection(), (3, 3)), path)
     data, spacing, origin = _reorient_to_identity(
         sitk.GetArrayFromImage(image), image.GetSpacing(), image.GetOrigin(), signed_perm
     )
-    return data, VolumeGrid(data.shape, spacing, origin)
+    try:
+        return data, VolumeGrid(data.shape, spacing, origin)
+    except ValueError as err:
+        raise ValueError(f"{path}: {err}") from None
 
 
 def _storage_array(volume: Volume, path: Path) -> np.ndarray:
@@ -277,7 +297,7 @@ def _check_rotation(direction: np.ndarray, path: Path) -> None:
         )
 
 
-def _axis_aligned(image: sitk.Image, label: bool) -> sitk.Image:
+def _axis_aligned(image: sitk.Image, label: bool, path: Path) -> sitk.Image:
     """An oblique image resampled onto the identity-direction grid covering its voxel centres
     (cubic voxels of its finest spacing): linear for values, nearest for labels."""
     size = np.array(image.GetSize())
@@ -290,6 +310,13 @@ def _axis_aligned(image: sitk.Image, label: bool) -> sitk.Image:
     spacing = float(min(image.GetSpacing()))
     low, high = corners.min(axis=0), corners.max(axis=0)
     shape = np.floor((high - low) / spacing + 1e-6).astype(int) + 1
+    voxels, limit = float(np.prod(shape.astype(float))), OBLIQUE_GROWTH * float(np.prod(size))
+    if voxels > limit:
+        raise ValueError(
+            f"{path}: the oblique volume on an axis-aligned grid of {spacing:g} mm voxels would "
+            f"hold {voxels:.3g} voxels, more than {OBLIQUE_GROWTH} x its own {np.prod(size)}: "
+            "resample it with isotropic voxels first"
+        )
     if label:
         interpolator, pixel, outside = sitk.sitkNearestNeighbor, image.GetPixelID(), 0.0
     else:
@@ -477,8 +504,8 @@ def read_projections(path: str | Path) -> ProjectionStack:
     Raises:
         FileNotFoundError: ``path`` does not exist.
         ImageFileError: not an image, truncated, or unreadable.
-        ValueError: not a scalar 3-D image, or a direction that mixes the panel's axes with
-            the projection index.
+        ValueError: not a scalar 3-D image, a direction that mixes the panel's axes with
+            the projection index, or NaN or infinite values.
     """
     path = _check_suffix(Path(path), PROJECTION_SUFFIXES, "projection stack")
     reader = _open_image(path)
@@ -497,6 +524,7 @@ def read_projections(path: str | Path) -> ProjectionStack:
         reader.SetExtractSize((cols, rows, n))
         slab = _execute(reader, path)  # the view below borrows its buffer: keep it alive
         data[start : start + n] = sitk.GetArrayViewFromImage(slab)
+    _check_finite(data, path, "projections")
     return ProjectionStack(data=data, header=header)
 
 
@@ -540,10 +568,15 @@ def _write_image(image: sitk.Image, path: Path) -> None:
 
 
 def _open_image(path: Path) -> sitk.ImageFileReader:
-    """A reader with the header read and checked: one scalar component, three dimensions."""
+    """A reader with the header read and checked: one scalar component, three dimensions, and
+    the pixels it claims held by the file (:func:`check_claimed_bytes`)."""
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such file")
     _check_no_nifti_twin(path)
+    if path.name.lower().endswith((".mha", ".mhd")):
+        _metaimage_header(path)  # before ITK, which crashes on some corrupt headers
+    elif path.name.lower().endswith((".nii", ".nii.gz")):
+        _nifti_header(path)  # before ITK, which hangs on some
     reader = sitk.ImageFileReader()
     reader.SetFileName(str(path))
     try:
@@ -559,9 +592,90 @@ def _open_image(path: Path) -> sitk.ImageFileReader:
         raise ValueError(
             f"{path}: expected one value per voxel, got {reader.GetNumberOfComponents()}"
         )
-    if path.name.lower().endswith((".nii", ".nii.gz")):
-        _check_nifti_complete(path, reader)
+    check_claimed_bytes(path, reader)
     return reader
+
+
+def check_claimed_bytes(path: Path, reader: sitk.ImageFileReader) -> None:
+    """ImageFileError unless the pixels the header of ``path`` (read by ``reader``) claims fit in
+    the bytes that hold them: all of them for uncompressed data, a :data:`MAX_DEFLATE_RATIO`-th
+    for compressed data. Reads headers and file sizes only, so a corrupt header claiming
+    gigabytes is refused before ITK allocates them."""
+    name = path.name.lower()
+    if name.endswith((".nii", ".nii.gz")):
+        _check_nifti_complete(path, reader)
+    elif name.endswith((".mha", ".mhd")):
+        _check_metaimage_complete(path, reader)
+
+
+def _claimed_bytes(reader: sitk.ImageFileReader) -> int:
+    """Bytes of the pixels ``reader``'s header claims, as ITK would allocate them."""
+    one = sitk.Image([1] * reader.GetDimension(), reader.GetPixelID())
+    itemsize = sitk.GetArrayViewFromImage(one).itemsize
+    return math.prod(reader.GetSize()) * reader.GetNumberOfComponents() * itemsize
+
+
+def _metaimage_header(path: Path) -> tuple[dict[str, str], int]:
+    """A MetaImage header's fields (as MetaIO reads them: ``key = value`` or ``key : value``
+    lines up to ``ElementDataFile``, looked for in the first ``_META_HEADER_MAX_BYTES``) and
+    its length in bytes.
+
+    Raises ImageFileError for a field given twice or an ``ElementDataFile`` that is neither
+    ``LOCAL`` nor a file (file lists and patterns are not read), ValueError for ``NDims`` other
+    than 1 to 3: MetaIO corrupts its memory or crashes the process on some of those, and our
+    images have three dimensions. A header without ``NDims`` or ``ElementDataFile`` is left for
+    ITK to refuse.
+    """
+    with path.open("rb") as handle:
+        head = handle.read(_META_HEADER_MAX_BYTES)
+    fields, header_bytes = {}, 0
+    for line in head.split(b"\n"):
+        header_bytes += len(line) + 1
+        match = _META_FIELD.match(line.decode("latin-1"))
+        if match is None:
+            continue
+        key, value = match.groups()
+        if key in fields:
+            raise ImageFileError(f"{path}: corrupt MetaImage header: {key} is given twice")
+        fields[key] = value.strip()
+        if key == "ElementDataFile":
+            break
+    ndims = fields.get("NDims", "3").split()
+    if not ndims or ndims[0] not in ("1", "2", "3"):
+        raise ValueError(
+            f"{path}: expected a 3-D image, got NDims = {fields['NDims']!r} in its header"
+        )
+    data_file = fields.get("ElementDataFile", "LOCAL")
+    if data_file not in _META_LOCAL and not (path.parent / data_file).is_file():
+        raise ImageFileError(
+            f"{path}: its ElementDataFile {data_file!r} is not a file beside it (file lists "
+            "and patterns are not read)"
+        )
+    return fields, header_bytes
+
+
+def _check_metaimage_complete(path: Path, reader: sitk.ImageFileReader) -> None:
+    """The MetaImage check of :func:`check_claimed_bytes`."""
+    fields, header_bytes = _metaimage_header(path)
+    data_file = fields.get("ElementDataFile")
+    if data_file is None:  # ITK read it: a header longer than we look
+        return
+    if data_file in _META_LOCAL:
+        stored = path.stat().st_size - header_bytes
+    else:
+        stored = (path.parent / data_file).stat().st_size
+    claimed = _claimed_bytes(reader)
+    if fields.get("CompressedData", "").lower() == "true":
+        limit, holds = stored * MAX_DEFLATE_RATIO, f"{stored} compressed bytes"
+    elif fields.get("BinaryData", "").lower() == "false":  # text: at least a byte per value
+        claimed, limit, holds = math.prod(reader.GetSize()), stored, f"{stored} bytes of text"
+    else:
+        limit, holds = stored, f"{stored} bytes"
+    if claimed > limit:
+        raise ImageFileError(
+            f"{path}: truncated or corrupt MetaImage: its header claims {claimed} bytes of "
+            f"pixels ({reader.GetSize()}), the file holds {holds}"
+        )
 
 
 def _execute(reader: sitk.ImageFileReader, path: Path) -> sitk.Image:
@@ -573,28 +687,111 @@ def _execute(reader: sitk.ImageFileReader, path: Path) -> sitk.Image:
         ) from err
 
 
+@dataclass(frozen=True)
+class _NiftiLayout:
+    """Where NIfTI-1 (348-byte header) or NIfTI-2 (540) keeps the fields checked here: byte
+    offsets and struct codes of one integer and one real number."""
+
+    int_code: str
+    real_code: str
+    dim: int
+    bitpix: int
+    pixdim: int
+    vox_offset: int
+    vox_offset_code: str
+    scl_slope: int
+    quatern: int
+    srow: int
+
+
+_NIFTI_LAYOUTS = {
+    348: _NiftiLayout("h", "f", 40, 72, 76, 108, "f", 112, 256, 280),
+    540: _NiftiLayout("q", "d", 16, 14, 104, 168, "q", 176, 352, 400),
+}
+
+
+@dataclass(frozen=True)
+class _NiftiHeader:
+    dim: tuple[int, ...]
+    bitpix: int
+    vox_offset: int
+
+
+def _nifti_header(path: Path) -> _NiftiHeader | None:
+    """The fields of a NIfTI-1 or -2 header (plain or gzipped) that size and place the image,
+    checked before ITK reads it: ITK hangs on some non-finite orientations and silently takes
+    1 mm for a voxel size that is not a finite number > 0.
+
+    Returns None for what is no NIfTI header at all (unreadable, another size), which ITK
+    refuses. Raises ImageFileError naming the file and the field: dim[0] not 1..7, a size < 1,
+    a voxel size not finite and > 0, a non-finite vox_offset, scaling, quaternion, offset or
+    sform row.
+    """
+    try:
+        with gzip.open(path) if path.name.lower().endswith(".gz") else path.open("rb") as fh:
+            head = fh.read(540)
+    except (EOFError, OSError, zlib.error):
+        return None
+    order = next((o for o in "<>" if len(head) >= 4 and _hdr_size(head, o) in _NIFTI_LAYOUTS), "")
+    if not order or len(head) < _hdr_size(head, order):
+        return None
+    at = _NIFTI_LAYOUTS[_hdr_size(head, order)]
+
+    def values(offset: int, count: int, code: str) -> tuple:
+        return struct.unpack_from(f"{order}{count}{code}", head, offset)
+
+    dim = values(at.dim, 8, at.int_code)
+    if not 1 <= dim[0] <= 7 or min(dim[1 : dim[0] + 1]) < 1:
+        raise ImageFileError(f"{path}: corrupt NIfTI header: dim = {list(dim)}")
+    pixdim = values(at.pixdim, 8, at.real_code)
+    for k in range(1, min(dim[0], 3) + 1):
+        if not (math.isfinite(pixdim[k]) and pixdim[k] > 0):
+            raise ImageFileError(
+                f"{path}: corrupt NIfTI header: pixdim[{k}] = {pixdim[k]!r}, the voxel size "
+                "must be finite and > 0 mm"
+            )
+    (vox_offset,) = values(at.vox_offset, 1, at.vox_offset_code)
+    reals = {
+        "vox_offset": (vox_offset,),
+        "scl_slope, scl_inter": values(at.scl_slope, 2, at.real_code),
+        "quatern_b..d, qoffset_x..z": values(at.quatern, 6, at.real_code),
+        "srow_x, srow_y, srow_z": values(at.srow, 12, at.real_code),
+    }
+    for name, numbers in reals.items():
+        if not all(math.isfinite(x) for x in numbers):
+            raise ImageFileError(f"{path}: corrupt NIfTI header: {name} = {list(numbers)}")
+    if vox_offset < 0:
+        raise ImageFileError(f"{path}: corrupt NIfTI header: vox_offset = {vox_offset}")
+    (bitpix,) = values(at.bitpix, 1, "h")
+    return _NiftiHeader(dim[1 : dim[0] + 1], bitpix, int(vox_offset))
+
+
+def _hdr_size(head: bytes, order: str) -> int:
+    """A NIfTI header's first field, sizeof_hdr, read in byte order ``order`` ("<" or ">")."""
+    return struct.unpack_from(f"{order}i", head)[0]
+
+
 def _check_nifti_complete(path: Path, reader: sitk.ImageFileReader) -> None:
     """Raise if a NIfTI file holds fewer bytes than its header promises.
 
     ITK's NIfTI reader silently returns partly zero images from truncated files.
     """
-    needed = int(float(reader.GetMetaData("vox_offset"))) + _nifti_data_bytes(reader)
+    header = _nifti_header(path)
+    if header is None:
+        raise ImageFileError(f"{path}: ITK read a header that is not NIfTI-1 or NIfTI-2")
+    data_bytes = math.prod(header.dim) * max(header.bitpix, 0) // 8
+    needed = header.vox_offset + max(data_bytes, _claimed_bytes(reader))
+    size = path.stat().st_size
     if path.name.lower().endswith(".gz"):
-        complete, holds = _gzip_holds(path, needed), "its gzip stream ends early"
+        complete = size * MAX_DEFLATE_RATIO >= needed and _gzip_holds(path, needed)
+        holds = "its gzip stream ends early"
     else:
-        size = path.stat().st_size
         complete, holds = size >= needed, f"it holds {size}"
     if not complete:
         raise ImageFileError(
             f"{path}: truncated NIfTI file: the header promises {needed} bytes of header "
             f"and data, {holds}"
         )
-
-
-def _nifti_data_bytes(reader: sitk.ImageFileReader) -> int:
-    ndim = int(reader.GetMetaData("dim[0]"))
-    count = math.prod(int(reader.GetMetaData(f"dim[{k}]")) for k in range(1, ndim + 1))
-    return count * int(reader.GetMetaData("bitpix")) // 8
 
 
 def _gzip_holds(path: Path, needed: int) -> bool:

@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 import SimpleITK as sitk
 
+from recon.dicom import open_dicom, series_files
 from recon.io import ImageFileError, read_projections
 from recon.rtk_xml import PanelHeader
 
@@ -67,18 +68,20 @@ def _tag(reader, key: str) -> str | None:
 
 
 def _dicom_files(path: Path) -> list[str]:
-    if path.is_dir():
-        ids = sitk.ImageSeriesReader.GetGDCMSeriesIDs(str(path))
-        if not ids:
-            raise ImageFileError(f"{path}: no DICOM series in this folder")
-        if len(ids) > 1:
-            raise ValueError(f"{path}: {len(ids)} DICOM series in one folder; give one")
-        return list(sitk.ImageSeriesReader.GetGDCMSeriesFileNames(str(path), ids[0]))
-    return [str(path)]
+    return series_files(path) if path.is_dir() else [str(path)]
 
 
 def read_frames(path: str | Path, pixel_pitch_mm: float | None = None) -> Frames:
-    """Frames from an .mha/.mhd stack, a DICOM file or a folder of DICOM files."""
+    """Frames from an .mha/.mhd stack, a DICOM file or a folder of DICOM files.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        ImageFileError: a file that is not a readable image (recon.io, recon.dicom).
+        ValueError: naming the file and the tag: frames that are not grey-scale, of differing
+            sizes or photometric interpretations, with NaN or infinite values, or with spacing
+            or frame times that are not finite numbers; no pixel spacing and no
+            ``pixel_pitch_mm``.
+    """
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such file or folder")
@@ -88,10 +91,8 @@ def read_frames(path: str | Path, pixel_pitch_mm: float | None = None) -> Frames
     files = _dicom_files(path)
     arrays, times, spacing, photometric, stand_in = [], [], None, None, None
     for name in files:
-        reader = sitk.ImageFileReader()
-        reader.SetFileName(name)
+        reader = open_dicom(name)
         try:
-            reader.ReadImageInformation()
             image = reader.Execute()
         except RuntimeError as err:
             raise ImageFileError(f"{name}: not a readable DICOM image ({err})") from None
@@ -106,14 +107,22 @@ def read_frames(path: str | Path, pixel_pitch_mm: float | None = None) -> Frames
         photometric = kind
         pixels = sitk.GetArrayFromImage(image).astype(np.float64)
         pixels = pixels.reshape(-1, *pixels.shape[-2:])
+        if arrays and pixels.shape[1:] != arrays[0].shape[1:]:
+            raise ValueError(
+                f"{name}: frames of {pixels.shape[1:]} pixels in a series of "
+                f"{arrays[0].shape[1:]} (rows, columns)"
+            )
+        bad = pixels.size - int(np.count_nonzero(np.isfinite(pixels)))
+        if bad:
+            raise ValueError(f"{name}: {bad} pixels are NaN or infinite (after the rescale)")
         relation = (_tag(reader, "0028|1040") or "").upper(), _tag(reader, "0028|1041")
         how, attenuation = _stand_in(pixels, kind, *relation, name)
         if stand_in not in (None, how):
             raise ValueError(f"{name}: values are {how} in a series of {stand_in}")
         stand_in = how
         arrays.append(attenuation)
-        spacing = spacing or _spacing(reader)
-        times.extend(_times(reader, len(pixels), len(times)))
+        spacing = spacing or _spacing(reader, name)
+        times.extend(_times(reader, name, len(pixels), len(times)))
     data = np.concatenate(arrays)
     if spacing is None:
         if pixel_pitch_mm is None:
@@ -125,6 +134,8 @@ def read_frames(path: str | Path, pixel_pitch_mm: float | None = None) -> Frames
     low, high = np.percentile(data, (0.5, 99.5))
     normalised = ((data - low) / max(high - low, 1e-12)).astype(np.float32)
     times_s = np.array(times) if len(times) == len(data) and None not in times else None
+    if not (np.isfinite(normalised).all() and (times_s is None or np.isfinite(times_s).all())):
+        raise ValueError(f"{path}: pixel values or frame times overflow (beyond float range)")
     header = PanelHeader.centered(data.shape[1], data.shape[2], *spacing, source=str(path))
     return Frames(normalised, header, times_s, photometric, stand_in)
 
@@ -136,7 +147,7 @@ def _stand_in(
     if relation in ("LIN", "LOG") and sign is not None:
         try:
             positive = {1: True, -1: False}[int(float(sign))]
-        except (ValueError, KeyError):
+        except (ValueError, KeyError, OverflowError):
             raise ValueError(
                 f"{name}: Pixel Intensity Relationship Sign (0028,1041) is {sign!r}; "
                 "DICOM allows +1 or -1"
@@ -151,22 +162,38 @@ def _stand_in(
     return "value (MONOCHROME2)", pixels
 
 
-def _spacing(reader) -> tuple[float, float] | None:
+def _numbers(reader, key: str, name: str, count: int | None = None) -> list[float] | None:
+    """The finite numbers of a multi-valued DICOM tag (at least ``count``), None when the tag
+    is absent or empty; ValueError naming the file, the tag and its text otherwise."""
+    text = _tag(reader, key)
+    if not text:
+        return None
+    try:
+        values = [float(x) for x in text.split("\\")]
+    except ValueError:
+        values = []
+    if len(values) < (count or 1) or not all(np.isfinite(values)):
+        raise ValueError(
+            f"{name}: ({key.replace('|', ',')}) is {text!r}, not "
+            f"{count or 'one or more'} finite numbers"
+        )
+    return values
+
+
+def _spacing(reader, name: str) -> tuple[float, float] | None:
     for key in ("0018|1164", "0028|0030"):
-        text = _tag(reader, key)
-        if text:
-            row, col = (float(x) for x in text.split("\\")[:2])
-            return (col, row)
+        values = _numbers(reader, key, name, 2)
+        if values:
+            return (values[1], values[0])
     return None
 
 
-def _times(reader, count: int, first: int) -> list[float | None]:
+def _times(reader, name: str, count: int, first: int) -> list[float | None]:
     """Times of ``count`` frames, the first being frame ``first`` of the sequence."""
-    vector = _tag(reader, "0018|1065")
+    vector = _numbers(reader, "0018|1065", name)
     if vector:
-        increments = np.array([float(x) for x in vector.split("\\")]) / 1000.0
-        return list(np.cumsum(increments)[:count])
-    frame_ms = _tag(reader, "0018|1063")
+        return list(np.cumsum(np.array(vector) / 1000.0)[:count])
+    frame_ms = _numbers(reader, "0018|1063", name)
     if frame_ms:
-        return list((first + np.arange(count)) * float(frame_ms) / 1000.0)
+        return list((first + np.arange(count)) * frame_ms[0] / 1000.0)
     return [None] * count

@@ -107,10 +107,20 @@ def write_poses(
 
 
 def read_poses(path: str | Path) -> list[BonePose]:
-    """Read ``poses.csv``; every matrix is checked to be rigid (errors name frame and bone)."""
+    """Read ``poses.csv``; every matrix is checked to be rigid. Raises ValueError naming the
+    file (and the line, or the frame and bone) for anything malformed."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such poses file")
+    try:
+        return _read_poses(path)
+    except UnicodeDecodeError as err:
+        raise ValueError(f"{path}: not UTF-8 text ({err.reason} at byte {err.start})") from None
+    except csv.Error as err:
+        raise ValueError(f"{path}: not a CSV file ({err})") from None
+
+
+def _read_poses(path: Path) -> list[BonePose]:
     with open(path, newline="", encoding="utf-8") as fh:
         reader = csv.DictReader(fh)
         missing = [
@@ -128,22 +138,30 @@ def read_poses(path: str | Path) -> list[BonePose]:
                     f"{path}: line {line}: frame or matrix entry is not a number"
                 ) from None
             bone = row["bone"]
+            if not bone:
+                raise ValueError(f"{path}: line {line}: no bone named")
             T = check_rigid(values.reshape(4, 4), f"{path}: frame {frame}, bone {bone}")
-            poses.append(
-                BonePose(
-                    frame, bone, T, _number(row.get("similarity")), _number(row.get("seconds"))
-                )
+            similarity, seconds = (
+                _number(row.get(c), f"{path}: line {line}: {c}") for c in ("similarity", "seconds")
             )
+            poses.append(BonePose(frame, bone, T, similarity, seconds))
     if not poses:
         raise ValueError(f"{path}: no poses")
     return poses
 
 
-def _number(text: str | None) -> float:
-    try:
-        return float(text) if text not in (None, "") else math.nan
-    except ValueError:
+def _number(text: str | None, where: str) -> float:
+    """An optional column's value: NaN (unknown) when empty or ``nan``; ValueError naming
+    ``where`` for text that is not a number or is infinite."""
+    if text in (None, ""):
         return math.nan
+    try:
+        value = float(text)
+    except ValueError:
+        raise ValueError(f"{where}: {text!r} is not a number") from None
+    if math.isinf(value):
+        raise ValueError(f"{where}: {text!r} is infinite")
+    return value
 
 
 def poses_by_frame(

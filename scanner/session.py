@@ -135,14 +135,14 @@ def plan_stage(study: Study, model: ScannerModel, protocol: ScanProtocol, say: S
     plan = plan_scan(model, protocol)
     folder = study.path / "plan"
     if study.stage("plan").get("status") == "complete":
+        if altered := study.verify("plan/"):  # before reading them: np.load trusts the file
+            raise StudyError(f"{folder}: files altered: {altered}")
         stored = np.load(folder / "trajectory.npz")
         if stored["q"].shape != plan.q.shape or not np.allclose(stored["q"], plan.q, atol=1e-9):
             raise StudyError(
                 f"{folder}: the plan made again differs from the stored one (software or "
                 "config changed since): refusing to continue on a different motion"
             )
-        if study.verify("plan/"):
-            raise StudyError(f"{folder}: files altered: {study.verify('plan/')}")
         return plan
     if folder.exists():  # an interrupted earlier attempt: derived data, made again
         shutil.rmtree(folder)

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -65,12 +66,44 @@ class ViewRecord:
 
     @classmethod
     def from_json(cls, data: dict) -> ViewRecord:
+        """The record :meth:`to_json` wrote; ValueError or TypeError for missing or unknown
+        fields, numbers that are not finite, arrays of the wrong shape."""
         data = dict(data)
-        for key in ("q", "matrix", "source_mm", "true_matrix"):
-            if data.get(key) is not None:
-                data[key] = np.asarray(data[key], dtype=np.float64)
         data.pop("files", None)
+        shapes = {"q": (None,), "matrix": (3, 4), "source_mm": (3,), "true_matrix": (3, 4)}
+        for key, value in data.items():
+            if value is None and key == "true_matrix":
+                continue
+            array = np.asarray(value, dtype=np.float64)
+            if not np.isfinite(array).all():
+                raise ValueError(f"{key} is not finite")
+            shape = shapes.get(key, ())
+            if array.ndim != len(shape) or any(
+                n not in (None, m) for n, m in zip(shape, array.shape, strict=True)
+            ):
+                raise ValueError(f"{key} has shape {array.shape}, not {shape}")
+            if key in shapes:
+                data[key] = array
         return cls(**data)
+
+
+def _view_record(path: Path) -> dict:
+    """A view record's JSON: an object with a whole ``view`` number and a ``files`` object;
+    StudyError naming ``path`` otherwise."""
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except ValueError as err:  # JSON and UTF-8 errors
+        raise StudyError(f"{path}: not a view record ({err})") from None
+    if not (
+        isinstance(data, dict)
+        and isinstance(data.get("view"), int)
+        and not isinstance(data["view"], bool)
+        and isinstance(data.get("files"), dict)
+    ):
+        raise StudyError(f"{path}: not a view record (no whole 'view' number and 'files' object)")
+    if path.name != f"view_{data['view']:04d}.json":
+        raise StudyError(f"{path}: records view {data['view']}, not the view its name says")
+    return data
 
 
 class ScanStore:
@@ -108,8 +141,11 @@ class ScanStore:
         if not folder.is_dir():
             return
         for path in sorted(folder.glob("view_*.json")):
-            data = json.loads(path.read_text(encoding="utf-8"))
-            k = int(data["view"])
+            recorded = self.study.manifest["files"].get(f"{self.folder}/views/{path.name}")
+            if recorded is not None and sha256(path) != recorded:
+                raise StudyError(f"{path}: the view record was altered (sha256 mismatch)")
+            data = _view_record(path)
+            k = data["view"]
             base = self._name(k)
             for suffix in (".json", ".mha", "_counts.mha"):
                 relpath = base + suffix
@@ -118,13 +154,16 @@ class ScanStore:
                     continue  # manifest saved just before the crash: the view's files decide
                 target = self.study.path / relpath
                 if not target.is_file():
-                    raise StudyError(f"view {k}: {relpath} is missing")
+                    raise StudyError(f"view {k}: {target} is missing")
                 digest = sha256(target)
-                expected = recorded or data["files"][relpath]
+                expected = recorded or data["files"].get(relpath)
                 if digest != expected:
-                    raise StudyError(f"view {k}: {relpath} was altered (sha256 mismatch)")
+                    raise StudyError(f"view {k}: {target} was altered (sha256 mismatch)")
                 self.study.manifest["files"][relpath] = digest
-            self.records[k] = ViewRecord.from_json(data)
+            try:
+                self.records[k] = ViewRecord.from_json(data)
+            except (TypeError, ValueError) as err:
+                raise StudyError(f"{path}: not a view record ({err})") from None
 
     def image(self, k: int) -> np.ndarray:
         """The stored line integrals of view ``k``, float32 (rows, cols)."""

@@ -136,11 +136,16 @@ class Study:
             raise StudyError(f"{path} is not a study folder: no {MANIFEST}")
         try:
             manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
-        except (OSError, json.JSONDecodeError) as err:
+        except (OSError, ValueError) as err:  # JSON and UTF-8 errors are ValueErrors
             raise StudyError(f"{manifest_path} is unreadable: {err}") from err
+        if not isinstance(manifest, dict):
+            raise StudyError(f"{manifest_path} holds a {type(manifest).__name__}, not an object")
         missing = {"config", "stages", "files"} - set(manifest)
         if missing:
             raise StudyError(f"{manifest_path} lacks {sorted(missing)}")
+        for key in ("config", "stages", "files"):
+            if not isinstance(manifest[key], dict):
+                raise StudyError(f"{manifest_path}: {key!r} is not an object")
         return cls(path, manifest)
 
     def save(self) -> None:
