@@ -19,6 +19,7 @@ from __future__ import annotations
 import enum
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -34,6 +35,9 @@ SETTLE_POLL_S = 0.01
 """Re-read interval while arms settle onto a view's pose, s."""
 GROUP_SLICES = (slice(0, 2), slice(2, 8), slice(8, 14))
 """Plan joint indices of the backend's groups: stage (rotary, lift), source arm, detector arm."""
+_STOPPERS = ThreadPoolExecutor(max_workers=len(GROUP_SLICES), thread_name_prefix="safe-stop")
+"""Threads that stop the joint groups together in SAFE (their drivers wait on sockets, pipes
+and serial ports with the GIL released)."""
 
 
 class State(enum.Enum):
@@ -383,9 +387,12 @@ class ScanRun:
             b.generator.abort(timeout)
         except Exception as abort_err:  # still stop the arms; report loudly
             problems.append(f"X-RAY OFF NOT CONFIRMED: {abort_err}")
-        for group in b.groups:
+        # every group at once: one that does not answer (its stop waits for its deadline)
+        # must not hold the others up
+        stops = [_STOPPERS.submit(group.stop) for group in b.groups]
+        for group, stop in zip(b.groups, stops, strict=True):
             try:
-                group.stop()
+                stop.result()
             except Exception as stop_err:
                 problems.append(f"{group.name} stop failed: {stop_err}")
         if isinstance(err, KeyboardInterrupt):
@@ -394,7 +401,10 @@ class ScanRun:
             reason = f"{type(err).__name__}: {err}"
         if problems:
             reason += "; " + "; ".join(problems)
-        self.store.mark_incomplete(reason, failed_in.value)
+        try:
+            self.store.mark_incomplete(reason, failed_in.value)
+        except Exception as mark_err:  # e.g. the disk is full: still release the devices
+            reason += f"; the study could not be marked incomplete: {mark_err}"
         self._shutdown()
         stored, views = len(self.store.stored), len(self.plan.view_times_s)
         raise ScanFault(failed_in, reason, stored, views) from err

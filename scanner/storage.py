@@ -16,13 +16,18 @@ Layout under ``scan/`` (``calibration_scan/`` for the steel-ball phantom's scan)
 A view counts as stored once its .json exists (written last, atomically, after both images,
 with their sha256); on reopening, every stored view is checked against its checksums (the
 manifest's, or the record's for views stored after the manifest's last save), and an altered or
-missing file is an error, never skipped silently.
+missing file is an error, never skipped silently. An image without its record (the process
+killed between renaming the images and the record into place) was never stored: it is moved
+to ``views/interrupted/`` (kept, never overwritten) and the view is acquired again.
 """
 
 from __future__ import annotations
 
+import itertools
 import json
+import os
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -125,6 +130,20 @@ class ScanStore:
                     raise StudyError(f"view {k}: {relpath} was altered (sha256 mismatch)")
                 self.study.manifest["files"][relpath] = digest
             self.records[k] = ViewRecord.from_json(data)
+        for path in sorted(folder.glob("view_*.mha")):
+            k = int(path.name[len("view_") :].split("_")[0].split(".")[0])
+            if k not in self.records:
+                self._set_aside(path)
+
+    def _set_aside(self, path: Path) -> None:
+        """Move an image whose view has no record to ``interrupted/`` under a new name."""
+        aside = path.parent / "interrupted"
+        aside.mkdir(exist_ok=True)
+        for n in itertools.count():
+            target = aside / (path.name if n == 0 else f"{path.stem}.{n}{path.suffix}")
+            if not target.exists():
+                os.rename(path, target)
+                return
 
     def image(self, k: int) -> np.ndarray:
         """The stored line integrals of view ``k``, float32 (rows, cols)."""

@@ -10,8 +10,9 @@ import threading
 import numpy as np
 import pytest
 
+from recon.geometry import DetectorSpec, circular_orbit
 from scanner.scan_recording import ScanRecorder
-from scanner.storage import ViewRecord
+from scanner.storage import ScanStore, ViewRecord
 from scanner.study import Study, StudyError
 
 
@@ -82,3 +83,28 @@ def test_recording_failure_stops_the_scan_at_a_later_view(tmp_path, monkeypatch)
             recorder.view(_record(k), image)
     assert recorder.close() == study.path / "scan" / "recording.rrd"
     assert "scan/recording.rrd" in study.manifest["files"]
+
+
+def test_an_image_left_without_its_record_is_set_aside_and_the_view_acquired_again(tmp_path):
+    """A process killed between renaming a view's images and its record into place leaves the
+    images without a record: not a stored view. Reopening keeps them aside (never overwritten)
+    and the view can be stored; before, storing it was refused forever."""
+    panel = DetectorSpec(rows=4, cols=4, pixel_pitch_mm=1.0)
+    planned = circular_orbit(3, 500.0, 1000.0, panel)
+    study = Study.create(tmp_path / "s", {})
+    store = ScanStore(study, panel, ("rotary", "lift"), 3, planned)
+    image = np.ones((4, 4), dtype=np.float32)
+    store.put(_record(0), image, image)
+    views = study.path / "scan" / "views"
+    for name in ("view_0001.mha", "view_0001_counts.mha"):  # renamed, then killed
+        (views / name).write_bytes(b"half a view")
+    reopened = ScanStore(Study.open(study.path), panel, ("rotary", "lift"), 3, planned)
+    assert reopened.stored == {0}
+    assert sorted(p.name for p in (views / "interrupted").iterdir()) == [
+        "view_0001.mha",
+        "view_0001_counts.mha",
+    ]
+    reopened.put(_record(1), 2 * image, 2 * image)
+    np.testing.assert_array_equal(reopened.image(1), 2 * image)
+    again = ScanStore(Study.open(study.path), panel, ("rotary", "lift"), 3, planned)
+    assert again.stored == {0, 1}
