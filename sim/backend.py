@@ -6,7 +6,9 @@ configuration, the generator is served over a pty (the scanner drives it with it
 driver), and the panel renders the subject through the view the arms truly realise at each
 pulse, vibration included. Faults are injected from the spec: a protective stop, a generator
 that stops answering, a dropped frame, an interlock that opens, each at a given view (the
-number of views acquired before it happens, counted in this session).
+number of views acquired before it happens, counted in this session). ``event_log`` streams the
+device events to a file as they happen, with wall-clock times (bench/soak.py times the way to
+SAFE from it).
 """
 
 from __future__ import annotations
@@ -54,6 +56,10 @@ class SimBackendSpec(BaseModel):
     warmup_s: float = Field(0.05, ge=0.0, le=60.0, description="generator warm-up, s")
     seed: int = 0
     faults: SimFaults = SimFaults()
+    event_log: str | None = Field(
+        None,
+        description="file the device events are appended to as they happen (sim.arms.SimWorld)",
+    )
 
 
 def volume_subject(volume: Volume) -> Callable[[View], np.ndarray]:
@@ -81,6 +87,8 @@ class SimulatedScanner:
 
     def close(self) -> None:
         self.generator.close()
+        if self.world.event_log is not None:
+            self.world.event_log.close()
 
 
 def simulated_scanner(
@@ -92,8 +100,16 @@ def simulated_scanner(
     spec: SimBackendSpec,
 ) -> SimulatedScanner:
     """Build the simulated devices; the generator's pty is served from now until close()."""
+    event_log = None
+    if spec.event_log is not None:
+        event_log = open(spec.event_log, "a", encoding="utf-8")  # closed by SimulatedScanner.close
     world = SimWorld(
-        model, start_q, lag_s=spec.lag_s, tracking_noise=spec.tracking_noise_deg, seed=spec.seed
+        model,
+        start_q,
+        lag_s=spec.lag_s,
+        tracking_noise=spec.tracking_noise_deg,
+        seed=spec.seed,
+        event_log=event_log,
     )
     faults = spec.faults
     arms = {
