@@ -275,12 +275,21 @@ def scan_stage(
     sessions.append({"stage": stage, "backend": inputs.backend.model_dump(mode="json")})
     study.save()
     say(f"{stage}: acquiring on the {inputs.backend_kind} backend")
-    try:
-        run.run()
-    finally:
+
+    def finish_records() -> None:
         recorder.close()
         if simulated is not None:
             _write_device_events(study, store.folder, simulated.world.events, len(sessions))
+
+    try:
+        run.run()
+    except BaseException:
+        try:  # the scan's own failure is the one to report (e.g. a full disk fails both)
+            finish_records()
+        except Exception as err:
+            say(f"the recording and device log of this session were not finished: {err}")
+        raise
+    finish_records()
 
 
 def _write_device_events(study: Study, folder: str, events: list, session: int) -> None:

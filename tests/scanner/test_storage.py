@@ -5,7 +5,10 @@ from __future__ import annotations
 
 import hashlib
 import json
+import subprocess
+import sys
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -108,3 +111,49 @@ def test_an_image_left_without_its_record_is_set_aside_and_the_view_acquired_aga
     np.testing.assert_array_equal(reopened.image(1), 2 * image)
     again = ScanStore(Study.open(study.path), panel, ("rotary", "lift"), 3, planned)
     assert again.stored == {0, 1}
+
+
+def test_a_full_disk_fails_the_recording_instead_of_hanging(tmp_path):
+    """The recording on a full filesystem (a 256 kB tmpfs): the failure is raised and the
+    process exits; rerun's own file sink blocked its flush, its disconnect and the
+    interpreter's exit for ever, so a scan that filled the disk never ended."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    mount = ["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(disk)]
+    if subprocess.run(mount, capture_output=True, check=False).returncode != 0:
+        pytest.skip("cannot mount a small tmpfs here (needs root)")
+    script = f"""
+from dataclasses import replace
+import numpy as np
+from recon.geometry import DetectorSpec, circular_orbit
+from tests.scanner.test_storage import _record
+from scanner.scan_recording import ScanRecorder
+from scanner.study import Study
+orbit = circular_orbit(100, 500.0, 1000.0, DetectorSpec(rows=64, cols=64, pixel_pitch_mm=1.0))
+study = Study.create({str(disk / "s")!r}, {{}})
+recorder = ScanRecorder(study, ("rotary", "lift"), 1.0)
+rng = np.random.default_rng(0)
+try:
+    for k in range(100):  # 1.6 MB of noise
+        image = rng.random((64, 64), dtype=np.float32)
+        recorder.view(replace(_record(k), matrix=orbit[k].matrix), image)
+except RuntimeError as err:
+    print("view:", err)
+try:
+    recorder.close()
+except RuntimeError as err:
+    print("close:", err)
+"""
+    try:
+        done = subprocess.run(
+            [sys.executable, "-c", script],
+            cwd=Path(__file__).resolve().parents[2],
+            capture_output=True,
+            text=True,
+            timeout=30,
+        )
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], check=False)
+    assert done.returncode == 0, done.stderr
+    # a later view reports it when rerun's batches reach the file during the scan, else close
+    assert "[Errno 28] No space left on device" in done.stdout, done.stdout
