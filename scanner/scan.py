@@ -191,9 +191,11 @@ class ScanRun:
             self._stream("retreat")
         except BaseException as err:  # Ctrl-C included: X-ray off, arms stop, data flushed
             self._safe(err)
-        self.store.finish()
-        self._enter(State.DONE)
-        self._shutdown()
+        try:  # assembling the stacks can fail too (a full disk): the devices are released
+            self.store.finish()
+            self._enter(State.DONE)
+        finally:
+            self._shutdown()
 
     def preflight(self) -> Preflight:
         """Check plan, dose, devices and start pose; raises PreflightError naming the problem."""
