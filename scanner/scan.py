@@ -5,13 +5,13 @@ of the views still to acquire against the protocol's limit, the devices (connect
 technique accepted, interlocks closed), the arms at the plan's start, and asks the operator.
 APPROACH streams the planned approach and warms the tube up, then asks again before exposure.
 ACQUIRE streams the planned scan; at each view's time it reads both arms and the stage, checks
-that the realised view is the planned one within tolerance and that the interlocks are closed,
-and only then fires one pulse, reads the frame and stores it with the joint state it was taken
-at (:class:`scanner.storage.ScanStore`). RETREAT streams the planned retreat; DONE assembles the
-stack. Any failure (a device error, a protective stop, an off-pose view, an open interlock,
-Ctrl-C) goes to SAFE: X-ray off first, then every joint group stops, then what was acquired is
-flushed and the scan marked incomplete with the reason; ``cbct scan --resume`` continues with
-the views not yet stored.
+that the realised view is the planned one within tolerance, that the interlocks are closed and
+that the study's disk can take the view, and only then fires one pulse, reads the frame and
+stores it with the joint state it was taken at (:class:`scanner.storage.ScanStore`). RETREAT
+streams the planned retreat; DONE assembles the stack. Any failure (a device error, a
+protective stop, an off-pose view, an open interlock, a full disk, Ctrl-C) goes to SAFE: X-ray
+off first, then every joint group stops, then what was acquired is flushed and the scan marked
+incomplete with the reason; ``cbct scan --resume`` continues with the views not yet stored.
 """
 
 from __future__ import annotations
@@ -311,6 +311,7 @@ class ScanRun:
             raise DeviceError(f"view {k}: interlock open ({', '.join(opened)}): not exposing")
         if not status.ready or status.fault:
             raise DeviceError(f"view {k}: generator not ready ({status.fault or 'not prepared'})")
+        self.store.check_room(k)  # no dose for a view that cannot be stored
         b.detector.arm(timeout)
         exposure = b.generator.expose(timeout)
         frame = b.detector.read_frame(timeout)

@@ -38,6 +38,13 @@ from scanner.study import Study, StudyError, sha256
 
 SCAN_FOLDERS = {"scan": "scan", "calibration_scan": "calibration_scan"}
 """Folder of each scan stage in the study."""
+ROOM_MARGIN_BYTES = 4 << 20
+"""Free space a view must leave on the study's disk before it is exposed (the recording, the
+device log and the stage's status still need some), bytes."""
+_HEADER_BYTES = 4096
+"""Upper bound of a view image's MetaImage header, bytes."""
+_RECORD_BYTES = 16384
+"""Upper bound of a view's JSON record, bytes."""
 
 
 @dataclass(frozen=True)
@@ -144,6 +151,20 @@ class ScanStore:
             if not target.exists():
                 os.rename(path, target)
                 return
+
+    def check_room(self, k: int) -> None:
+        """Raise StudyError unless the study's filesystem can take view ``k``: both images,
+        its record and a save of the manifest, with :data:`ROOM_MARGIN_BYTES` to spare."""
+        stat = os.statvfs(self.study.path)
+        free = stat.f_bavail * stat.f_frsize
+        image = self.panel.rows * self.panel.cols * 4 + _HEADER_BYTES
+        manifest = (self.study.path / "study.json").stat().st_size
+        need = 2 * image + _RECORD_BYTES + manifest + ROOM_MARGIN_BYTES
+        if free < need:
+            raise StudyError(
+                f"view {k}: the study's disk has {free / 2**20:.2f} MiB free, a view needs "
+                f"{need / 2**20:.2f} MiB (images, record, manifest, margin): not exposing"
+            )
 
     def image(self, k: int) -> np.ndarray:
         """The stored line integrals of view ``k``, float32 (rows, cols)."""

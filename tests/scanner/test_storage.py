@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import subprocess
 import sys
 import threading
@@ -157,3 +158,26 @@ except RuntimeError as err:
     assert done.returncode == 0, done.stderr
     # a later view reports it when rerun's batches reach the file during the scan, else close
     assert "[Errno 28] No space left on device" in done.stdout, done.stdout
+
+
+def test_a_view_is_not_exposed_when_the_disk_cannot_take_it(tmp_path):
+    """check_room, called before each pulse, refuses a view the study's disk has no room for
+    (the soak's full disk let one more pulse fire per fault, its view then unstorable)."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    mount = ["mount", "-t", "tmpfs", "-o", "size=8m", "tmpfs", str(disk)]
+    if subprocess.run(mount, capture_output=True, check=False).returncode != 0:
+        pytest.skip("cannot mount a small tmpfs here (needs root)")
+    try:
+        panel = DetectorSpec(rows=64, cols=64, pixel_pitch_mm=1.0)
+        study = Study.create(disk / "s", {})
+        store = ScanStore(study, panel, ("rotary", "lift"), 3, circular_orbit(3, 500.0, 1e3, panel))
+        store.check_room(0)  # 8 MB free
+        fd = os.open(disk / "ballast", os.O_WRONLY | os.O_CREAT)
+        os.posix_fallocate(fd, 0, 5 << 20)  # 3 MB left: less than a view and the margin
+        os.close(fd)
+        full = r"view 1: the study's disk has 3\.\d\d MiB free, a view needs 4\.\d\d MiB"
+        with pytest.raises(StudyError, match=full):
+            store.check_room(1)
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], check=False)
