@@ -15,7 +15,8 @@ import itertools
 import math
 import threading
 import time
-from typing import NamedTuple, TextIO
+from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -55,9 +56,10 @@ class SimWorld:
         tracking_noise: standard deviation of the true position about the lagged set-point,
             deg (mm for the lift).
         seed: seed of the tracking noise.
-        event_log: a text file each event is also appended to as it happens, one flushed line
-            ``sequence,time_s,wall_s,device,event`` (``wall_s``: ``time.monotonic()``), so that
-            another process can time the events, also after this one was killed.
+        event_log: a file each event is also appended to as it happens (opened, written and
+            closed per event), one line ``sequence,time_s,wall_s,device,event`` (``wall_s``:
+            ``time.monotonic()``), so that another process can time the events, also after
+            this one was killed.
     """
 
     def __init__(
@@ -68,7 +70,7 @@ class SimWorld:
         lag_s: float = 0.004,
         tracking_noise: float = 0.002,
         seed: int = 0,
-        event_log: TextIO | None = None,
+        event_log: Path | None = None,
     ) -> None:
         self.model = model
         self.event_log = event_log
@@ -97,8 +99,9 @@ class SimWorld:
             seq = next(self._seq)
             self.events.append((seq, self.t, who, what))
             if self.event_log is not None:
-                self.event_log.write(f"{seq},{self.t:.6f},{time.monotonic():.6f},{who},{what}\n")
-                self.event_log.flush()
+                line = f"{seq},{self.t:.6f},{time.monotonic():.6f},{who},{what}\n"
+                with open(self.event_log, "a", encoding="utf-8") as fh:
+                    fh.write(line)
 
     def command(self, group: str, q: np.ndarray, dt_s: float) -> None:
         """Ramp the group's set-point from where it is to ``q`` over ``dt_s``."""

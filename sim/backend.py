@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -87,8 +88,6 @@ class SimulatedScanner:
 
     def close(self) -> None:
         self.generator.close()
-        if self.world.event_log is not None:
-            self.world.event_log.close()
 
 
 def simulated_scanner(
@@ -100,16 +99,13 @@ def simulated_scanner(
     spec: SimBackendSpec,
 ) -> SimulatedScanner:
     """Build the simulated devices; the generator's pty is served from now until close()."""
-    event_log = None
-    if spec.event_log is not None:
-        event_log = open(spec.event_log, "a", encoding="utf-8")  # closed by SimulatedScanner.close
     world = SimWorld(
         model,
         start_q,
         lag_s=spec.lag_s,
         tracking_noise=spec.tracking_noise_deg,
         seed=spec.seed,
-        event_log=event_log,
+        event_log=None if spec.event_log is None else Path(spec.event_log),
     )
     faults = spec.faults
     arms = {
