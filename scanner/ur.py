@@ -119,7 +119,8 @@ class URArm:
         servo_lookahead_s: servoJ lookahead time, s (ur-rtde: 0.03 to 0.2).
         servo_gain: servoJ proportional gain (ur-rtde: 100 to 2000).
         arrival_tolerance_deg: how close to the goal a finished move must be, deg, per joint.
-        freshness_s: the oldest reading ``state`` returns, s.
+        freshness_s: the oldest reading ``state`` returns, s (5 RTDE periods at 500 Hz: the
+            pose an exposure is decided on is at most this old).
         silence_s: the longest pause of the RTDE stream before the controller counts as
             silent (``state`` and ``servo`` raise at once), s.
         call_timeout_s: deadline of a ur-rtde call that does not wait for motion (readings,
@@ -143,7 +144,7 @@ class URArm:
         servo_lookahead_s: float = 0.1,
         servo_gain: float = 300.0,
         arrival_tolerance_deg: float = 0.05,
-        freshness_s: float = 0.05,
+        freshness_s: float = 0.01,
         silence_s: float = SILENCE_S,
         call_timeout_s: float = 0.5,
         stop_timeout_s: float = 1.0,
