@@ -11,7 +11,8 @@ sequence:
 - ``scan/events``: exposures (technique, generator sequence) and state changes.
 
 The file streams to ``<name>.partial`` and is renamed when the acquisition ends (also after a
-fault: what was recorded is kept). A resumed scan writes ``recording-2.rrd`` and so on.
+fault: what was recorded is kept). A resumed scan writes ``recording-2.rrd`` and so on (after a
+killed session's ``.partial`` too).
 rerun writes into a pipe that a thread here copies to the file: rerun's own file sink, on a
 full disk, blocks its flush, its disconnect and the process's exit for ever, where a write here
 raises (the copy then drains the pipe, the file stays ``.partial`` and the failure is raised).
@@ -24,6 +25,7 @@ as it did when the loop logged the views itself.
 
 from __future__ import annotations
 
+import itertools
 import os
 import queue
 import shutil
@@ -55,11 +57,11 @@ class ScanRecorder:
         folder = study.path / SCAN_FOLDERS[stage]
         self.stage = stage
         folder.mkdir(parents=True, exist_ok=True)
-        k = 1
-        while (folder / ("recording.rrd" if k == 1 else f"recording-{k}.rrd")).exists():
-            k += 1
-        self.path = folder / ("recording.rrd" if k == 1 else f"recording-{k}.rrd")
-        self.partial = self.path.with_name(self.path.name + ".partial")
+        for k in itertools.count(1):  # a killed session's .partial is kept too
+            self.path = folder / ("recording.rrd" if k == 1 else f"recording-{k}.rrd")
+            self.partial = self.path.with_name(self.path.name + ".partial")
+            if not self.path.exists() and not self.partial.exists():
+                break
         self.study, self.joint_names, self.pitch_mm = study, joint_names, pitch_mm
         self._queue: queue.Queue[Callable[[], None] | None] = queue.Queue(QUEUE_VIEWS)
         self._failure: BaseException | None = None

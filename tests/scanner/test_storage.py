@@ -181,3 +181,13 @@ def test_a_view_is_not_exposed_when_the_disk_cannot_take_it(tmp_path):
             store.check_room(1)
     finally:
         subprocess.run(["umount", "-l", str(disk)], check=False)
+
+
+def test_a_killed_sessions_partial_recording_is_kept(tmp_path):
+    study = Study.create(tmp_path / "s", {})
+    (study.path / "scan").mkdir()
+    killed = study.path / "scan" / "recording.rrd.partial"
+    killed.write_bytes(b"what the killed session recorded")
+    recorder = ScanRecorder(study, ("rotary", "lift"), 1.0)
+    assert recorder.close() == study.path / "scan" / "recording-2.rrd"
+    assert killed.read_bytes() == b"what the killed session recorded"
