@@ -5,13 +5,13 @@ of the views still to acquire against the protocol's limit, the devices (connect
 technique accepted, interlocks closed), the arms at the plan's start, and asks the operator.
 APPROACH streams the planned approach and warms the tube up, then asks again before exposure.
 ACQUIRE streams the planned scan; at each view's time it reads both arms and the stage, checks
-that the realised view is the planned one within tolerance and that the interlocks are closed,
-and only then fires one pulse, reads the frame and stores it with the joint state it was taken
-at (:class:`scanner.storage.ScanStore`). RETREAT streams the planned retreat; DONE assembles the
-stack. Any failure (a device error, a protective stop, an off-pose view, an open interlock,
-Ctrl-C) goes to SAFE: X-ray off first, then every joint group stops, then what was acquired is
-flushed and the scan marked incomplete with the reason; ``cbct scan --resume`` continues with
-the views not yet stored.
+that the realised view is the planned one within tolerance, that the interlocks are closed and
+that the study's disk can take the view, and only then fires one pulse, reads the frame and
+stores it with the joint state it was taken at (:class:`scanner.storage.ScanStore`). RETREAT
+streams the planned retreat; DONE assembles the stack. Any failure (a device error, a
+protective stop, an off-pose view, an open interlock, a full disk, Ctrl-C) goes to SAFE: X-ray
+off first, then every joint group stops, then what was acquired is flushed and the scan marked
+incomplete with the reason; ``cbct scan --resume`` continues with the views not yet stored.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ from __future__ import annotations
 import enum
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -34,6 +35,9 @@ SETTLE_POLL_S = 0.01
 """Re-read interval while arms settle onto a view's pose, s."""
 GROUP_SLICES = (slice(0, 2), slice(2, 8), slice(8, 14))
 """Plan joint indices of the backend's groups: stage (rotary, lift), source arm, detector arm."""
+_STOPPERS = ThreadPoolExecutor(max_workers=len(GROUP_SLICES), thread_name_prefix="safe-stop")
+"""Threads that stop the joint groups together in SAFE (their drivers wait on sockets, pipes
+and serial ports with the GIL released)."""
 
 
 class State(enum.Enum):
@@ -190,9 +194,11 @@ class ScanRun:
             self._stream("retreat")
         except BaseException as err:  # Ctrl-C included: X-ray off, arms stop, data flushed
             self._safe(err)
-        self.store.finish()
-        self._enter(State.DONE)
-        self._shutdown()
+        try:  # assembling the stacks can fail too (a full disk): the devices are released
+            self.store.finish()
+            self._enter(State.DONE)
+        finally:
+            self._shutdown()
 
     def preflight(self) -> Preflight:
         """Check plan, dose, devices and start pose; raises PreflightError naming the problem."""
@@ -303,6 +309,7 @@ class ScanRun:
             raise DeviceError(f"view {k}: interlock open ({', '.join(opened)}): not exposing")
         if not status.ready or status.fault:
             raise DeviceError(f"view {k}: generator not ready ({status.fault or 'not prepared'})")
+        self.store.check_room(k)  # no dose for a view that cannot be stored
         b.detector.arm(timeout)
         exposure = b.generator.expose(timeout)
         frame = b.detector.read_frame(timeout)
@@ -382,7 +389,10 @@ class ScanRun:
             reason = f"{type(err).__name__}: {err}"
         if problems:
             reason += "; " + "; ".join(problems)
-        self.store.mark_incomplete(reason, failed_in.value)
+        try:
+            self.store.mark_incomplete(reason, failed_in.value)
+        except Exception as mark_err:  # e.g. the disk is full: still release the devices
+            reason += f"; the study could not be marked incomplete: {mark_err}"
         self._shutdown()
         stored, views = len(self.store.stored), len(self.plan.view_times_s)
         raise ScanFault(failed_in, reason, stored, views) from err
@@ -410,15 +420,18 @@ def measured_joints(backend: Backend, timeout_s: float) -> np.ndarray:
 
 def stop_safely(backend: Backend, timeout_s: float) -> list[str]:
     """SAFE's order: X-ray off first (the generator's abort), then every joint group stops,
-    each attempted whatever the one before did; returns what failed, in words."""
+    all at once, each attempted whatever the others do; returns what failed, in words."""
     problems = []
     try:
         backend.generator.abort(timeout_s)
     except Exception as abort_err:  # still stop the arms; report loudly
         problems.append(f"X-RAY OFF NOT CONFIRMED: {abort_err}")
-    for group in backend.groups:
+    # every group at once: one that does not answer (its stop waits for its deadline) must not
+    # hold the others up
+    stops = [_STOPPERS.submit(group.stop) for group in backend.groups]
+    for group, stop in zip(backend.groups, stops, strict=True):
         try:
-            group.stop()
+            stop.result()
         except Exception as stop_err:
             problems.append(f"{group.name} stop failed: {stop_err}")
     return problems

@@ -11,7 +11,11 @@ sequence:
 - ``scan/events``: exposures (technique, generator sequence) and state changes.
 
 The file streams to ``<name>.partial`` and is renamed when the acquisition ends (also after a
-fault: what was recorded is kept). A resumed scan writes ``recording-2.rrd`` and so on.
+fault: what was recorded is kept). A resumed scan writes ``recording-2.rrd`` and so on (after a
+killed session's ``.partial`` too).
+rerun writes into a pipe that a thread here copies to the file: rerun's own file sink, on a
+full disk, blocks its flush, its disconnect and the process's exit for ever, where a write here
+raises (the copy then drains the pipe, the file stays ``.partial`` and the failure is raised).
 
 The recording is not the scan's record (the stored views are): it is written on a worker
 thread, off the exposure loop, which only queues each view and waits only when the recording
@@ -21,7 +25,11 @@ as it did when the loop logged the views itself.
 
 from __future__ import annotations
 
+import itertools
+import os
 import queue
+import shutil
+import tempfile
 import threading
 from collections.abc import Callable
 from pathlib import Path
@@ -49,18 +57,26 @@ class ScanRecorder:
         folder = study.path / SCAN_FOLDERS[stage]
         self.stage = stage
         folder.mkdir(parents=True, exist_ok=True)
-        k = 1
-        while (folder / ("recording.rrd" if k == 1 else f"recording-{k}.rrd")).exists():
-            k += 1
-        self.path = folder / ("recording.rrd" if k == 1 else f"recording-{k}.rrd")
-        self.partial = self.path.with_name(self.path.name + ".partial")
+        for k in itertools.count(1):  # a killed session's .partial is kept too
+            self.path = folder / ("recording.rrd" if k == 1 else f"recording-{k}.rrd")
+            self.partial = self.path.with_name(self.path.name + ".partial")
+            if not self.path.exists() and not self.partial.exists():
+                break
         self.study, self.joint_names, self.pitch_mm = study, joint_names, pitch_mm
-        self.rec = rr.RecordingStream("dualarm-cbct")
-        self.rec.save(self.partial)
-        self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         self._queue: queue.Queue[Callable[[], None] | None] = queue.Queue(QUEUE_VIEWS)
         self._failure: BaseException | None = None
+        self._file_failure: OSError | None = None
         self._reported = False
+        self._pipe_folder = Path(tempfile.mkdtemp(prefix="cbct-recording-"))
+        pipe = self._pipe_folder / "recording.rrd"
+        os.mkfifo(pipe)
+        self._copier = threading.Thread(
+            target=self._copy, args=(pipe,), name="scan-recording-file", daemon=True
+        )
+        self._copier.start()
+        self.rec = rr.RecordingStream("dualarm-cbct")
+        self.rec.save(pipe)
+        self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         self._worker = threading.Thread(target=self._work, name="scan-recording", daemon=True)
         self._worker.start()
 
@@ -80,8 +96,15 @@ class ScanRecorder:
         raises if the worker failed and no :meth:`view` has said so yet."""
         self._queue.put(None)
         self._worker.join()
-        self.rec.flush()
+        self.rec.flush()  # never blocks on the disk: the copy drains the pipe
         self.rec.disconnect()
+        self._copier.join()
+        shutil.rmtree(self._pipe_folder, ignore_errors=True)
+        if self._file_failure is not None:
+            raise RuntimeError(
+                f"the scan's rerun recording could not be written to {self.partial}: "
+                f"{self._file_failure}"
+            ) from self._file_failure
         self.partial.rename(self.path)
         self.study.adopt(self.path.relative_to(self.study.path).as_posix())
         self.study.save()
@@ -93,6 +116,24 @@ class ScanRecorder:
         if failure is not None and not self._reported:
             self._reported = True
             raise RuntimeError(f"the scan's rerun recording failed: {failure}") from failure
+
+    def _copy(self, pipe: Path) -> None:
+        """Copy what rerun writes into ``pipe`` to the partial file, fsynced at the end; after
+        a failed write keep draining the pipe (rerun must never wait on it)."""
+        with open(pipe, "rb") as source, open(self.partial, "wb", buffering=0) as target:
+            while block := source.read(1 << 16):
+                view = memoryview(block)
+                while view and self._file_failure is None:
+                    try:
+                        view = view[target.write(view) :]
+                    except OSError as err:
+                        self._file_failure = err
+                        self._failure = self._failure or err
+            if self._file_failure is None:
+                try:
+                    os.fsync(target.fileno())
+                except OSError as err:
+                    self._file_failure = err
 
     def _work(self) -> None:
         while (job := self._queue.get()) is not None:

@@ -299,6 +299,11 @@ def scan_stage(
         except (ValueError, RuntimeError) as err:  # the scan's outcome stands
             say(f"PARK NOT DONE: {err}")
 
+    def finish_records() -> None:
+        recorder.close()
+        if simulated is not None:
+            _write_device_events(study, store.folder, simulated.world.events, len(sessions))
+
     try:
         if move_to_start:
             move_recorded(
@@ -313,11 +318,15 @@ def scan_stage(
             raise
         if park:
             park_after_scan()
-    finally:
+    except BaseException:
         _close(backend)
-        recorder.close()
-        if simulated is not None:
-            _write_device_events(study, store.folder, simulated.world.events, len(sessions))
+        try:  # the scan's own failure is the one to report (e.g. a full disk fails both)
+            finish_records()
+        except Exception as err:
+            say(f"the recording and device log of this session were not finished: {err}")
+        raise
+    _close(backend)
+    finish_records()
 
 
 def _write_device_events(study: Study, folder: str, events: list, session: int) -> None:

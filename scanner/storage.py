@@ -16,12 +16,16 @@ Layout under ``scan/`` (``calibration_scan/`` for the steel-ball phantom's scan)
 A view counts as stored once its .json exists (written last, atomically, after both images,
 with their sha256); on reopening, every stored view is checked against its checksums (the
 manifest's, or the record's for views stored after the manifest's last save), and an altered or
-missing file is an error, never skipped silently.
+missing file is an error, never skipped silently. An image without its record (the process
+killed between renaming the images and the record into place) was never stored: it is moved
+to ``views/interrupted/`` (kept, never overwritten) and the view is acquired again.
 """
 
 from __future__ import annotations
 
+import itertools
 import json
+import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -34,6 +38,13 @@ from scanner.study import Study, StudyError, sha256
 
 SCAN_FOLDERS = {"scan": "scan", "calibration_scan": "calibration_scan"}
 """Folder of each scan stage in the study."""
+ROOM_MARGIN_BYTES = 4 << 20
+"""Free space a view must leave on the study's disk before it is exposed (the recording, the
+device log and the stage's status still need some), bytes."""
+_HEADER_BYTES = 4096
+"""Upper bound of a view image's MetaImage header, bytes."""
+_RECORD_BYTES = 16384
+"""Upper bound of a view's JSON record, bytes."""
 
 
 @dataclass(frozen=True)
@@ -164,6 +175,34 @@ class ScanStore:
                 self.records[k] = ViewRecord.from_json(data)
             except (TypeError, ValueError) as err:
                 raise StudyError(f"{path}: not a view record ({err})") from None
+        for path in sorted(folder.glob("view_*.mha")):
+            k = int(path.name[len("view_") :].split("_")[0].split(".")[0])
+            if k not in self.records:
+                self._set_aside(path)
+
+    def _set_aside(self, path: Path) -> None:
+        """Move an image whose view has no record to ``interrupted/`` under a new name."""
+        aside = path.parent / "interrupted"
+        aside.mkdir(exist_ok=True)
+        for n in itertools.count():
+            target = aside / (path.name if n == 0 else f"{path.stem}.{n}{path.suffix}")
+            if not target.exists():
+                os.rename(path, target)
+                return
+
+    def check_room(self, k: int) -> None:
+        """Raise StudyError unless the study's filesystem can take view ``k``: both images,
+        its record and a save of the manifest, with :data:`ROOM_MARGIN_BYTES` to spare."""
+        stat = os.statvfs(self.study.path)
+        free = stat.f_bavail * stat.f_frsize
+        image = self.panel.rows * self.panel.cols * 4 + _HEADER_BYTES
+        manifest = (self.study.path / "study.json").stat().st_size
+        need = 2 * image + _RECORD_BYTES + manifest + ROOM_MARGIN_BYTES
+        if free < need:
+            raise StudyError(
+                f"view {k}: the study's disk has {free / 2**20:.2f} MiB free, a view needs "
+                f"{need / 2**20:.2f} MiB (images, record, manifest, margin): not exposing"
+            )
 
     def image(self, k: int) -> np.ndarray:
         """The stored line integrals of view ``k``, float32 (rows, cols)."""

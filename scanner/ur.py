@@ -10,16 +10,22 @@ started): readings of one arm are exactly spaced, but the clocks of two arms are
 
 Points that matter on hardware:
 
-- ur-rtde's constructors hold the GIL and have no handshake timeout: a controller that accepts
-  a connection and never answers would freeze the whole process. :meth:`URArm.connect` therefore
-  first probes the controller itself within the caller's timeout (an RTDE protocol-version
-  handshake on 30004, the dashboard's welcome line on 29999, a TCP connect on 30003) and raises
-  :class:`~scanner.hardware.DeviceTimeout` naming host and port before any constructor runs.
+- ur-rtde's constructors hold the GIL and have no timeout, and its blocking calls (stopJ,
+  servoStop) wait on the controller for minutes: a controller that stops answering would freeze
+  the whole process. The interfaces therefore live in a worker process
+  (:class:`scanner.ur_client.URClient`) and every call has a deadline this process enforces
+  (``call_timeout_s``, ``stop_timeout_s``, the connect timeout); past it the worker is killed
+  and the call raises :class:`~scanner.hardware.DeviceTimeout`. Before that :meth:`URArm.connect`
+  probes the controller itself (an RTDE protocol-version handshake on 30004, the dashboard's
+  welcome line on 29999, a TCP connect on 30003), so that a dead port is named as such.
 - ``move_to`` starts an asynchronous moveJ and waits for it in Python, so its timeout holds
   (a blocking moveJ only gives up after ur-rtde's 300 s); on timeout the arm is stopped.
 - A reading is fresh when the controller's timestamp is no older than ``freshness_s`` by the
   host clock (their offset is tracked with a small allowance for clock drift): a stalled or
-  dropped RTDE stream raises instead of returning the last value again.
+  dropped RTDE stream raises instead of returning the last value again. A stream that has not
+  moved for ``silence_s`` is a silent controller: ``state`` and ``servo`` raise DeviceTimeout at
+  once (not at the end of the caller's timeout), so a scan reaches SAFE within ``silence_s``
+  plus one set-point period.
 - In a protective stop ``state`` still answers (with ``protective_stop=True``, so a caller can
   record where the arm stopped); ``move_to`` and ``servo`` raise
   :class:`~scanner.hardware.ProtectiveStop`. Unlocking is an operator's decision on the pendant
@@ -34,12 +40,12 @@ import math
 import socket
 import struct
 import time
-from collections.abc import Callable, Sequence
-from typing import Any, TypeVar
+from collections.abc import Sequence
 
 import numpy as np
 
 from scanner.hardware import DeviceError, DeviceTimeout, JointState, ProtectiveStop
+from scanner.ur_client import URClient
 
 log = logging.getLogger(__name__)
 
@@ -70,7 +76,12 @@ _RECEIVE_VARIABLES = [
 _DRIFT_ALLOWANCE = 2e-4
 """How fast (s/s) the controller clock may fall behind the host's before readings look stale."""
 
-_T = TypeVar("_T")
+SILENCE_S = 0.1
+"""Default longest pause of an arm's RTDE stream (50 periods at 500 Hz) before the controller
+counts as silent, s."""
+
+_CLOSE_TIMEOUT_S = 3.0
+"""Deadline of ur-rtde's disconnect (its destructors sleep 0.5 s each), s."""
 
 
 class _Freshness:
@@ -108,7 +119,13 @@ class URArm:
         servo_lookahead_s: servoJ lookahead time, s (ur-rtde: 0.03 to 0.2).
         servo_gain: servoJ proportional gain (ur-rtde: 100 to 2000).
         arrival_tolerance_deg: how close to the goal a finished move must be, deg, per joint.
-        freshness_s: the oldest reading ``state`` returns, s.
+        freshness_s: the oldest reading ``state`` returns, s (5 RTDE periods at 500 Hz: the
+            pose an exposure is decided on is at most this old).
+        silence_s: the longest pause of the RTDE stream before the controller counts as
+            silent (``state`` and ``servo`` raise at once), s.
+        call_timeout_s: deadline of a ur-rtde call that does not wait for motion (readings,
+            servoJ, starting a moveJ), s.
+        stop_timeout_s: deadline of servoStop / stopJ, which return at standstill, s.
         frequency_hz: RTDE update rate, Hz (None: the controller's, 500 Hz on e-series).
         upper_range_registers: run ur-rtde's script on registers 24-47 (leave 0-23 to a
             fieldbus or another client).
@@ -127,7 +144,10 @@ class URArm:
         servo_lookahead_s: float = 0.1,
         servo_gain: float = 300.0,
         arrival_tolerance_deg: float = 0.05,
-        freshness_s: float = 0.05,
+        freshness_s: float = 0.01,
+        silence_s: float = SILENCE_S,
+        call_timeout_s: float = 0.5,
+        stop_timeout_s: float = 1.0,
         frequency_hz: float | None = None,
         upper_range_registers: bool = False,
     ) -> None:
@@ -143,6 +163,8 @@ class URArm:
             ("servo_stop_decel_mm_s2", servo_stop_decel_mm_s2),
             ("arrival_tolerance_deg", arrival_tolerance_deg),
             ("freshness_s", freshness_s),
+            ("call_timeout_s", call_timeout_s),
+            ("stop_timeout_s", stop_timeout_s),
         ):
             if not value > 0:
                 raise ValueError(f"{name}: {label} must be > 0, got {value}")
@@ -156,11 +178,17 @@ class URArm:
         self.servo_lookahead_s = servo_lookahead_s
         self.servo_gain = servo_gain
         self.arrival_tolerance_deg = arrival_tolerance_deg
+        if not silence_s >= freshness_s:
+            raise ValueError(
+                f"{name}: silence_s must be >= freshness_s = {freshness_s}, got {silence_s}"
+            )
         self.freshness_s = freshness_s
+        self.silence_s = silence_s
+        self.call_timeout_s = call_timeout_s
+        self.stop_timeout_s = stop_timeout_s
         self.frequency_hz = frequency_hz
         self.upper_range_registers = upper_range_registers
-        self._receive: Any = None
-        self._control: Any = None
+        self._client: URClient | None = None
         self._servoing = False
         self._freshness = _Freshness()
 
@@ -170,7 +198,7 @@ class URArm:
 
     @property
     def connected(self) -> bool:
-        return self._receive is not None and self._control is not None
+        return self._client is not None and self._client.alive
 
     # -- connection ----------------------------------------------------------------------------
 
@@ -187,36 +215,22 @@ class URArm:
         self._probe_dashboard(deadline, timeout_s)
         self._probe_port(SCRIPT_PORT, "script server", deadline, timeout_s).close()
 
-        import rtde_control
-        import rtde_receive
-
         frequency = -1.0 if self.frequency_hz is None else float(self.frequency_hz)
-        try:
-            receive = rtde_receive.RTDEReceiveInterface(
-                self.host, frequency, _RECEIVE_VARIABLES, False, self.upper_range_registers
-            )
-        except Exception as exc:
-            raise DeviceError(
-                f"{self.name}: connect: ur-rtde could not open RTDE receive on "
-                f"{self.host}:{RTDE_PORT}: {exc}"
-            ) from exc
-        flags = rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT
-        if self.upper_range_registers:
-            flags |= rtde_control.RTDEControlInterface.FLAG_UPPER_RANGE_REGISTERS
-        try:
-            control = rtde_control.RTDEControlInterface(self.host, frequency, int(flags))
-        except Exception as exc:
-            del receive  # its destructor disconnects
-            raise DeviceError(
-                f"{self.name}: connect: ur-rtde could not start its control script on "
-                f"{self.host} (dashboard {DASHBOARD_PORT}, RTDE {RTDE_PORT}, script "
-                f"{SCRIPT_PORT}): {exc}"
-            ) from exc
-        self._receive, self._control = receive, control
+        client = URClient(self.name, self.host)
+        client.open(
+            frequency,
+            _RECEIVE_VARIABLES,
+            self.upper_range_registers,
+            max(deadline - time.monotonic(), 0.0),
+        )
+        self._client = client
         self._servoing = False
         self._freshness = _Freshness()
         try:
-            if not control.isProgramRunning():
+            running = client.call(
+                "control", "isProgramRunning", timeout_s=self.call_timeout_s, what="connect"
+            )
+            if not running:
                 raise DeviceError(
                     f"{self.name}: connect: ur-rtde's control script is not running on {self.host}"
                 )
@@ -295,38 +309,51 @@ class URArm:
 
     # -- readings ------------------------------------------------------------------------------
 
-    def _require(self, call: str) -> tuple[Any, Any]:
-        if not self.connected:
+    def _client_for(self, call: str) -> URClient:
+        if self._client is None or not self._client.alive:
             raise DeviceError(f"{self.name}: {call}: not connected to {self.host}")
-        if not self._call(call, self._receive.isConnected):
-            raise DeviceError(
-                f"{self.name}: {call}: the RTDE connection to {self.host}:{RTDE_PORT} dropped"
-            )
-        return self._receive, self._control
+        return self._client
 
-    def _call(self, call: str, fn: Callable[..., _T], *args: Any) -> _T:
-        try:
-            return fn(*args)
-        except Exception as exc:
-            raise DeviceError(f"{self.name}: {call}: ur-rtde failed on {self.host}: {exc}") from exc
+    def _calls(self, call: str, calls: list, timeout_s: float | None = None) -> list:
+        """``calls`` in one round trip to the worker within ``timeout_s`` (``call_timeout_s``)."""
+        client = self._client_for(call)
+        return client.calls(calls, self.call_timeout_s if timeout_s is None else timeout_s, call)
 
-    def _protective_stopped(self, call: str) -> bool:
-        receive = self._receive
-        return bool(
-            self._call(call, receive.isProtectiveStopped)
-            or self._call(call, receive.getSafetyMode) == SAFETY_MODE_PROTECTIVE_STOP
+    def _dropped(self, call: str) -> DeviceError:
+        return DeviceError(
+            f"{self.name}: {call}: the RTDE connection to {self.host}:{RTDE_PORT} dropped"
         )
 
+    def _silent(self, call: str, age_s: float) -> DeviceTimeout:
+        return DeviceTimeout(
+            f"{self.name}: {call}: {self.host} is silent: no RTDE package for {age_s:.3f} s "
+            f"(limit {self.silence_s} s)"
+        )
+
+    def _protective_stopped(self, call: str) -> bool:
+        stopped, safety_mode = self._calls(
+            call, [("receive", "isProtectiveStopped", ()), ("receive", "getSafetyMode", ())]
+        )
+        return bool(stopped or safety_mode == SAFETY_MODE_PROTECTIVE_STOP)
+
     def state(self, timeout_s: float) -> JointState:
-        """The measured joints (deg) and the controller timestamp of one fresh RTDE package."""
-        receive, _ = self._require("state")
+        """The measured joints (deg) and the controller timestamp of one fresh RTDE package;
+        raises DeviceTimeout when none is fresh within ``timeout_s``, at once when the stream
+        has been silent for ``silence_s``."""
         deadline = time.monotonic() + timeout_s
         age = math.nan
+        reading = [
+            ("receive", "isConnected", ()),
+            ("receive", "getTimestamp", ()),
+            ("receive", "getActualQ", ()),
+            ("receive", "isProtectiveStopped", ()),
+            ("receive", "getSafetyMode", ()),
+            ("receive", "getTimestamp", ()),
+        ]
         while True:
-            t0 = self._call("state", receive.getTimestamp)
-            q_rad = self._call("state", receive.getActualQ)
-            stopped = self._protective_stopped("state")
-            t1 = self._call("state", receive.getTimestamp)
+            connected, t0, q_rad, stopped, safety_mode, t1 = self._calls("state", reading)
+            if not connected:
+                raise self._dropped("state")
             now = time.monotonic()
             if t0 == t1:  # q and the flags belong to one package
                 age = self._freshness.age_s(t1, now)
@@ -336,13 +363,11 @@ class URArm:
                         raise DeviceError(
                             f"{self.name}: state: {self.host} sent actual_q of shape {q.shape}"
                         )
+                    stopped = bool(stopped or safety_mode == SAFETY_MODE_PROTECTIVE_STOP)
                     return JointState(q=q, t_s=float(t1), protective_stop=stopped)
+                if age > self.silence_s:
+                    raise self._silent("state", age)
             if now >= deadline:
-                if not self._call("state", receive.isConnected):
-                    raise DeviceError(
-                        f"{self.name}: state: the RTDE connection to {self.host}:{RTDE_PORT} "
-                        "dropped"
-                    )
                 raise DeviceTimeout(
                     f"{self.name}: state: no fresh reading from {self.host} within {timeout_s} s "
                     f"(controller timestamp {t1:.3f} s is {age:.3f} s old, limit "
@@ -365,15 +390,19 @@ class URArm:
             raise ProtectiveStop(
                 f"{self.name}: {call}: {self.host} is in protective stop; refused {what}"
             )
-        running = self._call(call, self._control.isProgramRunning)
+        (running,) = self._calls(call, [("control", "isProgramRunning", ())])
         raise DeviceError(
             f"{self.name}: {call}: {self.host} refused {what} (control script running: {running})"
         )
 
+    def _progress(self, call: str) -> tuple[int, bool]:
+        """The controller's async operation: (operation id, running)."""
+        (status,) = self._calls(call, [("control", "getAsyncOperationProgressEx", ())])
+        return status
+
     def move_to(self, q: np.ndarray, timeout_s: float) -> None:
         """moveJ to ``q`` (deg) at the configured speed; returns at the goal, raises otherwise."""
         goal = self._goal("move_to", q)
-        _, control = self._require("move_to")
         deadline = time.monotonic() + timeout_s
         start = self.state(timeout_s)
         what = f"moveJ to {np.round(goal, 4).tolist()} deg"
@@ -381,32 +410,31 @@ class URArm:
             raise ProtectiveStop(
                 f"{self.name}: move_to: {self.host} is in protective stop; refused {what}"
             )
-        before = self._call("move_to", control.getAsyncOperationProgressEx)
-        ok = self._call(
-            "move_to",
-            control.moveJ,
+        before, _ = self._progress("move_to")
+        args = (
             np.deg2rad(goal).tolist(),
             math.radians(self.move_speed_deg_s),
             math.radians(self.move_accel_deg_s2),
             True,
         )
+        (ok,) = self._calls("move_to", [("control", "moveJ", args)])
         if not ok:
             self._raise_refused("move_to", what)
         self._servoing = False
         started = False
         while True:
-            status = self._call("move_to", control.getAsyncOperationProgressEx)
-            started = started or status.operationId() != before.operationId()
+            operation, running = self._progress("move_to")
+            started = started or operation != before
             reading = self.state(max(deadline - time.monotonic(), self.freshness_s))
             if reading.protective_stop:
                 raise ProtectiveStop(
                     f"{self.name}: move_to: protective stop on {self.host} during {what}, "
                     f"at {np.round(reading.q, 3).tolist()} deg"
                 )
-            if started and not status.isAsyncOperationRunning():
+            if started and not running:
                 break
             if time.monotonic() > deadline:
-                _quietly(control.stopJ, math.radians(self.stop_decel_deg_s2), False)
+                self._stop_quietly()
                 raise DeviceTimeout(
                     f"{self.name}: move_to: {what} on {self.host} not finished within "
                     f"{timeout_s} s (at {np.round(reading.q, 3).tolist()} deg); stopped"
@@ -422,19 +450,31 @@ class URArm:
             )
 
     def servo(self, q: np.ndarray, dt_s: float) -> None:
-        """servoJ to ``q`` (deg), to be reached ``dt_s`` from now; does not wait."""
+        """servoJ to ``q`` (deg), to be reached ``dt_s`` from now; does not wait. Raises
+        DeviceTimeout when the controller has been silent for ``silence_s``."""
         goal = self._goal("servo", q)
         if not dt_s > 0:
             raise DeviceError(f"{self.name}: servo: dt_s must be > 0, got {dt_s}")
-        _, control = self._require("servo")
-        if self._protective_stopped("servo"):
+        connected, t, stopped, safety_mode = self._calls(
+            "servo",
+            [
+                ("receive", "isConnected", ()),
+                ("receive", "getTimestamp", ()),
+                ("receive", "isProtectiveStopped", ()),
+                ("receive", "getSafetyMode", ()),
+            ],
+        )
+        if not connected:
+            raise self._dropped("servo")
+        age = self._freshness.age_s(t, time.monotonic())
+        if age > self.silence_s:
+            raise self._silent("servo", age)
+        if stopped or safety_mode == SAFETY_MODE_PROTECTIVE_STOP:
             raise ProtectiveStop(
                 f"{self.name}: servo: {self.host} is in protective stop; refused servoJ to "
                 f"{np.round(goal, 4).tolist()} deg"
             )
-        ok = self._call(
-            "servo",
-            control.servoJ,
+        args = (
             np.deg2rad(goal).tolist(),
             0.0,
             0.0,
@@ -442,52 +482,61 @@ class URArm:
             self.servo_lookahead_s,
             self.servo_gain,
         )
+        (ok,) = self._calls("servo", [("control", "servoJ", args)])
         if not ok:
             self._raise_refused("servo", f"servoJ to {np.round(goal, 4).tolist()} deg")
         self._servoing = True
 
     def stop(self) -> None:
-        """Leave servo mode and decelerate to standstill (stopJ); a no-op when not connected or
-        already stopped by a protective stop."""
+        """Leave servo mode and decelerate to standstill (stopJ) within ``stop_timeout_s``; a
+        no-op when not connected or already stopped by a protective stop."""
         if not self.connected:
             return
-        _, control = self._require("stop")
+        (connected,) = self._calls("stop", [("receive", "isConnected", ())])
+        if not connected:
+            raise self._dropped("stop")
         if self._protective_stopped("stop"):
             self._servoing = False
             return
         if self._servoing:
-            ok = self._call("stop", control.servoStop, self.servo_stop_decel_mm_s2 / 1000.0)
+            decel = self.servo_stop_decel_mm_s2 / 1000.0
+            (ok,) = self._calls("stop", [("control", "servoStop", (decel,))], self.stop_timeout_s)
             if not ok:
                 self._raise_refused("stop", "servoStop")
             self._servoing = False
-        self._call("stop", control.stopJ, math.radians(self.stop_decel_deg_s2), False)
+        decel = math.radians(self.stop_decel_deg_s2)
+        self._calls("stop", [("control", "stopJ", (decel, False))], self.stop_timeout_s)
+
+    def _stop_quietly(self) -> None:
+        try:
+            decel = math.radians(self.stop_decel_deg_s2)
+            self._calls("stop", [("control", "stopJ", (decel, False))], self.stop_timeout_s)
+        except DeviceError as exc:
+            log.warning("%s: stopJ failed: %s", self.name, exc)
 
     def close(self) -> None:
         """Stop, end ur-rtde's control script and disconnect; safe to call twice.
 
         The connection is released even when stopping fails; that failure is raised afterwards.
         """
-        receive, control = self._receive, self._control
-        if receive is None and control is None:
+        client = self._client
+        if client is None:
             return
         failure: DeviceError | None = None
         try:
-            if receive is not None and control is not None and receive.isConnected():
+            if client.alive and self._calls("close", [("receive", "isConnected", ())])[0]:
                 try:
                     self.stop()
                 except DeviceError as exc:
                     failure = exc
-                if control.isProgramRunning():
-                    _quietly(control.stopScript)
-        except Exception as exc:
-            failure = failure or DeviceError(f"{self.name}: close: ur-rtde failed: {exc}")
+                if client.alive and self._calls("close", [("control", "isProgramRunning", ())])[0]:
+                    self._calls("close", [("control", "stopScript", ())], self.stop_timeout_s)
+        except DeviceError as exc:
+            failure = failure or exc
         finally:
-            # ur-rtde's destructors disconnect (closing the sockets, then sleeping 0.5 s each);
-            # an explicit disconnect() first would only run that twice. Dropping the last
-            # references here destroys both interfaces now.
-            self._receive = self._control = None
+            self._client = None
             self._servoing = False
-            del control, receive
+            client.close(_CLOSE_TIMEOUT_S)
             log.info("%s: disconnected from %s", self.name, self.host)
         if failure is not None:
             raise failure
@@ -502,10 +551,3 @@ class URArm:
 def _check_range(name: str, label: str, value: float, low: float, high: float) -> None:
     if not low <= value <= high:
         raise ValueError(f"{name}: {label} = {value} is outside [{low:g}, {high:g}]")
-
-
-def _quietly(fn: Callable[..., object], *args: object) -> None:
-    try:
-        fn(*args)
-    except Exception as exc:
-        log.warning("ur-rtde %s failed: %s", getattr(fn, "__name__", fn), exc)

@@ -14,6 +14,8 @@ from __future__ import annotations
 import itertools
 import math
 import threading
+import time
+from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
@@ -54,6 +56,10 @@ class SimWorld:
         tracking_noise: standard deviation of the true position about the lagged set-point,
             deg (mm for the lift).
         seed: seed of the tracking noise.
+        event_log: a file each event is also appended to as it happens (opened, written and
+            closed per event), one line ``sequence,time_s,wall_s,device,event`` (``wall_s``:
+            ``time.monotonic()``), so that another process can time the events, also after
+            this one was killed.
     """
 
     def __init__(
@@ -64,8 +70,10 @@ class SimWorld:
         lag_s: float = 0.004,
         tracking_noise: float = 0.002,
         seed: int = 0,
+        event_log: Path | None = None,
     ) -> None:
         self.model = model
+        self.event_log = event_log
         self.t = 0.0
         self.lag_s = lag_s
         self.tracking_noise = tracking_noise
@@ -88,7 +96,12 @@ class SimWorld:
     def log(self, who: str, what: str) -> None:
         """Append an event (sequence, virtual time, device, event) to the ordered log."""
         with self.lock:
-            self.events.append((next(self._seq), self.t, who, what))
+            seq = next(self._seq)
+            self.events.append((seq, self.t, who, what))
+            if self.event_log is not None:
+                line = f"{seq},{self.t:.6f},{time.monotonic():.6f},{who},{what}\n"
+                with open(self.event_log, "a", encoding="utf-8") as fh:
+                    fh.write(line)
 
     def command(self, group: str, q: np.ndarray, dt_s: float) -> None:
         """Ramp the group's set-point from where it is to ``q`` over ``dt_s``."""

@@ -7,13 +7,15 @@ scanner drives it with its real serial driver), and the panel renders the subjec
 view the arms truly realise at each pulse, vibration included. Faults are injected from the
 spec: a protective stop, a generator that stops answering, a dropped frame, an interlock that
 opens, each at a given view (the number of views acquired before it happens, counted in this
-session).
+session). ``event_log`` streams the device events to a file as they happen, with wall-clock
+times (bench/soak.py times the way to SAFE from it).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -76,6 +78,10 @@ class SimBackendSpec(BaseModel):
     start_pose: SimStartPose | None = Field(
         None, description="where the scanner stands at the session's start (None: the plan's start)"
     )
+    event_log: str | None = Field(
+        None,
+        description="file the device events are appended to as they happen (sim.arms.SimWorld)",
+    )
 
 
 def volume_subject(volume: Volume) -> Callable[[View], np.ndarray]:
@@ -118,7 +124,12 @@ def simulated_scanner(
     if spec.start_pose is not None:
         start_q = spec.start_pose.q()
     world = SimWorld(
-        model, start_q, lag_s=spec.lag_s, tracking_noise=spec.tracking_noise_deg, seed=spec.seed
+        model,
+        start_q,
+        lag_s=spec.lag_s,
+        tracking_noise=spec.tracking_noise_deg,
+        seed=spec.seed,
+        event_log=None if spec.event_log is None else Path(spec.event_log),
     )
     faults = spec.faults
     arms = {

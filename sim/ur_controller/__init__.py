@@ -3,7 +3,8 @@
 Run it as its own process, one per host address (ur-rtde connects to fixed ports)::
 
     python -m sim.ur_controller --host 127.0.0.2 --home-deg 0 -90 90 -90 -90 0 \\
-        [--protective-stop-after-servo N] [--name source_arm] [--verbose]
+        [--protective-stop-after-servo N] [--silent-after-servo N] [--silent-after-handshake] \\
+        [--name source_arm] [--verbose]
 
 or from Python with :class:`FakeURController` (a context manager that starts the process and
 waits until its ports accept connections). On that address it serves RTDE on port 30004

@@ -34,6 +34,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from sim.ur_controller.arm import CONTROL_PERIOD_S
+from sim.ur_controller.events import print_event
 
 if TYPE_CHECKING:
     from sim.ur_controller.controller import Controller
@@ -166,10 +167,12 @@ class ControlScript:
                 self.waiting = lambda: joints.mode != "movej"
                 return
         elif cmd in (CMD_SERVO_STOP, CMD_SPEED_STOP):
+            print_event("stop")
             joints.stop(self.in_double(0))
             self.waiting = lambda: joints.mode != "stop"
             return
         elif cmd in (CMD_STOPJ, CMD_STOPL):
+            print_event("stop")
             self.stop_async_move()
             joints.stop(self.in_double(0))
             if self.in_int(1) == 1:

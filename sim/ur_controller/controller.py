@@ -6,6 +6,16 @@ protective stop, as the real controller does on a fault: ``safety_mode`` PROTECT
 (``runtime_state`` PAUSED), the joints decelerated to standstill, further motion refused. The
 dashboard's ``unlock protective stop`` clears it, as on the robot not before 5 s have passed;
 the program then stays paused (``play`` resumes it, or upload the script again).
+
+``--silent-after-servo N``: the N-th servoJ command makes the controller stop answering
+altogether (a hung controller or a cut network behind a switch that keeps the links up): the
+joints move no more, no RTDE package goes out, no request on any port is answered, and the
+connections stay open. ``--silent-after-handshake``: RTDE answers the protocol-version request
+and nothing after it (the dashboard and the script ports still answer).
+
+Events a test or a benchmark times against the host's clock are printed to stdout as
+``EVENT <name> <time.monotonic()>`` lines: ``silent``, ``protective_stop``, ``stop`` (a
+servoStop, speedStop, stopJ or stopL taken by the control script).
 """
 
 from __future__ import annotations
@@ -26,6 +36,7 @@ from sim.ur_controller.arm import (
     forward_kinematics,
 )
 from sim.ur_controller.control_script import CMD_SERVOJ, ControlScript, WriteProgram
+from sim.ur_controller.events import print_event
 
 log = logging.getLogger("sim.ur_controller")
 
@@ -203,6 +214,7 @@ class Controller:
         home_deg: the six joint positions at start, deg.
         name: a label for the log.
         protective_stop_after_servo: enter a protective stop on this many servoJ commands.
+        silent_after_servo: stop answering anything on this many servoJ commands.
         servo_lag_s: time constant of the servo set-point tracking, s.
     """
 
@@ -212,6 +224,7 @@ class Controller:
         *,
         name: str = "ur",
         protective_stop_after_servo: int | None = None,
+        silent_after_servo: int | None = None,
         servo_lag_s: float = 0.004,
     ) -> None:
         home = np.asarray(home_deg, dtype=np.float64)
@@ -235,6 +248,8 @@ class Controller:
         self.program: ControlScript | WriteProgram | None = None
         self.program_name = "<unnamed>"
         self.protective_stop_after_servo = protective_stop_after_servo
+        self.silent_after_servo = silent_after_servo
+        self.silent = False
         self.servo_commands = 0
         self.watchdog_last_update = 0.0
         self._fk_cache: tuple[bytes, tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
@@ -249,6 +264,7 @@ class Controller:
         if self.protective_stopped:
             return
         log.warning("%s: protective stop (%s) at t=%.3f s", self.name, why, self.t)
+        print_event("protective_stop")
         self.safety_mode = SAFETY_MODE_PROTECTIVE_STOP
         self.protective_stop_t = self.t
         self.joints.stop(PROTECTIVE_STOP_DECEL_RAD_S2)
@@ -356,13 +372,24 @@ class Controller:
             n = self.protective_stop_after_servo
             if n is not None and self.servo_commands == n:
                 self.protective_stop(f"injected after {n} servoJ commands")
+            if self.servo_commands == self.silent_after_servo:
+                self.go_silent(f"injected after {self.servo_commands} servoJ commands")
+
+    def go_silent(self, why: str) -> None:
+        """Stop answering: the control loop freezes and no port answers from now on."""
+        if not self.silent:
+            log.warning("%s: silent (%s) at t=%.3f s", self.name, why, self.t)
+            print_event("silent")
+            self.silent = True
 
     # -- the control loop --------------------------------------------------------------------
 
     def tick(self) -> None:
-        """One 2 ms cycle: the program, then the joints."""
+        """One 2 ms cycle: the program, then the joints (once silent, only the clock runs)."""
         self.ticks += 1
         self.t = self.ticks * CONTROL_PERIOD_S
+        if self.silent:
+            return
         program = self.program
         if program is not None and self.runtime_state == RUNTIME_PLAYING:
             if isinstance(program, ControlScript) and program.watchdog_period_s is not None:

@@ -44,9 +44,12 @@ class DashboardSession(asyncio.Protocol):
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)
         self.transport = transport
-        transport.write(b"Connected: Universal Robots Dashboard Server\n")
+        if not self.ctl.silent:
+            transport.write(b"Connected: Universal Robots Dashboard Server\n")
 
     def data_received(self, data: bytes) -> None:
+        if self.ctl.silent:
+            return
         self.buffer += data
         while b"\n" in self.buffer:
             line, self.buffer = self.buffer.split(b"\n", 1)

@@ -31,6 +31,8 @@ class FakeURController:
         home_deg: Sequence[float],
         *,
         protective_stop_after_servo: int | None = None,
+        silent_after_servo: int | None = None,
+        silent_after_handshake: bool = False,
         name: str | None = None,
         servo_lag_s: float | None = None,
         verbose: bool = False,
@@ -55,6 +57,10 @@ class FakeURController:
         ]
         if protective_stop_after_servo is not None:
             self.args += ["--protective-stop-after-servo", str(protective_stop_after_servo)]
+        if silent_after_servo is not None:
+            self.args += ["--silent-after-servo", str(silent_after_servo)]
+        if silent_after_handshake:
+            self.args.append("--silent-after-handshake")
         if servo_lag_s is not None:
             self.args += ["--servo-lag-s", repr(servo_lag_s)]
         if verbose:
@@ -63,7 +69,7 @@ class FakeURController:
         self._log = tempfile.TemporaryFile()
 
     def start(self) -> FakeURController:
-        root = Path(__file__).resolve().parents[1]
+        root = Path(__file__).resolve().parents[2]  # the repository: this checkout's sim
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join(p for p in (str(root), env.get("PYTHONPATH", "")) if p)
         self.process = subprocess.Popen(
@@ -90,6 +96,16 @@ class FakeURController:
         """What the process wrote to stdout and stderr so far."""
         self._log.seek(0)
         return self._log.read().decode(errors="replace")
+
+    def events(self) -> list[tuple[str, float]]:
+        """The ``EVENT`` lines printed so far (:mod:`sim.ur_controller.events`): name and
+        ``time.monotonic()`` of each, oldest first."""
+        out = []
+        for line in self.log_text().splitlines():
+            words = line.split()
+            if len(words) == 3 and words[0] == "EVENT":
+                out.append((words[1], float(words[2])))
+        return out
 
     def stop(self) -> None:
         process, self.process = self.process, None

@@ -125,6 +125,10 @@ class RTDESession(asyncio.Protocol):
                 log.exception("%s: RTDE package %r from %s", self.ctl.name, chr(kind), self.peer)
 
     def handle(self, kind: int, payload: bytes) -> None:
+        if self.ctl.silent or (
+            self.server.rtde_silent_after_handshake and kind != RTDE_REQUEST_PROTOCOL_VERSION
+        ):
+            return  # a silent controller reads and never answers
         if kind == RTDE_DATA_PACKAGE:
             self.data_package(payload)
             return
@@ -231,7 +235,9 @@ class RTDESession(asyncio.Protocol):
 
     def publish(self) -> None:
         """Send the data packages that are due at the controller's current time."""
-        if not self.started or self.transport is None or self.transport.is_closing():
+        if self.ctl.silent or not self.started or self.transport is None:
+            return
+        if self.transport.is_closing():
             return
         if self.transport.get_write_buffer_size() > 1 << 20:
             return  # the client does not read: drop packages rather than buffer without end

@@ -34,6 +34,8 @@ class ScriptSession(asyncio.Protocol):
         self.text = ""
 
     def data_received(self, data: bytes) -> None:
+        if self.server.controller.silent:
+            return
         self.text += data.decode(errors="replace")
         while True:
             stripped = self.text.lstrip()

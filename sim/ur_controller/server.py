@@ -37,8 +37,16 @@ READY_LINE = "sim.ur_controller ready on"
 class FakeServer:
     """The fake controller's servers and 500 Hz loop on one host address (asyncio)."""
 
-    def __init__(self, host: str, controller: Controller, serial_number: str = "20235500001"):
+    def __init__(
+        self,
+        host: str,
+        controller: Controller,
+        serial_number: str = "20235500001",
+        *,
+        rtde_silent_after_handshake: bool = False,
+    ) -> None:
         self.host = host
+        self.rtde_silent_after_handshake = rtde_silent_after_handshake
         self.controller = controller
         self.serial_number = serial_number
         self.rtde_sessions: set[RTDESession] = set()
@@ -109,6 +117,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         "--home-deg", type=float, nargs=6, required=True, metavar="Q", help="start joints, deg"
     )
     parser.add_argument("--protective-stop-after-servo", type=int, default=None, metavar="N")
+    parser.add_argument(
+        "--silent-after-servo",
+        type=int,
+        default=None,
+        metavar="N",
+        help="stop answering anything on the N-th servoJ command",
+    )
+    parser.add_argument(
+        "--silent-after-handshake",
+        action="store_true",
+        help="RTDE answers the protocol-version request only",
+    )
     parser.add_argument("--servo-lag-s", type=float, default=0.004)
     parser.add_argument("--name", default=None, help="label in the log")
     parser.add_argument("--verbose", action="store_true", help="log every client request")
@@ -122,9 +142,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.home_deg,
         name=args.name or f"ur@{args.host}",
         protective_stop_after_servo=args.protective_stop_after_servo,
+        silent_after_servo=args.silent_after_servo,
         servo_lag_s=args.servo_lag_s,
     )
-    server = FakeServer(args.host, controller)
+    server = FakeServer(
+        args.host, controller, rtde_silent_after_handshake=args.silent_after_handshake
+    )
 
     async def run() -> None:
         stop = asyncio.Event()

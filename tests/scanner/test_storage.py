@@ -5,13 +5,18 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import subprocess
+import sys
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+from recon.geometry import DetectorSpec, circular_orbit
 from scanner.scan_recording import ScanRecorder
-from scanner.storage import ViewRecord
+from scanner.storage import ScanStore, ViewRecord
 from scanner.study import Study, StudyError
 
 
@@ -82,3 +87,107 @@ def test_recording_failure_stops_the_scan_at_a_later_view(tmp_path, monkeypatch)
             recorder.view(_record(k), image)
     assert recorder.close() == study.path / "scan" / "recording.rrd"
     assert "scan/recording.rrd" in study.manifest["files"]
+
+
+def test_an_image_left_without_its_record_is_set_aside_and_the_view_acquired_again(tmp_path):
+    """A process killed between renaming a view's images and its record into place leaves the
+    images without a record: not a stored view. Reopening keeps them aside (never overwritten)
+    and the view can be stored; before, storing it was refused forever."""
+    panel = DetectorSpec(rows=4, cols=4, pixel_pitch_mm=1.0)
+    planned = circular_orbit(3, 500.0, 1000.0, panel)
+    study = Study.create(tmp_path / "s", {})
+    store = ScanStore(study, panel, ("rotary", "lift"), 3, planned)
+    image = np.ones((4, 4), dtype=np.float32)
+    store.put(_record(0), image, image)
+    views = study.path / "scan" / "views"
+    for name in ("view_0001.mha", "view_0001_counts.mha"):  # renamed, then killed
+        (views / name).write_bytes(b"half a view")
+    reopened = ScanStore(Study.open(study.path), panel, ("rotary", "lift"), 3, planned)
+    assert reopened.stored == {0}
+    assert sorted(p.name for p in (views / "interrupted").iterdir()) == [
+        "view_0001.mha",
+        "view_0001_counts.mha",
+    ]
+    reopened.put(_record(1), 2 * image, 2 * image)
+    np.testing.assert_array_equal(reopened.image(1), 2 * image)
+    again = ScanStore(Study.open(study.path), panel, ("rotary", "lift"), 3, planned)
+    assert again.stored == {0, 1}
+
+
+def test_a_full_disk_fails_the_recording_instead_of_hanging(tmp_path):
+    """The recording on a full filesystem (a 256 kB tmpfs): the failure is raised and the
+    process exits; rerun's own file sink blocked its flush, its disconnect and the
+    interpreter's exit for ever, so a scan that filled the disk never ended."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    mount = ["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(disk)]
+    if subprocess.run(mount, capture_output=True, check=False).returncode != 0:
+        pytest.skip("cannot mount a small tmpfs here (needs root)")
+    script = f"""
+from dataclasses import replace
+import numpy as np
+from recon.geometry import DetectorSpec, circular_orbit
+from tests.scanner.test_storage import _record
+from scanner.scan_recording import ScanRecorder
+from scanner.study import Study
+orbit = circular_orbit(100, 500.0, 1000.0, DetectorSpec(rows=64, cols=64, pixel_pitch_mm=1.0))
+study = Study.create({str(disk / "s")!r}, {{}})
+recorder = ScanRecorder(study, ("rotary", "lift"), 1.0)
+rng = np.random.default_rng(0)
+try:
+    for k in range(100):  # 1.6 MB of noise
+        image = rng.random((64, 64), dtype=np.float32)
+        recorder.view(replace(_record(k), matrix=orbit[k].matrix), image)
+except RuntimeError as err:
+    print("view:", err)
+try:
+    recorder.close()
+except RuntimeError as err:
+    print("close:", err)
+"""
+    try:
+        done = subprocess.run(
+            [sys.executable, "-c", script],
+            cwd=Path(__file__).resolve().parents[2],
+            capture_output=True,
+            text=True,
+            timeout=30,
+        )
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], check=False)
+    assert done.returncode == 0, done.stderr
+    # a later view reports it when rerun's batches reach the file during the scan, else close
+    assert "[Errno 28] No space left on device" in done.stdout, done.stdout
+
+
+def test_a_view_is_not_exposed_when_the_disk_cannot_take_it(tmp_path):
+    """check_room, called before each pulse, refuses a view the study's disk has no room for
+    (the soak's full disk let one more pulse fire per fault, its view then unstorable)."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    mount = ["mount", "-t", "tmpfs", "-o", "size=8m", "tmpfs", str(disk)]
+    if subprocess.run(mount, capture_output=True, check=False).returncode != 0:
+        pytest.skip("cannot mount a small tmpfs here (needs root)")
+    try:
+        panel = DetectorSpec(rows=64, cols=64, pixel_pitch_mm=1.0)
+        study = Study.create(disk / "s", {})
+        store = ScanStore(study, panel, ("rotary", "lift"), 3, circular_orbit(3, 500.0, 1e3, panel))
+        store.check_room(0)  # 8 MB free
+        fd = os.open(disk / "ballast", os.O_WRONLY | os.O_CREAT)
+        os.posix_fallocate(fd, 0, 5 << 20)  # 3 MB left: less than a view and the margin
+        os.close(fd)
+        full = r"view 1: the study's disk has 3\.\d\d MiB free, a view needs 4\.\d\d MiB"
+        with pytest.raises(StudyError, match=full):
+            store.check_room(1)
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], check=False)
+
+
+def test_a_killed_sessions_partial_recording_is_kept(tmp_path):
+    study = Study.create(tmp_path / "s", {})
+    (study.path / "scan").mkdir()
+    killed = study.path / "scan" / "recording.rrd.partial"
+    killed.write_bytes(b"what the killed session recorded")
+    recorder = ScanRecorder(study, ("rotary", "lift"), 1.0)
+    assert recorder.close() == study.path / "scan" / "recording-2.rrd"
+    assert killed.read_bytes() == b"what the killed session recorded"

@@ -19,10 +19,11 @@ from sim.ur_controller import FakeURController
 
 pytestmark = pytest.mark.timeout(60)
 
-SOURCE_HOST, DETECTOR_HOST, PSTOP_HOST, NOBODY_HOST = (
+SOURCE_HOST, DETECTOR_HOST, PSTOP_HOST, SILENT_HOST, NOBODY_HOST = (
     "127.0.0.2",
     "127.0.0.3",
     "127.0.0.4",
+    "127.0.0.5",
     "127.0.0.9",
 )
 SOURCE_HOME = np.array([12.5, -95.0, 100.0, -85.0, -90.0, 30.0])
@@ -174,11 +175,11 @@ def test_state_raises_when_the_stream_stalls(fakes):
         arm.state(0.5)
         fake.process.send_signal(signal.SIGSTOP)
         try:
-            time.sleep(0.15)
+            time.sleep(0.15)  # longer than silence_s: reported at once, not after the timeout
             t0 = time.monotonic()
-            with pytest.raises(DeviceTimeout, match=r"detector_arm: state: no fresh reading"):
-                arm.state(0.2)
-            assert 0.15 < time.monotonic() - t0 < 0.5
+            with pytest.raises(DeviceTimeout, match=r"detector_arm: state: 127\.0\.0\.3 is silent"):
+                arm.state(2.0)
+            assert time.monotonic() - t0 < 0.05
         finally:
             fake.process.send_signal(signal.SIGCONT)
         time.sleep(0.05)
@@ -207,6 +208,47 @@ def test_protective_stop_after_servo_commands():
             arm.move_to(home, timeout_s=2.0)
         arm.stop()  # already at standstill: nothing to do, no error
     assert not arm.connected  # closed by the with block
+
+
+def test_connect_to_a_controller_that_answers_only_the_handshake_times_out():
+    """RTDE answers the protocol-version request and nothing after it (the port probe passes):
+    ur-rtde's constructor would wait forever holding the GIL; connect gives up at its timeout
+    with the worker process that ran it killed."""
+    home = np.array([0.0, -90.0, 90.0, -90.0, -90.0, 0.0])
+    with FakeURController(SILENT_HOST, home, silent_after_handshake=True):
+        arm = make_arm("source_arm", SILENT_HOST)
+        t0 = time.monotonic()
+        with pytest.raises(
+            DeviceTimeout, match=r"source_arm: connect: .*127\.0\.0\.5 did not answer within"
+        ):
+            arm.connect(1.5)
+        elapsed = time.monotonic() - t0
+        assert 1.4 < elapsed < 1.5 + 0.2
+        assert not arm.connected
+        arm.close()
+
+
+def test_a_controller_silent_mid_stream_is_reported_and_stop_returns():
+    """The controller stops answering after 25 set-points: servo reports it within silence_s
+    plus one set-point period, and stopping it gives up at stop_timeout_s instead of hanging."""
+    home = np.array([0.0, -90.0, 90.0, -90.0, -90.0, 0.0])
+    with (
+        FakeURController(SILENT_HOST, home, silent_after_servo=25) as fake,
+        make_arm("source_arm", SILENT_HOST, stop_timeout_s=0.5) as arm,
+    ):
+        arm.connect(2.0)
+        with pytest.raises(DeviceTimeout, match=r"source_arm: servo: 127\.0\.0\.5 is silent"):
+            for k in range(1, 200):
+                arm.servo(home + 0.01 * k, 0.02)
+                time.sleep(0.02)
+        detected = time.monotonic()
+        (silent_at,) = [t for name, t in fake.events() if name == "silent"]
+        assert detected - silent_at < arm.silence_s + 0.02 + 0.05
+        t0 = time.monotonic()
+        with pytest.raises(DeviceTimeout, match=r"source_arm: stop: 127\.0\.0\.5 did not answer"):
+            arm.stop()
+        assert time.monotonic() - t0 < 0.5 + 0.2
+        assert not arm.connected
 
 
 def test_connect_without_controller_times_out():

@@ -1,0 +1,35 @@
+"""bench/soak.py in small: scans with random faults (process kills and a full disk included),
+each resumed until complete, checked against the soak's targets."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def load_soak():
+    spec = importlib.util.spec_from_file_location("bench_soak", ROOT / "bench" / "soak.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_small_soak_meets_its_targets(tmp_path):
+    soak = load_soak()
+    result = soak.soak(
+        scans=2,
+        seed=4,
+        views=12,
+        kinds=("protective_stop", "interlock", "sigint", "sigkill", "disk_full"),
+        work=tmp_path / "soak",
+    )
+    assert result["faults"] >= 2, result
+    assert result["scans_complete"] == 2, result
+    assert result["views_lost"] == 0 and result["corrupt_files"] == 0, result
+    assert result["x_ray_on_after_fault"] == 0 and result["hangs"] == 0, result
+    assert result["faults_over_bound"] == 0 and result["faults_safe_unconfirmed"] == 0, result
+    assert result["targets_met"], result
