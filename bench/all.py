@@ -44,6 +44,7 @@ QUICK: dict[str, list[str]] = {
     "recon": ["--small"],
     "registration": ["--quick"],
     "scan": ["--small"],
+    "soak": ["--scans", "3"],
 }
 """Arguments of the small variants (``--quick``); others run as in ``FULL``."""
 STDERR_TAIL_LINES = 40

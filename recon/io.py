@@ -161,6 +161,8 @@ def read_volume(path: str | Path, unit: Unit | None = None) -> Volume:
             f"{path}: label volume must have integer pixels, "
             f"got {sitk.GetPixelIDValueAsString(reader.GetPixelID())}"
         )
+    # before reading: ITK's reader hangs on some directions that are not rotations
+    _check_rotation(np.reshape(reader.GetDirection(), (3, 3)), path)
     data, grid = identity_oriented(_execute(reader, path), path, label=resolved == "label")
     if resolved != "label":
         data = data.astype(np.float32, copy=False)
@@ -288,8 +290,9 @@ def _signed_permutation(direction: np.ndarray, path: Path) -> np.ndarray:
 
 def _check_rotation(direction: np.ndarray, path: Path) -> None:
     """ValueError naming ``path`` unless the direction's columns are orthonormal."""
-    error = float(np.abs(direction.T @ direction - np.eye(3)).max())
-    if not np.all(np.isfinite(direction)) or error > _ORTHONORMAL_ATOL:
+    with np.errstate(over="ignore", invalid="ignore"):
+        error = float(np.abs(direction.T @ direction - np.eye(3)).max())
+    if not error <= _ORTHONORMAL_ATOL:
         raise ValueError(
             f"{path}: image direction {np.round(direction, 6).tolist()} (columns are the "
             f"file's axes in LPS) is not a rotation (|D^T D - I| = {error:.2g}, tolerance "
@@ -309,14 +312,16 @@ def _axis_aligned(image: sitk.Image, label: bool, path: Path) -> sitk.Image:
     )
     spacing = float(min(image.GetSpacing()))
     low, high = corners.min(axis=0), corners.max(axis=0)
-    shape = np.floor((high - low) / spacing + 1e-6).astype(int) + 1
-    voxels, limit = float(np.prod(shape.astype(float))), OBLIQUE_GROWTH * float(np.prod(size))
-    if voxels > limit:
+    extent = (high - low) / spacing
+    voxels = float(np.prod(np.floor(extent) + 1)) if np.isfinite(extent).all() else np.inf
+    limit = OBLIQUE_GROWTH * float(np.prod(size))
+    if not voxels <= limit:
         raise ValueError(
             f"{path}: the oblique volume on an axis-aligned grid of {spacing:g} mm voxels would "
             f"hold {voxels:.3g} voxels, more than {OBLIQUE_GROWTH} x its own {np.prod(size)}: "
             "resample it with isotropic voxels first"
         )
+    shape = np.floor(extent + 1e-6).astype(int) + 1
     if label:
         interpolator, pixel, outside = sitk.sitkNearestNeighbor, image.GetPixelID(), 0.0
     else:

@@ -18,6 +18,7 @@ are allocated (an allocation failure reported by ITK fails the test too).
 from __future__ import annotations
 
 import dataclasses
+import faulthandler
 import gzip
 import json
 import math
@@ -67,6 +68,8 @@ EXAMPLES = [
 ]
 DEADLINE = timedelta(seconds=3)
 """Longest a reader may take on one small corrupted file."""
+HANG_S = 600
+"""A fuzz run still going after this long (s) is a hang: the process dumps its stack and exits."""
 HEADROOM_BYTES = 2 << 30
 """Address space a reader may map beyond what the process maps before it runs."""
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
@@ -108,7 +111,13 @@ def fuzz(examples: int, corrupted: st.SearchStrategy, check: Callable[[object], 
         seen.append(value)
         check(value)
 
-    run()
+    # hypothesis's deadline judges an example once it returns; a reader stuck in C++ (ITK once
+    # hung on a MetaImage direction of 1e308) never does: dump where and end the run instead
+    faulthandler.dump_traceback_later(HANG_S, exit=True)
+    try:
+        run()
+    finally:
+        faulthandler.cancel_dump_traceback_later()
     assert len(seen) >= examples, f"hypothesis ran {len(seen)} inputs, not {examples}"
 
 

@@ -293,6 +293,13 @@ def test_a_direction_that_is_not_a_rotation_is_refused_naming_the_file(tmp_path)
     sitk.WriteImage(image, str(path))
     with pytest.raises(ValueError, match=r"sheared.mha: image direction .* is not a rotation"):
         read_volume(path, unit="1/mm")
+    # found by the fuzz tests: ITK's reader never returned from this header
+    huge = tmp_path / "huge.mha"
+    huge.write_bytes(
+        path.read_bytes().replace(b"TransformMatrix = 1 0 0 0.5", b"TransformMatrix = 1 0 0 1e308")
+    )
+    with pytest.raises(ValueError, match=r"huge.mha: image direction .* is not a rotation"):
+        read_volume(huge, unit="1/mm")
 
 
 def test_unit_missing_or_conflicting_is_refused(tmp_path):
