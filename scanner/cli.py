@@ -155,17 +155,23 @@ def simulate_scan(
         except ValueError as err:
             fail(str(err))
     try:
-        written = scan_files.simulate_to_folder(
-            protocol,
-            out,
-            phantom,
-            phantom_config,
-            voxel_mm=voxel_mm,
-            seed=seed,
-            noise=noise,
-            vibration=vibration,
-            status=lambda msg: console.print(f"  {msg}"),
-        )
+        with views_progress() as bar:
+            written = scan_files.simulate_to_folder(
+                protocol,
+                out,
+                phantom,
+                phantom_config,
+                voxel_mm=voxel_mm,
+                seed=seed,
+                noise=noise,
+                vibration=vibration,
+                status=lambda msg: bar.console.print(f"  {msg}"),
+                progress=views_done(bar, "projecting the phantom"),
+            )
     except (ValueError, OSError) as err:
         fail(str(err))
-    console.print(f"[green]wrote[/] {len(written)} files to {out}")
+    console.print(
+        f"[green]wrote[/] {len(written)} files to {out} (projections.mha, geometry.xml, scan.json)",
+        soft_wrap=True,
+        highlight=False,
+    )

@@ -80,9 +80,10 @@ def simulate_to_folder(
     noise: bool = True,
     vibration: VibrationSpec | None = None,
     status: Status | None = None,
+    progress: Progress | None = None,
 ) -> list[Path]:
     """Scan the knee or BB phantom with a protocol (optionally on vibrating arms) into a new
-    folder."""
+    folder; ``progress(done, total)`` counts the knee's views projected."""
     protocol = load_protocol(protocol_path)
     if phantom not in ("knee", "bb"):
         raise ValueError(f"phantom must be 'knee' or 'bb', got {phantom!r}")
@@ -109,6 +110,7 @@ def simulate_to_folder(
             seed=seed,
             geometry=acquired,
             status=status,
+            progress=progress,
         )
         manifest |= {"voxel_mm": voxel_mm, "photons_per_pixel": scan.photons_per_pixel}
         volumes = {"phantom.nii.gz": scan.attenuation, "labels.nii.gz": scan.labels}

@@ -20,9 +20,12 @@ import numpy as np
 
 from recon.config import ExposureSpec, ScanProtocol
 from recon.geometry import DetectorSpec, Geometry
-from recon.project import forward_project
+from recon.project import JosephProjector
 from recon.volume import Volume, VolumeGrid
 from sim.phantoms.knee import KneePhantomSpec, knee_grid, rasterize_knee
+
+PROJECT_BATCH_VIEWS = 30
+"""Views projected at a time (a progress report after each batch)."""
 
 FLUENCE_PER_MM2_MAS_AT_1M = 2.0e6
 """Photons per mm^2 per mAs at 1 m and 100 kVp (rule-of-thumb tube output)."""
@@ -84,6 +87,7 @@ def simulate_knee_scan(
     geometry: Geometry | None = None,
     grid: VolumeGrid | None = None,
     status: Callable[[str], None] | None = None,
+    progress: Callable[[int, int], None] | None = None,
 ) -> SimulatedScan:
     """Scan the knee phantom with ``protocol``.
 
@@ -99,6 +103,7 @@ def simulate_knee_scan(
             default the protocol's planned views.
         grid: the simulation grid; default sim.phantoms.knee.knee_grid at ``voxel_mm``.
         status: optional callback receiving a line per stage.
+        progress: optional ``progress(done, total)`` over the views projected.
     """
     say = status or (lambda _msg: None)
     if geometry is None:
@@ -108,7 +113,13 @@ def simulate_knee_scan(
     say(f"rasterising the knee phantom on {grid.size_xyz} voxels of {voxel_mm} mm")
     labels, mu = rasterize_knee(phantom, grid, supersample=supersample)
     say(f"projecting {len(geometry)} views of {geometry.rows} x {geometry.cols} pixels")
-    line_integrals = forward_project(mu, grid, geometry)
+    projector = JosephProjector(mu, grid)
+    line_integrals = np.empty((len(geometry), geometry.rows, geometry.cols), np.float32)
+    for first in range(0, len(geometry), PROJECT_BATCH_VIEWS):
+        part = geometry[first : first + PROJECT_BATCH_VIEWS]
+        line_integrals[first : first + len(part)] = projector.project(part)
+        if progress is not None:
+            progress(first + len(part), len(geometry))
     counts, photons = None, 0.0
     if noise:
         photons = photons_per_pixel(protocol.exposure, protocol.detector, protocol.orbit.sdd_mm)
