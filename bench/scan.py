@@ -163,18 +163,8 @@ def ur_fake_scan(tmp: Path) -> float:
     protocol = ScanProtocol.model_validate(data)
     scanner = load_config(CONFIGS / "scanner.yaml", ScannerConfig)
     q0 = plan_scan(ScannerModel(scanner), protocol).q[0]
-    rotary, lift = scanner.rotary, scanner.lift
     with (
-        MockStage(
-            start=(float(q0[0]), float(q0[1])),
-            servo_lag_s=0.004,
-            rot_limits_deg=tuple(rotary.range_deg),
-            lift_limits_mm=tuple(lift.range_mm),
-            rot_speed_dps=rotary.max_speed_deg_s,
-            rot_accel_dps2=rotary.max_accel_deg_s2,
-            lift_speed_mms=lift.max_speed_mm_s,
-            lift_accel_mms2=lift.max_accel_mm_s2,
-        ) as stage,
+        MockStage.of_scanner(scanner, q0[:2], servo_lag_s=0.004) as stage,
         MockGenerator(time_scale=0.0, warmup_s=0.05) as generator,
         FakeURController("127.0.0.2", q0[2:8]),
         FakeURController("127.0.0.3", q0[8:14]),

@@ -508,7 +508,6 @@ class Soak:
         if fault is not None:
             target = min(done + fault.view, self.views - 1)
         arm_fault = str(self.rng.choice(["source_arm", "detector_arm"]))
-        rotary, lift = self.scanner.rotary, self.scanner.lift
         one_based = None if fault is None else fault.view + 1
         with contextlib.ExitStack() as stack:
             generator = stack.enter_context(
@@ -521,16 +520,8 @@ class Soak:
                 )
             )
             stage = stack.enter_context(
-                MockStage(
-                    start=(float(q0[0]), float(q0[1])),
-                    servo_lag_s=0.004,
-                    rot_limits_deg=tuple(rotary.range_deg),
-                    lift_limits_mm=tuple(lift.range_mm),
-                    rot_speed_dps=rotary.max_speed_deg_s,
-                    rot_accel_dps2=rotary.max_accel_deg_s2,
-                    lift_speed_mms=lift.max_speed_mm_s,
-                    lift_accel_mms2=lift.max_accel_mm_s2,
-                    on_event=recorder("stage"),
+                MockStage.of_scanner(
+                    self.scanner, q0[:2], servo_lag_s=0.004, on_event=recorder("stage")
                 )
             )
             fakes = {}

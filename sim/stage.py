@@ -101,6 +101,23 @@ class MockStage(PtyDevice):
         self._pstop = False
         self._servo_count = 0
 
+    @classmethod
+    def of_scanner(cls, scanner, start, **options) -> MockStage:
+        """A stage with the travel, speed and acceleration of ``scanner``'s rotary axis and
+        lift (a trajectories.config.ScannerConfig), standing at ``start`` (rotary deg, lift
+        mm); ``options`` as for the constructor."""
+        rotary, lift = scanner.rotary, scanner.lift
+        return cls(
+            start=(float(start[0]), float(start[1])),
+            rot_limits_deg=tuple(rotary.range_deg),
+            lift_limits_mm=tuple(lift.range_mm),
+            rot_speed_dps=rotary.max_speed_deg_s,
+            rot_accel_dps2=rotary.max_accel_deg_s2,
+            lift_speed_mms=lift.max_speed_mm_s,
+            lift_accel_mms2=lift.max_accel_mm_s2,
+            **options,
+        )
+
     # -- Python-side controls and readings -------------------------------------------------
 
     @property

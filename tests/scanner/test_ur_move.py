@@ -32,7 +32,6 @@ def test_ur_backend_moves_from_a_random_pose_to_the_start(tmp_path):
     pose = random_rest_pose(
         model, np.random.default_rng(5), rotary_deg=20.0, lift_mm=60.0, arm_deg=10.0
     )
-    rotary, lift = scanner.rotary, scanner.lift
     asked = []
 
     def confirm(question: str) -> bool:  # yes to the move, no at the scan's first question
@@ -40,16 +39,7 @@ def test_ur_backend_moves_from_a_random_pose_to_the_start(tmp_path):
         return question.startswith("Move the scanner")
 
     with (
-        MockStage(
-            start=(float(pose[0]), float(pose[1])),
-            servo_lag_s=0.004,
-            rot_limits_deg=tuple(rotary.range_deg),
-            lift_limits_mm=tuple(lift.range_mm),
-            rot_speed_dps=rotary.max_speed_deg_s,
-            rot_accel_dps2=rotary.max_accel_deg_s2,
-            lift_speed_mms=lift.max_speed_mm_s,
-            lift_accel_mms2=lift.max_accel_mm_s2,
-        ) as stage,
+        MockStage.of_scanner(scanner, pose[:2], servo_lag_s=0.004) as stage,
         MockGenerator(time_scale=0.0, warmup_s=0.05) as generator,
         FakeURController("127.0.0.2", pose[2:8]),
         FakeURController("127.0.0.3", pose[8:14]),
