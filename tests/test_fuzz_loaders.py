@@ -701,12 +701,12 @@ def _paths(tree, prefix=()) -> list[tuple]:
     return out
 
 
-@st.composite
-def yaml_field_edits(draw, text: bytes) -> bytes:
-    """A field (or the whole document) given a wrong value, removed, or joined by an
-    unknown field."""
-    tree = yaml.safe_load(text)
-    path = draw(st.sampled_from(_paths(tree)[1:]))
+def _edited(draw, tree, paths: list[tuple]):
+    """``tree`` with the value at one of ``paths`` (the root for ``()``) given a wrong value,
+    removed, or joined by an unknown key."""
+    path = draw(st.sampled_from(paths))
+    if not path:
+        return draw(WRONG_VALUES)
     parent = tree
     for key in path[:-1]:
         parent = parent[key]
@@ -717,7 +717,14 @@ def yaml_field_edits(draw, text: bytes) -> bytes:
         del parent[path[-1]]
     else:
         parent["unknown_field"] = draw(WRONG_VALUES)
-    return yaml.safe_dump(tree).encode()
+    return tree
+
+
+@st.composite
+def yaml_field_edits(draw, text: bytes) -> bytes:
+    """A field given a wrong value, removed, or joined by an unknown field."""
+    tree = yaml.safe_load(text)
+    return yaml.safe_dump(_edited(draw, tree, _paths(tree)[1:])).encode()
 
 
 @pytest.mark.parametrize("examples", EXAMPLES)
@@ -757,20 +764,7 @@ def json_value_edits(draw, text: bytes) -> bytes:
     """A JSON value (or the whole document) replaced by one of the wrong type, removed, or
     joined by an unknown key."""
     tree = json.loads(text)
-    path = draw(st.sampled_from(_paths(tree)))
-    if not path:
-        return json.dumps(draw(WRONG_VALUES)).encode()
-    parent = tree
-    for key in path[:-1]:
-        parent = parent[key]
-    action = draw(st.sampled_from(("replace", "delete", "add")))
-    if action == "replace" or not isinstance(parent, dict):
-        parent[path[-1]] = draw(WRONG_VALUES)
-    elif action == "delete":
-        del parent[path[-1]]
-    else:
-        parent["unknown_key"] = draw(WRONG_VALUES)
-    return json.dumps(tree).encode()
+    return json.dumps(_edited(draw, tree, _paths(tree))).encode()
 
 
 @pytest.mark.parametrize("examples", EXAMPLES)
