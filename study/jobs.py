@@ -9,6 +9,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import trimesh
+
 from assessment.handoff import Motion, write_handoff
 from assessment.knee import BONE_LABELS, KneeAssessment, assess_knee
 from assessment.report import write_report
@@ -24,7 +26,7 @@ from recon.preview import save_orthogonal_slices
 from recon.rtk_xml import read_rtk_geometry
 from recon.volume import Volume, VolumeGrid
 from registration.frames import read_frames
-from registration.poses import BonePose, poses_by_frame, read_poses
+from registration.poses import BonePose, read_poses
 from registration.track import fluoroscopy_view
 from scanner.scan_files import new_folder
 
@@ -123,13 +125,23 @@ def write_assessment(
     plane = "polyethylene insert" if tka else "fitted tibial plateau"
     extra = {"TP plane": f"{plane}, offset {plateau_offset_mm:g} mm along its normal"}
     write_report(result.kinematics, out, title=title, extra_rows=extra)
-    bones = sorted({p.bone for p in poses})
-    frames, stacks = poses_by_frame(poses, tuple(bones))
-    meshes = {bone: bone_mesh(labels, BONE_LABELS[bone]) for bone in bones}
-    export_series(meshes, frames, stacks, out / "series")
-    record_series(meshes, frames, stacks, out / "series.rrd")
-    write_handoff(out / "export", Motion(frames, stacks), meshes, volume)
+    motion, meshes = bone_motion(poses, labels, "poses")
+    export_series(meshes, motion.frames, motion.poses, out / "series")
+    record_series(meshes, motion.frames, motion.poses, out / "series.rrd")
+    write_handoff(out / "export", motion, meshes, volume)
     return result
+
+
+def bone_motion(
+    poses: list[BonePose], labels: Volume, where: Path | str
+) -> tuple[Motion, dict[str, trimesh.Trimesh]]:
+    """Every posed bone's motion, and its surface (world mm) from the label volume;
+    ValueError naming ``where`` for a bone name the labels do not know."""
+    motion = Motion.of(poses)
+    unknown = sorted(set(motion.poses) - set(BONE_LABELS))
+    if unknown:
+        raise ValueError(f"{where}: unknown bone name(s) {unknown}; known: {sorted(BONE_LABELS)}")
+    return motion, {bone: bone_mesh(labels, BONE_LABELS[bone]) for bone in motion.poses}
 
 
 def assess_files(
@@ -168,14 +180,7 @@ def export_files(
         raise FileExistsError(f"{out} exists: choose a new output folder")
     poses = read_poses(poses_path)
     labels = read_volume(labels_path, unit="label")
-    motion = Motion.of(poses)
-    unknown = sorted(set(motion.poses) - set(BONE_LABELS))
-    if unknown:
-        raise ValueError(
-            f"{poses_path}: unknown bone name(s) {unknown}; known: {sorted(BONE_LABELS)}"
-        )
-    meshes = {bone: bone_mesh(labels, BONE_LABELS[bone]) for bone in motion.poses}
-    return write_handoff(out, motion, meshes, volume)
+    return write_handoff(out, *bone_motion(poses, labels, poses_path), volume)
 
 
 def calibrate_to_study(
