@@ -32,10 +32,11 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
+import numba
 import numpy as np
 import scipy.fft
 
-from recon.geometry import Geometry, View
+from recon.geometry import Geometry
 from recon.project import (
     COUNT_WEIGHT,
     FDK_WEIGHT,
@@ -43,6 +44,7 @@ from recon.project import (
     check_in_front,
     pixel_pairs,
 )
+from recon.ramp import RowFilter
 from recon.turned_panel import AlignedPanels, align_to_motion
 from recon.volume import Volume, VolumeGrid
 
@@ -283,6 +285,18 @@ def check_axis_on_panel(geometry: Geometry, where: str = "the geometry") -> None
             )
 
 
+def rows_seen(geometry: Geometry, grid: VolumeGrid) -> tuple[int, int]:
+    """The panel rows ``r0 <= r < r1`` that hold every bilinear tap of the grid's voxels in
+    every view (the projection of the grid lies within that of its corners); the whole panel's
+    rows where a corner falls off it."""
+    corners = np.hstack((grid.corners_mm(), np.ones((8, 1))))
+    p = np.einsum("vrk,ck->vrc", geometry.matrices, corners)
+    v = p[:, 1] / p[:, 2]
+    r0 = max(0, math.floor(v.min()) - 1)
+    r1 = min(geometry.rows, math.floor(v.max()) + 3)
+    return (r0, r1) if r1 - r0 >= 2 else (0, geometry.rows)
+
+
 def _grid_seen(geometry: Geometry, grid: VolumeGrid) -> None:
     corners = grid.corners_mm()
     for view in geometry:
@@ -339,10 +353,10 @@ class FDKAccumulator:
         self.aligned = motion_aligned(geometry)
         self.orbit = estimate_orbit(self.aligned.geometry)
         virtual = self.aligned.geometry
-        self._n_fft = scipy.fft.next_fast_len(2 * virtual.cols)
+        n_fft = scipy.fft.next_fast_len(2 * virtual.cols)
         # per virtual pixel; an oversampled virtual panel keeps the real panel's band (cycles/mm)
         band = cutoff / self.aligned.oversample
-        self._ramp = ramp_filter_response(self._n_fft, 1.0, window, band).astype(np.complex64)
+        self._filter = RowFilter(virtual.cols, ramp_filter_response(n_fft, 1.0, window, band))
         use_parker = redundancy == "parker" or (
             redundancy == "auto"
             and len(self.orbit.passes) == 1
@@ -353,7 +367,6 @@ class FDKAccumulator:
         self._coarse = _coarse_grid(grid, coverage_subsample)
         self._num = np.zeros(grid.shape, dtype=np.float32)
         self._count = np.zeros(self._coarse.shape, dtype=np.float32)
-        self._cosine: dict[tuple, np.ndarray] = {}
         self.added = np.zeros(self.n_views, dtype=bool)
 
     def add(self, start: int, projections: np.ndarray, views: Geometry | None = None) -> None:
@@ -404,63 +417,52 @@ class FDKAccumulator:
         # go before the filter; the edge taper after it, where it is a plain per-pixel view
         # weight that the views' weighted count carries as well
         sdd = np.array([v.sdd_mm for v in virtual])
-        pitch = np.array([v.pitch_u_mm for v in virtual])
-        scale = orbit.dbeta_rad[index] * orbit.sod_mm[index] / (sdd * pitch)
+        scale = orbit.dbeta_rad[index] * orbit.sod_mm[index] / (sdd * virtual[0].pitch_u_mm)
         pre = None if self._parker is None else self._parker[index, None, :].astype(np.float32)
         support = (
             aligned.images(np.broadcast_to(self._taper, (n, *self._taper.shape)), first)
             if aligned.turned
             else self._taper[None]
         )
-        batch = aligned.images(proj, first)
-        weighted = np.empty_like(batch) if batch is proj else batch
-        for k, view in enumerate(virtual):
-            np.multiply(batch[k], self._cosine_weights(view), out=weighted[k])
-            weighted[k] *= np.float32(scale[k]) if pre is None else np.float32(scale[k]) * pre[k]
-        # the spectrum and the filtered batch are temporaries: only the pixel pairs stay
-        # alive during the backprojection
-        pairs = pixel_pairs(self._filter(weighted)[:, :, : virtual.cols], support)
-        backproject_weighted(pairs, virtual, self.grid, FDK_WEIGHT, self._num)
+        # rows are filtered one by one: only those the grid projects onto are needed, on
+        # panels cropped to them
+        r0, r1 = rows_seen(virtual, self._coarse)  # the coarse grid holds the grid
+        seen = Geometry([v.cropped(r0, 0, r1 - r0, v.cols) for v in virtual])
+        panels = np.array(
+            [(v.sdd_mm, *v.principal_point_px, v.pitch_u_mm, v.pitch_v_mm) for v in seen]
+        )
+        # only the pixel pairs stay alive during the backprojection
+        pairs = self._filter(
+            aligned.images(proj, first)[:, r0:r1],
+            panels,
+            scale,
+            support[:, r0:r1],
+            None if pre is None else pre[:, 0],
+        )
+        backproject_weighted(pairs, seen, self.grid, FDK_WEIGHT, self._num)
         del pairs
         # the views' weighted count: dbeta * SOD * SDD * w / L_perp^2, in degrees
         jac = np.degrees(orbit.dbeta_rad[index]) * orbit.sod_mm[index] * sdd
         weights = (
-            self._taper_pairs if pre is None and not aligned.turned else pixel_pairs(support, pre)
+            self._taper_pairs[:, r0:r1]
+            if pre is None and not aligned.turned
+            else pixel_pairs(support[:, r0:r1], pre)
         )
         backproject_weighted(
-            weights, virtual, self._coarse, COUNT_WEIGHT, self._count, orbit.axis, jac
+            weights, seen, self._coarse, COUNT_WEIGHT, self._count, orbit.axis, jac
         )
         self.added[start : start + n] = True
 
-    def _filter(self, weighted: np.ndarray) -> np.ndarray:
-        """Ramp-filtered rows of ``weighted`` (n, rows, cols), zero-padded to the FFT length."""
-        spec = scipy.fft.rfft(weighted, n=self._n_fft, axis=2, workers=-1)
-        spec *= self._ramp
-        return scipy.fft.irfft(spec, n=self._n_fft, axis=2, workers=-1)
-
     def result(self) -> FDKResult:
         """The volume of the views added so far (all of them for a complete scan)."""
-        coverage = _interpolate(self._count, self._coarse, self.grid)
-        mask = coverage >= self.min_coverage_deg
-        volume = np.zeros(self.grid.shape, dtype=np.float32)
-        np.divide(self._num, coverage, out=volume, where=mask)
-        volume *= 180.0  # pi * num / count, with the count in degrees
+        coverage = np.empty(self.grid.shape, dtype=np.float32)
+        volume = np.empty(self.grid.shape, dtype=np.float32)
+        mask = np.empty(self.grid.shape, dtype=bool)
+        taps = [t for axis in range(3) for t in _linear_taps(self.grid, self._coarse, axis)]
+        _normalise_kernel(
+            self._num, self._count, *taps, np.float32(self.min_coverage_deg), volume, coverage, mask
+        )
         return FDKResult(Volume(volume, self.grid, "1/mm"), coverage, mask, self.orbit)
-
-    def _cosine_weights(self, view: View) -> np.ndarray:
-        """cos of the angle between each pixel's ray and the detector normal, (rows, cols),
-        computed once per panel placement (sdd, principal point, pitches)."""
-        up, vp = view.principal_point_px
-        key = (view.sdd_mm, up, vp, view.pitch_u_mm, view.pitch_v_mm)
-        weights = self._cosine.get(key)
-        if weights is None:
-            d = view.sdd_mm
-            du = (np.arange(view.cols) - up) * view.pitch_u_mm
-            dv = (np.arange(view.rows) - vp) * view.pitch_v_mm
-            weights = (d / np.sqrt(d * d + du[None, :] ** 2 + dv[:, None] ** 2)).astype(np.float32)
-            if len(self._cosine) < 64:
-                self._cosine[key] = weights
-        return weights
 
 
 def fdk_reconstruct(
@@ -552,21 +554,44 @@ def _coarse_grid(grid: VolumeGrid, subsample: int) -> VolumeGrid:
     )
 
 
-def _interpolate(coarse_values: np.ndarray, coarse: VolumeGrid, grid: VolumeGrid) -> np.ndarray:
-    """Trilinear interpolation of a coarse-grid map onto ``grid`` (same origin), applied one
-    axis at a time with small interpolation matrices so memory stays at one float32 volume."""
-    out = coarse_values.astype(np.float32)
-    for axis in range(3):
-        ratio = grid.spacing_mm[2 - axis] / coarse.spacing_mm[2 - axis]
-        position = np.arange(grid.shape[axis]) * ratio
-        lower = np.minimum(np.floor(position).astype(int), coarse.shape[axis] - 2)
-        frac = np.clip(position - lower, 0.0, 1.0)
-        weights = np.zeros((grid.shape[axis], coarse.shape[axis]), dtype=np.float32)
-        rows = np.arange(grid.shape[axis])
-        weights[rows, lower] = 1.0 - frac
-        weights[rows, lower + 1] = frac
-        out = np.moveaxis(np.tensordot(weights, out, axes=([1], [axis])), 0, axis)
-    return np.ascontiguousarray(out)
+def _linear_taps(grid: VolumeGrid, coarse: VolumeGrid, axis: int) -> tuple[np.ndarray, ...]:
+    """Along array ``axis`` (0 = z) of ``grid``: the lower coarse index (int64) and the weight
+    of the upper one (float32) of each voxel's linear interpolation on ``coarse`` (same
+    origin), held within the coarse grid."""
+    ratio = grid.spacing_mm[2 - axis] / coarse.spacing_mm[2 - axis]
+    position = np.arange(grid.shape[axis]) * ratio
+    lower = np.minimum(np.floor(position).astype(np.int64), coarse.shape[axis] - 2)
+    return lower, np.clip(position - lower, 0.0, 1.0).astype(np.float32)
+
+
+@numba.njit(parallel=True, fastmath=True, cache=True, error_model="numpy", nogil=True)
+def _normalise_kernel(
+    num, count, z0, fz, y0, fy, x0, fx, min_coverage, volume, coverage, mask
+):  # pragma: no cover
+    """coverage = trilinear interpolation of the coarse ``count`` (degrees); volume = 180 *
+    num / coverage (pi * sum / count, the count in degrees) where coverage >= min_coverage
+    (and > 0), else 0; ``mask`` where coverage >= min_coverage."""
+    nz, ny, nx = num.shape
+    for job in numba.prange(nz * ny):
+        z = job // ny
+        y = job - z * ny
+        a, b = z0[z], y0[y]
+        wz, wy = fz[z], fy[y]
+        for x in range(nx):
+            c, wx = x0[x], fx[x]
+            lo = (1 - wy) * ((1 - wx) * count[a, b, c] + wx * count[a, b, c + 1]) + wy * (
+                (1 - wx) * count[a, b + 1, c] + wx * count[a, b + 1, c + 1]
+            )
+            hi = (1 - wy) * ((1 - wx) * count[a + 1, b, c] + wx * count[a + 1, b, c + 1]) + wy * (
+                (1 - wx) * count[a + 1, b + 1, c] + wx * count[a + 1, b + 1, c + 1]
+            )
+            cover = (1 - wz) * lo + wz * hi
+            coverage[z, y, x] = cover
+            inside = cover >= min_coverage
+            mask[z, y, x] = inside
+            volume[z, y, x] = (
+                np.float32(180.0) * num[z, y, x] / cover if inside and cover > 0 else 0
+            )
 
 
 def default_grid(
