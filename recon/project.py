@@ -241,7 +241,8 @@ def _row_samples(
 ):  # pragma: no cover
     """Detector sample positions and weights of ``n`` voxels from ``x0`` along one row.
 
-    ``h`` and ``s`` hold (u*w, v*w, w) at voxel x = 0 and its step per voxel; ``d0``, ``dd``
+    The tuples ``h`` and ``s`` hold (u*w, v*w, w) at voxel x = 0 and its step per voxel
+    (float32 scalars, which stay in registers); ``d0``, ``dd``
     the voxel-minus-source vector at x = 0 and its step (modes 1 and 2); ``scale`` multiplies
     every weight.
     """
@@ -300,6 +301,12 @@ def _row_gather(n, pairs, cols, idx, fu, fv, wt, top, bottom, acc):  # pragma: n
         acc[k] += (r0 + fv[k] * (r1 - r0)) * wt[k]
 
 
+ROWS_PER_JOB = 8
+"""Voxel rows (consecutive y at one z) that the backprojector takes view by view together:
+each view's band of the detector stays in L1 across them (12-16 % faster than row by row on
+this machine's 48 KiB L1)."""
+
+
 @numba.njit(
     parallel=True, fastmath=True, cache=True, error_model="numpy", boundscheck=False, nogil=True
 )
@@ -316,60 +323,70 @@ def _backproject_kernel(
     vmax = np.float32(rows - 1.0)
     flat = pairs.reshape(n_images, rows * cols)
     ax32 = axis.astype(np.float32)
-    for job in numba.prange(nz * ny):
-        z = job // ny
-        y = job - z * ny
+    blocks = (ny + ROWS_PER_JOB - 1) // ROWS_PER_JOB
+    for job in numba.prange(nz * blocks):
+        z = job // blocks
+        y0 = (job - z * blocks) * ROWS_PER_JOB
+        y1 = min(ny, y0 + ROWS_PER_JOB)
         wz = origin[2] + z * spacing[2]
-        wy = origin[1] + y * spacing[1]
-        acc = np.zeros(nx, dtype=np.float32)
+        acc = np.zeros((ROWS_PER_JOB, nx), dtype=np.float32)
         idx = np.zeros(nx + 1, dtype=np.uint32)  # any entry is a valid pixel index
         fu = np.empty(nx, dtype=np.float32)
         fv = np.empty(nx, dtype=np.float32)
         wt = np.empty(nx, dtype=np.float32)
         top = np.empty(nx + 1, dtype=np.uint64)
         bottom = np.empty(nx + 1, dtype=np.uint64)
-        h = np.empty(3, dtype=np.float32)
-        s = np.empty(3, dtype=np.float32)
         d0 = np.empty(3, dtype=np.float32)
         dd = np.zeros(3, dtype=np.float32)
         dd[0] = spacing[0]
         for view in range(n_views):
             m = mats[view]
-            for r in range(3):
-                hr = m[r, 0] * origin[0] + m[r, 1] * wy + m[r, 2] * wz + m[r, 3]
-                h[r] = hr
-                s[r] = m[r, 0] * spacing[0]
-            d0[0] = origin[0] - sources[view, 0]
-            d0[1] = wy - sources[view, 1]
-            d0[2] = wz - sources[view, 2]
-            # w > 0 on the grid, so 0 <= u <= umax is linear in x: h0 + x s0 >= 0 and
-            # h0 + x s0 <= umax (h2 + x s2); likewise for v. Intersect the four half-lines.
-            lo, hi = 0.0, nx - 1.0
-            for a, b in (
-                (s[0], h[0]),
-                (s[1], h[1]),
-                (umax * s[2] - s[0], umax * h[2] - h[0]),
-                (vmax * s[2] - s[1], vmax * h[2] - h[1]),
-            ):
-                if a > 0:
-                    lo = max(lo, -b / a)
-                elif a < 0:
-                    hi = min(hi, -b / a)
-                elif b < 0:
-                    hi = -1.0
-            x0 = max(0, math.ceil(lo))
-            n = min(nx - 1, math.floor(hi)) - x0 + 1
-            if n <= 0:
-                continue
-            sc = scale[view]
-            if mode == FDK_WEIGHT:  # the hot path, compiled with the weight's branch folded
-                _row_samples(n, x0, h, s, umax, vmax, cols, 0, sc, d0, dd, ax32, idx, fu, fv, wt)
-            else:
-                _row_samples(n, x0, h, s, umax, vmax, cols, mode, sc, d0, dd, ax32, idx, fu, fv, wt)
+            s0 = np.float32(m[0, 0] * spacing[0])
+            s1 = np.float32(m[1, 0] * spacing[0])
+            s2 = np.float32(m[2, 0] * spacing[0])
+            s = (s0, s1, s2)
             image = flat[min(view, n_images - 1)]
-            _row_gather(n, image, cols, idx, fu, fv, wt, top, bottom, acc[x0:])
-        for x in range(nx):
-            out[z, y, x] += acc[x]
+            sc = scale[view]
+            for y in range(y0, y1):
+                wy = origin[1] + y * spacing[1]
+                h0 = np.float32(m[0, 0] * origin[0] + m[0, 1] * wy + m[0, 2] * wz + m[0, 3])
+                h1 = np.float32(m[1, 0] * origin[0] + m[1, 1] * wy + m[1, 2] * wz + m[1, 3])
+                h2 = np.float32(m[2, 0] * origin[0] + m[2, 1] * wy + m[2, 2] * wz + m[2, 3])
+                d0[0] = origin[0] - sources[view, 0]
+                d0[1] = wy - sources[view, 1]
+                d0[2] = wz - sources[view, 2]
+                # w > 0 on the grid, so 0 <= u <= umax is linear in x: h0 + x s0 >= 0 and
+                # h0 + x s0 <= umax (h2 + x s2); likewise for v. Intersect the four half-lines.
+                lo, hi = 0.0, nx - 1.0
+                for a, b in (
+                    (s0, h0),
+                    (s1, h1),
+                    (umax * s2 - s0, umax * h2 - h0),
+                    (vmax * s2 - s1, vmax * h2 - h1),
+                ):
+                    if a > 0:
+                        lo = max(lo, -b / a)
+                    elif a < 0:
+                        hi = min(hi, -b / a)
+                    elif b < 0:
+                        hi = -1.0
+                x0 = max(0, math.ceil(lo))
+                n = min(nx - 1, math.floor(hi)) - x0 + 1
+                if n <= 0:
+                    continue
+                h = (h0, h1, h2)
+                if mode == FDK_WEIGHT:  # the hot path, compiled with the weight's branch folded
+                    _row_samples(
+                        n, x0, h, s, umax, vmax, cols, 0, sc, d0, dd, ax32, idx, fu, fv, wt
+                    )
+                else:
+                    _row_samples(
+                        n, x0, h, s, umax, vmax, cols, mode, sc, d0, dd, ax32, idx, fu, fv, wt
+                    )
+                _row_gather(n, image, cols, idx, fu, fv, wt, top, bottom, acc[y - y0, x0:])
+        for y in range(y0, y1):
+            for x in range(nx):
+                out[z, y, x] += acc[y - y0, x]
 
 
 @numba.njit(parallel=True, fastmath=True, cache=True, error_model="numpy", nogil=True)
