@@ -42,7 +42,7 @@ from recon.project import (
     FDK_WEIGHT,
     backproject_weighted,
     check_in_front,
-    pixel_pairs,
+    pixel_quads,
 )
 from recon.ramp import RowFilter
 from recon.turned_panel import AlignedPanels, align_to_motion
@@ -349,7 +349,7 @@ class FDKAccumulator:
         self._taper = np.outer(
             _taper(geometry.rows, edge_taper_px), _taper(geometry.cols, edge_taper_px)
         ).astype(np.float32)
-        self._taper_pairs = pixel_pairs(self._taper[None])
+        self._taper_quads = pixel_quads(self._taper[None])
         self.aligned = motion_aligned(geometry)
         self.orbit = estimate_orbit(self.aligned.geometry)
         virtual = self.aligned.geometry
@@ -431,22 +431,22 @@ class FDKAccumulator:
         panels = np.array(
             [(v.sdd_mm, *v.principal_point_px, v.pitch_u_mm, v.pitch_v_mm) for v in seen]
         )
-        # only the pixel pairs stay alive during the backprojection
-        pairs = self._filter(
+        # only the pixel quads stay alive during the backprojection
+        quads = self._filter(
             aligned.images(proj, first)[:, r0:r1],
             panels,
             scale,
             support[:, r0:r1],
             None if pre is None else pre[:, 0],
         )
-        backproject_weighted(pairs, seen, self.grid, FDK_WEIGHT, self._num)
-        del pairs
+        backproject_weighted(quads, seen, self.grid, FDK_WEIGHT, self._num)
+        del quads
         # the views' weighted count: dbeta * SOD * SDD * w / L_perp^2, in degrees
         jac = np.degrees(orbit.dbeta_rad[index]) * orbit.sod_mm[index] * sdd
         weights = (
-            self._taper_pairs[:, r0:r1]
+            self._taper_quads[:, r0:r1]
             if pre is None and not aligned.turned
-            else pixel_pairs(support[:, r0:r1], pre)
+            else pixel_quads(support[:, r0:r1], pre)
         )
         backproject_weighted(
             weights, seen, self._coarse, COUNT_WEIGHT, self._count, orbit.axis, jac

@@ -274,30 +274,23 @@ def _row_samples(
 
 
 @numba.njit(fastmath=True, error_model="numpy", boundscheck=False, inline="always")
-def _row_gather(n, pairs, cols, idx, fu, fv, wt, top, bottom, acc):  # pragma: no cover
+def _row_gather(n, quads, idx, fu, fv, wt, taps, acc):  # pragma: no cover
     """acc[k] += wt[k] * bilinear(image) for the samples of :func:`_row_samples`.
 
-    ``pairs`` is the view's :func:`pixel_pairs` raveled as uint64, so that one 8-byte load
-    fetches a pixel and its right-hand neighbour; ``top`` and ``bottom`` (uint64) are scratch.
-    The scalar gather only moves those pairs, two samples a step (``idx`` holds a valid index
-    past the n-th), and the interpolation runs vectorised after it.
+    ``quads`` is the view's :func:`pixel_quads` raveled as complex128, so that one 16-byte load
+    fetches a pixel's whole bilinear footprint; ``taps`` (complex128) is scratch. The scalar
+    gather only moves those quads, two samples a step (``idx`` holds a valid index past the
+    n-th), and the interpolation runs vectorised after it.
     """
-    ucols = np.uint64(cols)
     one = np.uint64(1)
     for k in range(0, n, 2):
         k0 = np.uint64(k)  # unsigned indices: no wrap-around checks in the unrolled step
-        k1 = k0 + one
-        i0 = np.uint64(idx[k0])
-        i1 = np.uint64(idx[k1])
-        top[k0] = pairs[i0]
-        bottom[k0] = pairs[i0 + ucols]
-        top[k1] = pairs[i1]
-        bottom[k1] = pairs[i1 + ucols]
-    t = top.view(np.float32)
-    b = bottom.view(np.float32)
+        taps[k0] = quads[np.uint64(idx[k0])]
+        taps[k0 + one] = quads[np.uint64(idx[k0 + one])]
+    t = taps.view(np.float32)
     for k in range(n):
-        r0 = t[2 * k] + fu[k] * (t[2 * k + 1] - t[2 * k])
-        r1 = b[2 * k] + fu[k] * (b[2 * k + 1] - b[2 * k])
+        r0 = t[4 * k] + fu[k] * (t[4 * k + 1] - t[4 * k])
+        r1 = t[4 * k + 2] + fu[k] * (t[4 * k + 3] - t[4 * k + 2])
         acc[k] += (r0 + fv[k] * (r1 - r0)) * wt[k]
 
 
@@ -311,17 +304,17 @@ this machine's 48 KiB L1)."""
     parallel=True, fastmath=True, cache=True, error_model="numpy", boundscheck=False, nogil=True
 )
 def _backproject_kernel(
-    pairs, scale, mats, sources, axis, mode, origin, spacing, out
+    quads, scale, mats, sources, axis, mode, origin, spacing, out
 ):  # pragma: no cover
     """out[z, y, x] += sum over views of scale * weight(mode) * bilinear(image) at P x;
-    ``pairs`` holds the images (one per view, or one for all) as :func:`pixel_pairs` viewed as
-    uint64, (views or 1, rows, cols)."""
-    n_images, rows, cols = pairs.shape
+    ``quads`` holds the images (one per view, or one for all) as :func:`pixel_quads` viewed as
+    complex128, (views or 1, rows, cols)."""
+    n_images, rows, cols = quads.shape
     n_views = len(mats)
     nz, ny, nx = out.shape
     umax = np.float32(cols - 1.0)
     vmax = np.float32(rows - 1.0)
-    flat = pairs.reshape(n_images, rows * cols)
+    flat = quads.reshape(n_images, rows * cols)
     ax32 = axis.astype(np.float32)
     blocks = (ny + ROWS_PER_JOB - 1) // ROWS_PER_JOB
     for job in numba.prange(nz * blocks):
@@ -334,8 +327,7 @@ def _backproject_kernel(
         fu = np.empty(nx, dtype=np.float32)
         fv = np.empty(nx, dtype=np.float32)
         wt = np.empty(nx, dtype=np.float32)
-        top = np.empty(nx + 1, dtype=np.uint64)
-        bottom = np.empty(nx + 1, dtype=np.uint64)
+        taps = np.empty(nx + 1, dtype=np.complex128)
         d0 = np.empty(3, dtype=np.float32)
         dd = np.zeros(3, dtype=np.float32)
         dd[0] = spacing[0]
@@ -383,32 +375,40 @@ def _backproject_kernel(
                     _row_samples(
                         n, x0, h, s, umax, vmax, cols, mode, sc, d0, dd, ax32, idx, fu, fv, wt
                     )
-                _row_gather(n, image, cols, idx, fu, fv, wt, top, bottom, acc[y - y0, x0:])
+                _row_gather(n, image, idx, fu, fv, wt, taps, acc[y - y0, x0:])
         for y in range(y0, y1):
             for x in range(nx):
                 out[z, y, x] += acc[y - y0, x]
 
 
 @numba.njit(parallel=True, fastmath=True, cache=True, error_model="numpy", nogil=True)
-def _pairs_kernel(a, b, out):  # pragma: no cover
-    """out[k, r, c] = (p[k, r, c], p[k, r, c + 1]), p = a * b broadcast over axes 0 and 1."""
+def _quads_kernel(a, b, out):  # pragma: no cover
+    """out[k, r, c] = (p[r, c], p[r, c + 1], p[r + 1, c], p[r + 1, c + 1]) of the k-th image
+    p = a * b (broadcast over axes 0 and 1), 0 past the last row and column."""
     n, rows, cols = out.shape[:3]
     for job in numba.prange(n * rows):
         k = job // rows
         r = job - k * rows
-        ra = a[min(k, a.shape[0] - 1), min(r, a.shape[1] - 1)]
-        rb = b[min(k, b.shape[0] - 1), min(r, b.shape[1] - 1)]
-        row = out[k, r]
-        for c in range(cols):
-            row[c, 0] = ra[c] * rb[c]
-        for c in range(cols - 1):
-            row[c, 1] = row[c + 1, 0]
-        row[cols - 1, 1] = 0.0
+        quad = out[k, r]
+        for below in range(2):
+            tap = 2 * below
+            rr = r + below
+            if rr == rows:
+                quad[:, tap : tap + 2] = 0.0
+                continue
+            ra = a[min(k, a.shape[0] - 1), min(rr, a.shape[1] - 1)]
+            rb = b[min(k, b.shape[0] - 1), min(rr, b.shape[1] - 1)]
+            for c in range(cols):
+                quad[c, tap] = ra[c] * rb[c]
+            for c in range(cols - 1):
+                quad[c, tap + 1] = quad[c + 1, tap]
+            quad[cols - 1, tap + 1] = 0.0
 
 
-def pixel_pairs(images: np.ndarray, factor: np.ndarray | None = None) -> np.ndarray:
-    """``images * factor`` laid out for :func:`backproject_weighted`: every pixel followed by its
-    right-hand neighbour (0 after the last column), float32 (V, rows, cols, 2).
+def pixel_quads(images: np.ndarray, factor: np.ndarray | None = None) -> np.ndarray:
+    """``images * factor`` laid out for :func:`backproject_weighted`: every pixel with its
+    bilinear footprint, (p[r, c], p[r, c + 1], p[r + 1, c], p[r + 1, c + 1]) (0 past the last
+    row and column), float32 (V, rows, cols, 4).
 
     ``images`` and ``factor`` are (V or 1, rows or 1, cols), broadcast against each other.
     """
@@ -418,8 +418,8 @@ def pixel_pairs(images: np.ndarray, factor: np.ndarray | None = None) -> np.ndar
     if a.ndim != 3 or b.ndim != 3 or a.shape[2] != b.shape[2]:
         raise ValueError(f"images {a.shape} and factor {b.shape} must be 3-d with equal columns")
     shape = np.broadcast_shapes(a.shape, b.shape)
-    out = np.empty((*shape, 2), dtype=np.float32)
-    _pairs_kernel(a, b, out)
+    out = np.empty((*shape, 4), dtype=np.float32)
+    _quads_kernel(a, b, out)
     return out
 
 
@@ -435,7 +435,7 @@ def backproject_weighted(
     """Accumulate voxel-driven backprojections of ``images`` into ``out``.
 
     ``images`` are (V, rows, cols), one per view of ``geometry``, or (1, rows, cols), one for
-    all of them; either laid out by :func:`pixel_pairs` (a trailing axis of 2) or plain. Each
+    all of them; either laid out by :func:`pixel_quads` (a trailing axis of 4) or plain. Each
     voxel adds ``scale[view] * weight * bilinear(image)`` where its centre projects inside the
     panel; the weight is chosen by ``mode`` (:data:`FDK_WEIGHT`, :data:`ADJOINT_WEIGHT`,
     :data:`COUNT_WEIGHT`, the latter needing the rotation ``axis``); ``scale`` (V,) defaults
@@ -443,17 +443,17 @@ def backproject_weighted(
     """
     if out.shape != grid.shape or out.dtype != np.float32:
         raise ValueError(f"out must be float32 of shape {grid.shape}")
-    pairs = np.asarray(images)
-    if pairs.ndim == 3:
-        pairs = pixel_pairs(pairs)
-    pairs = np.ascontiguousarray(pairs, dtype=np.float32)
-    if pairs.shape[1:] != (geometry.rows, geometry.cols, 2) or len(pairs) not in (1, len(geometry)):
+    quads = np.asarray(images)
+    if quads.ndim == 3:
+        quads = pixel_quads(quads)
+    quads = np.ascontiguousarray(quads, dtype=np.float32)
+    if quads.shape[1:] != (geometry.rows, geometry.cols, 4) or len(quads) not in (1, len(geometry)):
         raise ValueError(
-            f"images of shape {pairs.shape} for {len(geometry)} views of {geometry.rows} x "
+            f"images of shape {quads.shape} for {len(geometry)} views of {geometry.rows} x "
             f"{geometry.cols} pixels"
         )
     _backproject_kernel(
-        pairs.view(np.uint64)[..., 0],
+        quads.view(np.complex128)[..., 0],
         np.ones(len(geometry), np.float32) if scale is None else np.asarray(scale, np.float32),
         np.asarray(geometry.matrices),
         np.asarray(geometry.sources_mm),

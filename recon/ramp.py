@@ -1,11 +1,11 @@
-"""FDK's filtering of a batch of projections: weights, the ramp along rows, pixel pairs out.
+"""FDK's filtering of a batch of projections: weights, the ramp along rows, pixel quads out.
 
 One pass of a numba kernel weights every pixel (the cosine of its ray's angle to the detector
 normal, a per-view scale, optional per-column weights such as Parker's) and packs two rows
 into one zero-padded complex row; complex FFTs filter both at once, since the ramp kernel is
 real and even, so its response is real and ``filter(a + i b) = filter(a) + i filter(b)``
 exactly; a second pass unpacks the rows, multiplies them by a per-pixel weight (the detector
-edge taper) and lays them out as :func:`recon.project.pixel_pairs` for the backprojector. All
+edge taper) and lays them out as :func:`recon.project.pixel_quads` for the backprojector. All
 of it runs on every core: the whole filtering costs about a fifth of the backprojection.
 """
 
@@ -47,26 +47,33 @@ def _pack_kernel(images, panels, scale, columns, out):  # pragma: no cover
 
 
 @numba.njit(parallel=True, fastmath=True, cache=True, error_model="numpy", nogil=True)
-def _unpack_pairs_kernel(filtered, support, out):  # pragma: no cover
-    """out[k, r, c] = (p[k, r, c], p[k, r, c + 1]) of p = row r of ``filtered`` (rows 2j and
-    2j + 1 in the real and imaginary parts of row j) times ``support``."""
+def _unpack_quads_kernel(filtered, support, out):  # pragma: no cover
+    """out[k, r, c] = (p[r, c], p[r, c + 1], p[r + 1, c], p[r + 1, c + 1]) of p = ``filtered``
+    (rows 2j and 2j + 1 in the real and imaginary parts of row j) times ``support``, 0 past
+    the last row and column."""
     n, rows, cols = out.shape[:3]
     for job in numba.prange(n * rows):
         k = job // rows
         r = job - k * rows
-        src = filtered[k, r // 2]
-        part = r % 2
-        weight = support[min(k, support.shape[0] - 1), r]
-        row = out[k, r]
-        for c in range(cols):
-            row[c, 0] = src[2 * c + part] * weight[c]
-        for c in range(cols - 1):
-            row[c, 1] = row[c + 1, 0]
-        row[cols - 1, 1] = 0.0
+        quad = out[k, r]
+        for below in range(2):
+            tap = 2 * below
+            rr = r + below
+            if rr == rows:
+                quad[:, tap : tap + 2] = 0.0
+                continue
+            src = filtered[k, rr // 2]
+            part = rr % 2
+            weight = support[min(k, support.shape[0] - 1), rr]
+            for c in range(cols):
+                quad[c, tap] = src[2 * c + part] * weight[c]
+            for c in range(cols - 1):
+                quad[c, tap + 1] = quad[c + 1, tap]
+            quad[cols - 1, tap + 1] = 0.0
 
 
 class RowFilter:
-    """Weighting, ramp filtering along rows and pixel pairs for batches of projections whose
+    """Weighting, ramp filtering along rows and pixel quads for batches of projections whose
     rows hold ``cols`` pixels.
 
     Args:
@@ -92,7 +99,7 @@ class RowFilter:
         support: np.ndarray,
         columns: np.ndarray | None = None,
     ) -> np.ndarray:
-        """Filtered ``images`` laid out as pixel pairs, float32 (n, rows, cols, 2).
+        """Filtered ``images`` laid out as pixel quads, float32 (n, rows, cols, 4).
 
         Args:
             images: float32 (n, rows, cols) projections (any number of rows).
@@ -118,8 +125,8 @@ class RowFilter:
         spectrum = scipy.fft.fft(packed, axis=2, overwrite_x=True, workers=-1)
         spectrum *= self._response
         filtered = scipy.fft.ifft(spectrum, axis=2, overwrite_x=True, workers=-1)
-        out = np.empty((n, rows, cols, 2), dtype=np.float32)
-        _unpack_pairs_kernel(
+        out = np.empty((n, rows, cols, 4), dtype=np.float32)
+        _unpack_quads_kernel(
             filtered.view(np.float32), np.ascontiguousarray(support, dtype=np.float32), out
         )
         return out

@@ -25,8 +25,9 @@ def ram_lak_kernel(cols: int) -> np.ndarray:
 @pytest.mark.parametrize("rows", [6, 7])  # an odd row count leaves the last one unpaired
 def test_rows_are_weighted_filtered_and_paired_as_a_direct_convolution(rows):
     """Each output row is the linear convolution of its weighted row with the spatial Ram-Lak
-    kernel, then times the support; the pair holds the right-hand neighbour (0 past the end).
-    float32 FFTs of 128 rows: agreement to 1e-5 of the row's largest value."""
+    kernel, then times the support; each pixel's quad holds it, its right-hand neighbour and
+    the two below them (0 past the last column and row). float32 FFTs of 128 points: agreement
+    to 1e-5 of the row's largest value."""
     rng = np.random.default_rng(3)
     n, cols = 3, 40
     images = rng.random((n, rows, cols), dtype=np.float32)
@@ -36,22 +37,26 @@ def test_rows_are_weighted_filtered_and_paired_as_a_direct_convolution(rows):
     support = rng.random((1, rows, cols), dtype=np.float32)
     response = ramp_filter_response(128, 1.0, "ram-lak", 1.0)
 
-    pairs = RowFilter(cols, response)(images, panels, scale, support, columns)
+    quads = RowFilter(cols, response)(images, panels, scale, support, columns)
 
     h = ram_lak_kernel(cols)
-    assert pairs.shape == (n, rows, cols, 2)
+    assert quads.shape == (n, rows, cols, 4)
     for k in range(n):
         d, u0, v0, pu, pv = panels[k]
         du = (np.arange(cols) - u0) * pu
         dv = (np.arange(rows) - v0) * pv
         cosine = d / np.sqrt(d**2 + du[None, :] ** 2 + dv[:, None] ** 2)
         weighted = images[k] * cosine * scale[k] * columns[k]
+        filtered = np.zeros((rows + 1, cols + 1))
         for r in range(rows):
-            expected = np.convolve(weighted[r], h)[cols - 1 : 2 * cols - 1] * support[0, r]
-            tol = 1e-5 * np.abs(expected).max()
-            np.testing.assert_allclose(pairs[k, r, :, 0], expected, atol=tol)
-            np.testing.assert_allclose(pairs[k, r, :-1, 1], expected[1:], atol=tol)
-            assert pairs[k, r, -1, 1] == 0.0
+            filtered[r, :cols] = np.convolve(weighted[r], h)[cols - 1 : 2 * cols - 1]
+        filtered[:rows, :cols] *= support[0]
+        tol = 1e-5 * np.abs(filtered).max()
+        np.testing.assert_allclose(quads[k, ..., 0], filtered[:-1, :-1], atol=tol)
+        np.testing.assert_allclose(quads[k, ..., 1], filtered[:-1, 1:], atol=tol)
+        np.testing.assert_allclose(quads[k, ..., 2], filtered[1:, :-1], atol=tol)
+        np.testing.assert_allclose(quads[k, ..., 3], filtered[1:, 1:], atol=tol)
+        assert not quads[k, -1, :, 2:].any() and not quads[k, :, -1, 1::2].any()
 
 
 def test_a_ramp_shorter_than_twice_the_row_is_refused():
