@@ -6,8 +6,8 @@ file written. Every file goes through :meth:`Study.write`: written to a temporar
 folder, flushed to disk, then renamed into place, so a file either exists whole or not at all;
 an existing file is never replaced. The manifest itself is replaced atomically the same way.
 Files in memory with a record of them (an acquired view's images and the record naming their
-sha256) go through :meth:`Study.write_with_record`: written and fsynced concurrently, hashed
-from memory, the record renamed into place last.
+sha256) go through :meth:`Study.write_with_record`: hashed from memory, written and fsynced
+concurrently on worker threads, the record renamed into place last.
 """
 
 from __future__ import annotations
@@ -37,8 +37,8 @@ STAGES = (
 
 
 _IO = ThreadPoolExecutor(max_workers=2, thread_name_prefix="study-io")
-"""Threads that write and fsync files while the caller hashes them (os.fsync and hashlib
-release the GIL)."""
+"""Threads that hash, write and fsync files while the caller writes their record (hashlib on
+large buffers, os.write and os.fsync release the GIL)."""
 
 
 class StudyError(RuntimeError):
@@ -187,21 +187,26 @@ class Study:
         the JSON that names their sha256.
 
         ``files`` maps each path to its parts (bytes-like, C-contiguous; written one after the
-        other). Each file is written and fsynced under its temporary name on a worker thread
-        while this thread hashes the parts and writes ``content(sha256 of each file)`` as the
-        ``record``, fsynced too; then the files are renamed into place and the record last, so
-        the record exists only once its files do. Every sha256 is recorded in the manifest
-        (hashed from memory: nothing is read back). Refuses a file that exists; on failure no
-        temporary file is left."""
+        other). Each file is hashed, then written and fsynced under its temporary name, on the
+        worker threads (the files in parallel), while this thread writes ``content(sha256 of
+        each file)`` as the ``record`` once the hashes are in, fsynced too; then the files are
+        renamed into place and the record last, so the record exists only once its files do.
+        Every sha256 is recorded in the manifest (hashed from memory: nothing is read back).
+        Refuses a file that exists; on failure no temporary file is left."""
         targets = {relpath: self.path / relpath for relpath in (*files, record)}
         for target in targets.values():
             if target.exists():
                 raise StudyError(f"{target} exists: files of a study are never rewritten")
             target.parent.mkdir(parents=True, exist_ok=True)
         tmps = {relpath: _temporary(target) for relpath, target in targets.items()}
-        pending = [_IO.submit(_write_synced, tmps[r], parts) for r, parts in files.items()]
+        # the workers hash every file first (in parallel: hashlib releases the GIL), then
+        # write and fsync them, while this thread writes the record as soon as the hashes
+        # are in
+        hashing = {relpath: _IO.submit(_sha256_of, parts) for relpath, parts in files.items()}
+        pending = [*hashing.values()]
+        pending += [_IO.submit(_write_synced, tmps[r], parts) for r, parts in files.items()]
         try:
-            digests = {relpath: _sha256_of(parts) for relpath, parts in files.items()}
+            digests = {relpath: digest.result() for relpath, digest in hashing.items()}
             data = content(dict(digests))
             _write_synced(tmps[record], (data,))
             for done in pending:
