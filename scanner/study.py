@@ -6,7 +6,7 @@ file written. Every file goes through :meth:`Study.write`: written to a temporar
 folder, flushed to disk, then renamed into place, so a file either exists whole or not at all;
 an existing file is never replaced. The manifest itself is replaced atomically the same way.
 Files in memory with a record of them (an acquired view's images and the record naming their
-sha256) go through :meth:`Study.write_with_record`: hashed from memory, written and fsynced
+sha256) go through :meth:`Study.write_with_record`: written, fsynced and hashed from memory
 concurrently on worker threads, the record renamed into place last.
 """
 
@@ -36,9 +36,10 @@ STAGES = (
 )
 
 
-_IO = ThreadPoolExecutor(max_workers=2, thread_name_prefix="study-io")
-"""Threads that hash, write and fsync files while the caller writes their record (hashlib on
-large buffers, os.write and os.fsync release the GIL)."""
+_IO = ThreadPoolExecutor(max_workers=4, thread_name_prefix="study-io")
+"""Threads that write and fsync files and hash them, a view's two images and their two hashes
+at once, while the caller writes their record (hashlib on large buffers, os.write and os.fsync
+release the GIL)."""
 
 
 class StudyError(RuntimeError):
@@ -187,8 +188,8 @@ class Study:
         the JSON that names their sha256.
 
         ``files`` maps each path to its parts (bytes-like, C-contiguous; written one after the
-        other). Each file is hashed, then written and fsynced under its temporary name, on the
-        worker threads (the files in parallel), while this thread writes ``content(sha256 of
+        other). Each file is written and fsynced under its temporary name on a worker thread,
+        and hashed on another at the same time, while this thread writes ``content(sha256 of
         each file)`` as the ``record`` once the hashes are in, fsynced too; then the files are
         renamed into place and the record last, so the record exists only once its files do.
         Every sha256 is recorded in the manifest (hashed from memory: nothing is read back).
@@ -199,12 +200,11 @@ class Study:
                 raise StudyError(f"{target} exists: files of a study are never rewritten")
             target.parent.mkdir(parents=True, exist_ok=True)
         tmps = {relpath: _temporary(target) for relpath, target in targets.items()}
-        # the workers hash every file first (in parallel: hashlib releases the GIL), then
-        # write and fsync them, while this thread writes the record as soon as the hashes
-        # are in
+        # the files' writes start at once, their hashes alongside on other workers (hashlib
+        # and os.write release the GIL); this thread writes the record once the hashes are in
+        pending = [_IO.submit(_write_synced, tmps[r], parts) for r, parts in files.items()]
         hashing = {relpath: _IO.submit(_sha256_of, parts) for relpath, parts in files.items()}
-        pending = [*hashing.values()]
-        pending += [_IO.submit(_write_synced, tmps[r], parts) for r, parts in files.items()]
+        pending += hashing.values()
         try:
             digests = {relpath: digest.result() for relpath, digest in hashing.items()}
             data = content(dict(digests))
