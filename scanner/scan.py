@@ -7,7 +7,9 @@ APPROACH streams the planned approach and warms the tube up, then asks again bef
 ACQUIRE streams the planned scan; at each view's time it reads both arms and the stage, checks
 that the realised view is the planned one within tolerance, that the interlocks are closed and
 that the study's disk can take the view, and only then fires one pulse, reads the frame and
-stores it with the joint state it was taken at (:class:`scanner.storage.ScanStore`). RETREAT
+stores it with the joint state it was taken at (:class:`scanner.storage.ScanStore`): its files
+are written and fsynced while the next view's pose and interlocks are checked, and the next
+pulse waits until they are in place (no pulse while an acquired view is not on disk). RETREAT
 streams the planned retreat; DONE assembles the stack. Any failure (a device error, a
 protective stop, an off-pose view, an open interlock, a full disk, Ctrl-C) goes to SAFE: X-ray
 off first, then every joint group stops, then what was acquired is flushed and the scan marked
@@ -27,12 +29,15 @@ import numpy as np
 from recon.config import ScanProtocol
 from recon.geometry import DetectorSpec, View
 from scanner.hardware import Backend, DeviceError, Technique
-from scanner.storage import ScanStore, ViewRecord
+from scanner.storage import PendingView, ScanStore, ViewRecord
 from trajectories.model import ScannerModel
 from trajectories.plan import Plan, view_at
 
 SETTLE_POLL_S = 0.01
 """Re-read interval while arms settle onto a view's pose, s."""
+STATUS_MAX_AGE_S = 0.02
+"""Oldest generator STATUS? reading a pulse may rely on (wall clock), s: asked again when
+waiting for the previous view's storage took longer."""
 GROUP_SLICES = (slice(0, 2), slice(2, 8), slice(8, 14))
 """Plan joint indices of the backend's groups: stage (rotary, lift), source arm, detector arm."""
 _STOPPERS = ThreadPoolExecutor(max_workers=len(GROUP_SLICES), thread_name_prefix="safe-stop")
@@ -159,6 +164,7 @@ class ScanRun:
     transitions: list[tuple[float, State]] = field(default_factory=list)
 
     def __post_init__(self) -> None:
+        self._storing: tuple[PendingView, np.ndarray] | None = None  # the view being stored
         e = self.protocol.exposure
         self.technique = Technique(e.tube_kv, e.tube_ma, e.pulse_ms)
         self.panel = DetectorSpec(
@@ -296,21 +302,24 @@ class ScanRun:
             # work that overran its sample (a view's exposure, read-out and storage on a wall
             # clock) pauses the plan where it is instead of bursting set-points to catch up
             origin = max(origin, clock.now() - t)
+        self._finish_storing()  # the last view
 
     def _acquire(self, k: int) -> None:
-        """One view: pose check, interlock check, expose, read, store."""
+        """One view: pose check, interlock check, expose, read, start storing it.
+
+        The previous view's storage (its files' writes and fsyncs) runs while this view's pose
+        and interlocks are checked; it is waited for, and the previous view reported stored,
+        before anything else: no pulse while an acquired view is not yet on disk."""
         b, timeout = self.backend, self.settings.device_timeout_s
         planned = view_at(self.model, self.plan.view_q[k], self.panel)
         q, realised = self._settled(k, planned)
         t_reading = b.clock.now()
-        status = b.generator.status(timeout)
-        if not status.interlocks_closed:
-            opened = [name for name, closed in status.interlocks.items() if not closed]
-            raise DeviceError(f"view {k}: interlock open ({', '.join(opened)}): not exposing")
-        if not status.ready or status.fault:
-            raise DeviceError(f"view {k}: generator not ready ({status.fault or 'not prepared'})")
+        checked_at = self._check_generator(k)
+        self._finish_storing()
         self.store.check_room(k)  # no dose for a view that cannot be stored
         b.detector.arm(timeout)
+        if time.monotonic() - checked_at > STATUS_MAX_AGE_S:  # e.g. a slow disk held us up
+            self._check_generator(k)
         exposure = b.generator.expose(timeout)
         frame = b.detector.read_frame(timeout)
         flood = b.detector.flood_counts(exposure.technique)
@@ -332,8 +341,29 @@ class ScanRun:
             exposure_sequence=exposure.sequence,
             true_matrix=self.truth(),
         )
-        self.store.put(record, line_integrals, frame.counts)
-        self.on_view(record, line_integrals)
+        self._storing = (self.store.start_put(record, line_integrals, frame.counts), line_integrals)
+
+    def _check_generator(self, k: int) -> float:
+        """STATUS?: interlocks closed, generator ready, no fault; DeviceError otherwise.
+        Returns when it was read (time.monotonic)."""
+        status = self.backend.generator.status(self.settings.device_timeout_s)
+        read_at = time.monotonic()
+        if not status.interlocks_closed:
+            opened = [name for name, closed in status.interlocks.items() if not closed]
+            raise DeviceError(f"view {k}: interlock open ({', '.join(opened)}): not exposing")
+        if not status.ready or status.fault:
+            raise DeviceError(f"view {k}: generator not ready ({status.fault or 'not prepared'})")
+        return read_at
+
+    def _finish_storing(self) -> None:
+        """Wait until the view being stored is on disk; then hand it on (on_view, progress).
+        Raises what failed to store it."""
+        if self._storing is None:
+            return
+        pending, image = self._storing
+        pending.wait()
+        self._storing = None
+        self.on_view(pending.record, image)
         self.progress(
             Progress(
                 len(self.store.stored),
@@ -389,6 +419,13 @@ class ScanRun:
             reason = f"{type(err).__name__}: {err}"
         if problems:
             reason += "; " + "; ".join(problems)
+        if self._storing is not None:  # the data so far is flushed: the last view's files
+            k = self._storing[0].record.view
+            try:
+                self._finish_storing()
+            except BaseException as store_err:  # e.g. the disk is full: it was not stored
+                self._storing = None
+                reason += f"; view {k} could not be stored: {store_err}"
         try:
             self.store.mark_incomplete(reason, failed_in.value)
         except Exception as mark_err:  # e.g. the disk is full: still release the devices
