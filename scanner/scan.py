@@ -165,6 +165,7 @@ class ScanRun:
 
     def __post_init__(self) -> None:
         self._storing: tuple[PendingView, np.ndarray] | None = None  # the view being stored
+        self._unreported: tuple[ViewRecord, np.ndarray] | None = None  # stored, not handed on
         e = self.protocol.exposure
         self.technique = Technique(e.tube_kv, e.tube_ma, e.pulse_ms)
         self.panel = DetectorSpec(
@@ -303,13 +304,14 @@ class ScanRun:
             # clock) pauses the plan where it is instead of bursting set-points to catch up
             origin = max(origin, clock.now() - t)
         self._finish_storing()  # the last view
+        self._report_stored()
 
     def _acquire(self, k: int) -> None:
         """One view: pose check, interlock check, expose, read, start storing it.
 
         The previous view's storage (its files' writes and fsyncs) runs while this view's pose
-        and interlocks are checked; it is waited for, and the previous view reported stored,
-        before anything else: no pulse while an acquired view is not yet on disk."""
+        and interlocks are checked; it is waited for before anything else (no pulse while an
+        acquired view is not yet on disk), and the stored view is handed on after the pulse."""
         b, timeout = self.backend, self.settings.device_timeout_s
         planned = view_at(self.model, self.plan.view_q[k], self.panel)
         q, realised = self._settled(k, planned)
@@ -321,6 +323,7 @@ class ScanRun:
         if time.monotonic() - checked_at > STATUS_MAX_AGE_S:  # e.g. a slow disk held us up
             self._check_generator(k)
         exposure = b.generator.expose(timeout)
+        self._report_stored()  # handed on while the panel reads out, not amid the requests
         frame = b.detector.read_frame(timeout)
         flood = b.detector.flood_counts(exposure.technique)
         line_integrals = np.maximum(frame.counts, 1.0) / flood  # -ln(I / I0), then in place
@@ -356,14 +359,23 @@ class ScanRun:
         return read_at
 
     def _finish_storing(self) -> None:
-        """Wait until the view being stored is on disk; then hand it on (on_view, progress).
-        Raises what failed to store it."""
+        """Wait until the view being stored is on disk (then it is stored, to be handed on by
+        :meth:`_report_stored`); raises what failed to store it."""
         if self._storing is None:
             return
         pending, image = self._storing
         pending.wait()
         self._storing = None
-        self.on_view(pending.record, image)
+        self._unreported = (pending.record, image)
+
+    def _report_stored(self) -> None:
+        """Hand the view stored last on (on_view: the recording, a live reconstruction) and
+        report the progress."""
+        if self._unreported is None:
+            return
+        record, image = self._unreported
+        self._unreported = None
+        self.on_view(record, image)
         self.progress(
             Progress(
                 len(self.store.stored),
@@ -426,6 +438,10 @@ class ScanRun:
             except BaseException as store_err:  # e.g. the disk is full: it was not stored
                 self._storing = None
                 reason += f"; view {k} could not be stored: {store_err}"
+        try:
+            self._report_stored()
+        except Exception as report_err:  # e.g. the recording failed: the view is stored
+            reason += f"; {report_err}"
         try:
             self.store.mark_incomplete(reason, failed_in.value)
         except Exception as mark_err:  # e.g. the disk is full: still release the devices
