@@ -8,8 +8,9 @@ ACQUIRE streams the planned scan; at each view's time it reads both arms and the
 that the realised view is the planned one within tolerance, that the interlocks are closed and
 that the study's disk can take the view, and only then fires one pulse, reads the frame and
 stores it with the joint state it was taken at (:class:`scanner.storage.ScanStore`): its files
-are written and fsynced while the next view's pose and interlocks are checked, and the next
-pulse waits until they are in place (no pulse while an acquired view is not on disk). RETREAT
+are written and fsynced while the plan streams on to the next view and its pose is checked,
+and the next view's interlock check and pulse wait until they are in place (no pulse while an
+acquired view is not on disk). RETREAT
 streams the planned retreat; DONE assembles the stack. Any failure (a device error, a
 protective stop, an off-pose view, an open interlock, a full disk, Ctrl-C) goes to SAFE: X-ray
 off first, then every joint group stops, then what was acquired is flushed and the scan marked
@@ -35,9 +36,6 @@ from trajectories.plan import Plan, view_at
 
 SETTLE_POLL_S = 0.01
 """Re-read interval while arms settle onto a view's pose, s."""
-STATUS_MAX_AGE_S = 0.02
-"""Oldest generator STATUS? reading a pulse may rely on (wall clock), s: asked again when
-waiting for the previous view's storage took longer."""
 GROUP_SLICES = (slice(0, 2), slice(2, 8), slice(8, 14))
 """Plan joint indices of the backend's groups: stage (rotary, lift), source arm, detector arm."""
 _STOPPERS = ThreadPoolExecutor(max_workers=len(GROUP_SLICES), thread_name_prefix="safe-stop")
@@ -309,19 +307,23 @@ class ScanRun:
     def _acquire(self, k: int) -> None:
         """One view: pose check, interlock check, expose, read, start storing it.
 
-        The previous view's storage (its files' writes and fsyncs) runs while this view's pose
-        and interlocks are checked; it is waited for before anything else (no pulse while an
-        acquired view is not yet on disk), and the stored view is handed on after the pulse."""
+        The previous view's storage (its files' writes and fsyncs) runs while the plan streams
+        on to this view and its pose is checked; it is waited for before the interlock check
+        and the pulse (no pulse while an acquired view is not yet on disk), and the stored view
+        is handed on after the pulse."""
         b, timeout = self.backend, self.settings.device_timeout_s
         planned = view_at(self.model, self.plan.view_q[k], self.panel)
         q, realised = self._settled(k, planned)
         t_reading = b.clock.now()
-        checked_at = self._check_generator(k)
-        self._finish_storing()
+        self._finish_storing()  # the previous view is on disk before anything else
+        status = b.generator.status(timeout)
+        if not status.interlocks_closed:
+            opened = [name for name, closed in status.interlocks.items() if not closed]
+            raise DeviceError(f"view {k}: interlock open ({', '.join(opened)}): not exposing")
+        if not status.ready or status.fault:
+            raise DeviceError(f"view {k}: generator not ready ({status.fault or 'not prepared'})")
         self.store.check_room(k)  # no dose for a view that cannot be stored
         b.detector.arm(timeout)
-        if time.monotonic() - checked_at > STATUS_MAX_AGE_S:  # e.g. a slow disk held us up
-            self._check_generator(k)
         exposure = b.generator.expose(timeout)
         self._report_stored()  # handed on while the panel reads out, not amid the requests
         frame = b.detector.read_frame(timeout)
@@ -345,18 +347,6 @@ class ScanRun:
             true_matrix=self.truth(),
         )
         self._storing = (self.store.start_put(record, line_integrals, frame.counts), line_integrals)
-
-    def _check_generator(self, k: int) -> float:
-        """STATUS?: interlocks closed, generator ready, no fault; DeviceError otherwise.
-        Returns when it was read (time.monotonic)."""
-        status = self.backend.generator.status(self.settings.device_timeout_s)
-        read_at = time.monotonic()
-        if not status.interlocks_closed:
-            opened = [name for name, closed in status.interlocks.items() if not closed]
-            raise DeviceError(f"view {k}: interlock open ({', '.join(opened)}): not exposing")
-        if not status.ready or status.fault:
-            raise DeviceError(f"view {k}: generator not ready ({status.fault or 'not prepared'})")
-        return read_at
 
     def _finish_storing(self) -> None:
         """Wait until the view being stored is on disk (then it is stored, to be handed on by

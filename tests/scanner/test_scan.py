@@ -242,7 +242,7 @@ def test_resume_refuses_an_altered_view(reference, tmp_path):
 
 
 def test_no_pulse_while_an_acquired_view_is_not_on_disk(tmp_path, monkeypatch):
-    """A view's files are written while the next view's pose and interlocks are checked, but
+    """A view's files are written while the plan streams on and the next pose is checked, but
     every pulse finds each view acquired before it stored: its images and record in place."""
     from scanner.generator import SerialGenerator
 
