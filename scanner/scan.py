@@ -7,7 +7,10 @@ APPROACH streams the planned approach and warms the tube up, then asks again bef
 ACQUIRE streams the planned scan; at each view's time it reads both arms and the stage, checks
 that the realised view is the planned one within tolerance, that the interlocks are closed and
 that the study's disk can take the view, and only then fires one pulse, reads the frame and
-stores it with the joint state it was taken at (:class:`scanner.storage.ScanStore`). RETREAT
+stores it with the joint state it was taken at (:class:`scanner.storage.ScanStore`): its files
+are written and fsynced while the plan streams on to the next view and its pose is checked,
+and the next view's interlock check and pulse wait until they are in place (no pulse while an
+acquired view is not on disk). RETREAT
 streams the planned retreat; DONE assembles the stack. Any failure (a device error, a
 protective stop, an off-pose view, an open interlock, a full disk, Ctrl-C) goes to SAFE: X-ray
 off first, then every joint group stops, then what was acquired is flushed and the scan marked
@@ -27,7 +30,7 @@ import numpy as np
 from recon.config import ScanProtocol
 from recon.geometry import DetectorSpec, View
 from scanner.hardware import Backend, DeviceError, Technique
-from scanner.storage import ScanStore, ViewRecord
+from scanner.storage import PendingView, ScanStore, ViewRecord
 from trajectories.model import ScannerModel
 from trajectories.plan import Plan, view_at
 
@@ -159,6 +162,8 @@ class ScanRun:
     transitions: list[tuple[float, State]] = field(default_factory=list)
 
     def __post_init__(self) -> None:
+        self._storing: tuple[PendingView, np.ndarray] | None = None  # the view being stored
+        self._unreported: tuple[ViewRecord, np.ndarray] | None = None  # stored, not handed on
         e = self.protocol.exposure
         self.technique = Technique(e.tube_kv, e.tube_ma, e.pulse_ms)
         self.panel = DetectorSpec(
@@ -296,13 +301,21 @@ class ScanRun:
             # work that overran its sample (a view's exposure, read-out and storage on a wall
             # clock) pauses the plan where it is instead of bursting set-points to catch up
             origin = max(origin, clock.now() - t)
+        self._finish_storing()  # the last view
+        self._report_stored()
 
     def _acquire(self, k: int) -> None:
-        """One view: pose check, interlock check, expose, read, store."""
+        """One view: pose check, interlock check, expose, read, start storing it.
+
+        The previous view's storage (its files' writes and fsyncs) runs while the plan streams
+        on to this view and its pose is checked; it is waited for before the interlock check
+        and the pulse (no pulse while an acquired view is not yet on disk), and the stored view
+        is handed on after the pulse."""
         b, timeout = self.backend, self.settings.device_timeout_s
         planned = view_at(self.model, self.plan.view_q[k], self.panel)
         q, realised = self._settled(k, planned)
         t_reading = b.clock.now()
+        self._finish_storing()  # the previous view is on disk before anything else
         status = b.generator.status(timeout)
         if not status.interlocks_closed:
             opened = [name for name, closed in status.interlocks.items() if not closed]
@@ -312,6 +325,7 @@ class ScanRun:
         self.store.check_room(k)  # no dose for a view that cannot be stored
         b.detector.arm(timeout)
         exposure = b.generator.expose(timeout)
+        self._report_stored()  # handed on while the panel reads out, not amid the requests
         frame = b.detector.read_frame(timeout)
         flood = b.detector.flood_counts(exposure.technique)
         line_integrals = np.maximum(frame.counts, 1.0) / flood  # -ln(I / I0), then in place
@@ -332,8 +346,26 @@ class ScanRun:
             exposure_sequence=exposure.sequence,
             true_matrix=self.truth(),
         )
-        self.store.put(record, line_integrals, frame.counts)
-        self.on_view(record, line_integrals)
+        self._storing = (self.store.start_put(record, line_integrals, frame.counts), line_integrals)
+
+    def _finish_storing(self) -> None:
+        """Wait until the view being stored is on disk (then it is stored, to be handed on by
+        :meth:`_report_stored`); raises what failed to store it."""
+        if self._storing is None:
+            return
+        pending, image = self._storing
+        pending.wait()
+        self._storing = None
+        self._unreported = (pending.record, image)
+
+    def _report_stored(self) -> None:
+        """Hand the view stored last on (on_view: the recording, a live reconstruction) and
+        report the progress."""
+        if self._unreported is None:
+            return
+        record, image = self._unreported
+        self._unreported = None
+        self.on_view(record, image)
         self.progress(
             Progress(
                 len(self.store.stored),
@@ -389,6 +421,17 @@ class ScanRun:
             reason = f"{type(err).__name__}: {err}"
         if problems:
             reason += "; " + "; ".join(problems)
+        if self._storing is not None:  # the data so far is flushed: the last view's files
+            k = self._storing[0].record.view
+            try:
+                self._finish_storing()
+            except BaseException as store_err:  # e.g. the disk is full: it was not stored
+                self._storing = None
+                reason += f"; view {k} could not be stored: {store_err}"
+        try:
+            self._report_stored()
+        except Exception as report_err:  # e.g. the recording failed: the view is stored
+            reason += f"; {report_err}"
         try:
             self.store.mark_incomplete(reason, failed_in.value)
         except Exception as mark_err:  # e.g. the disk is full: still release the devices

@@ -86,6 +86,9 @@ A protective stop halts the stage, sets ``pstop`` and refuses ``MOVE`` and ``SER
 
 from __future__ import annotations
 
+import io
+import os
+import select
 import threading
 import time
 from dataclasses import dataclass
@@ -370,8 +373,7 @@ class SerialLink:
             if port is None:
                 raise DeviceError(f"{self.device}: {body!r}: port {self.port} is closed")
             try:
-                port.write(frame)
-                port.flush()
+                _write_all(port, frame, self.write_timeout_s)
                 return
             except (OSError, serial.SerialException) as exc:
                 failure = exc
@@ -400,7 +402,7 @@ class SerialLink:
                     f"{self.device}: no reply to {body!r} within {timeout_s:.3g} s (received {got})"
                 )
             try:
-                chunk = port.read(max(1, port.in_waiting))
+                chunk = _read_some(port, min(_READ_SLICE_S, time_left(deadline)))
             except (OSError, serial.SerialException) as exc:
                 raise self._port_error(body, exc) from exc
             self._buffer += chunk
@@ -437,3 +439,55 @@ class SerialLink:
             raise DeviceError(
                 f"{self.device}: reply to {body!r} answers another command: {reply.line!r}"
             )
+
+
+# The port's file descriptor, where it has one (a tty or pty: every device path), is read and
+# written with one system call each way instead of pyserial's several (ioctl, select, a read of
+# one byte, ioctl, select, read; write, select, tcdrain): each system call releases the GIL, and
+# taking it back behind the scan's other threads is most of a request's latency. Ports without
+# one (pyserial URLs such as loop://) go through pyserial.
+
+
+def _fd(port: serial.SerialBase) -> int | None:
+    try:
+        return port.fileno()
+    except (AttributeError, io.UnsupportedOperation):
+        return None
+
+
+def _read_some(port: serial.SerialBase, wait_s: float) -> bytes:
+    """What the port has received, waiting up to ``wait_s`` for the first byte (b"" if none)."""
+    fd = _fd(port)
+    if fd is None:
+        return port.read(max(1, port.in_waiting))
+    if not select.select([fd], [], [], wait_s)[0]:
+        return b""
+    try:
+        data = os.read(fd, 4 * MAX_LINE_BYTES)
+    except BlockingIOError:  # the port is non-blocking; the input was taken meanwhile
+        return b""
+    if not data:  # what pyserial says of a readable port that returns nothing
+        raise serial.SerialException(
+            "device reports readiness to read but returned no data (device disconnected?)"
+        )
+    return data
+
+
+def _write_all(port: serial.SerialBase, frame: bytes, timeout_s: float) -> None:
+    """Hand the whole frame to the port's driver (not waiting for it to go out on the wire:
+    the reply cannot come before it), within ``timeout_s``."""
+    fd = _fd(port)
+    if fd is None:
+        port.write(frame)
+        return
+    deadline = time.monotonic() + timeout_s
+    view = memoryview(frame)
+    while True:
+        try:
+            view = view[os.write(fd, view) :]
+        except BlockingIOError:
+            pass
+        if not view:
+            return
+        if not select.select([], [fd], [], time_left(deadline))[1]:
+            raise serial.SerialTimeoutException("Write timeout")

@@ -34,7 +34,7 @@ import numpy as np
 from recon.geometry import DetectorSpec, Geometry, View
 from recon.io import encode_projections, read_projections, write_projections
 from recon.rtk_xml import write_rtk_geometry
-from scanner.study import Study, StudyError, sha256
+from scanner.study import PendingWrite, Study, StudyError, sha256
 
 SCAN_FOLDERS = {"scan": "scan", "calibration_scan": "calibration_scan"}
 """Folder of each scan stage in the study."""
@@ -117,6 +117,27 @@ def _view_record(path: Path) -> dict:
     return data
 
 
+class PendingView:
+    """A view being stored (:meth:`ScanStore.start_put`)."""
+
+    def __init__(self, store: ScanStore, record: ViewRecord, writing: PendingWrite) -> None:
+        self.store, self.record, self._writing = store, record, writing
+
+    def wait(self) -> None:
+        """Return once the view is stored (its files fsynced and in place, the view in the
+        store's records); raise what failed (the view is then not stored, nothing of it left
+        behind). Waiting again returns (or raises) the same."""
+        k = self.record.view
+        try:
+            self._writing.wait()
+        except BaseException:
+            if self._writing.done:  # failed (not an interrupted wait): the view may be retried
+                self.store._storing.discard(k)
+            raise
+        self.store._storing.discard(k)
+        self.store.records[k] = self.record
+
+
 class ScanStore:
     """A scan stage of a study (``scan``, or ``calibration_scan`` of the steel-ball phantom)
     for a plan of ``n_views`` views on ``panel``."""
@@ -134,6 +155,7 @@ class ScanStore:
         self.stage, self.folder = stage, SCAN_FOLDERS[stage]
         self.n_views, self.planned = n_views, planned
         self.records: dict[int, ViewRecord] = {}
+        self._storing: set[int] = set()  # views whose files are being written
         self._load()
 
     @property
@@ -216,13 +238,21 @@ class ScanStore:
         return View.from_matrix(self.records[k].matrix, p.pixel_pitch_mm, p.rows, p.cols)
 
     def put(self, record: ViewRecord, line_integrals: np.ndarray, counts: np.ndarray) -> None:
-        """Store one view: both images, then its record, which carries their sha256, each
-        fsynced under a temporary name, the record renamed into place last
-        (:meth:`scanner.study.Study.write_with_record`). The manifest is saved with the
-        stage's status (done, or SAFE); a view stored after its last save is verified against
-        its record on reopening (:meth:`_load`)."""
+        """Store one view and return once it is stored (:meth:`start_put`, then its wait)."""
+        self.start_put(record, line_integrals, counts).wait()
+
+    def start_put(
+        self, record: ViewRecord, line_integrals: np.ndarray, counts: np.ndarray
+    ) -> PendingView:
+        """Start storing one view: both images, then its record, which carries their sha256,
+        each fsynced under a temporary name, the record renamed into place last
+        (:meth:`scanner.study.Study.start_write_with_record`). The view is stored (in
+        :attr:`records`, :attr:`stored`) once :meth:`PendingView.wait` has returned; the
+        images must not change until then. The manifest is saved with the stage's status
+        (done, or SAFE); a view stored after its last save is verified against its record on
+        reopening (:meth:`_load`)."""
         k = record.view
-        if k in self.records:
+        if k in self.records or k in self._storing:
             raise StudyError(f"view {k} is already stored: acquired views are never replaced")
         pitch = self.panel.pixel_pitch_mm
         base = self._name(k)
@@ -234,8 +264,9 @@ class ScanStore:
         def content(digests: dict[str, str]) -> bytes:
             return json.dumps({**record.to_json(), "files": digests}, indent=2).encode("utf-8")
 
-        self.study.write_with_record(images, base + ".json", content)
-        self.records[k] = record
+        writing = self.study.start_write_with_record(images, base + ".json", content)
+        self._storing.add(k)
+        return PendingView(self, record, writing)
 
     def mark_incomplete(self, reason: str, failed_in: str) -> None:
         self.study.mark(

@@ -6,8 +6,8 @@ file written. Every file goes through :meth:`Study.write`: written to a temporar
 folder, flushed to disk, then renamed into place, so a file either exists whole or not at all;
 an existing file is never replaced. The manifest itself is replaced atomically the same way.
 Files in memory with a record of them (an acquired view's images and the record naming their
-sha256) go through :meth:`Study.write_with_record`: written and fsynced concurrently, hashed
-from memory, the record renamed into place last.
+sha256) go through :meth:`Study.write_with_record`: written, fsynced and hashed from memory
+concurrently on worker threads, the record renamed into place last.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import hashlib
 import json
 import os
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor, wait
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
@@ -36,9 +36,14 @@ STAGES = (
 )
 
 
-_IO = ThreadPoolExecutor(max_workers=2, thread_name_prefix="study-io")
-"""Threads that write and fsync files while the caller hashes them (os.fsync and hashlib
-release the GIL)."""
+_IO = ThreadPoolExecutor(max_workers=4, thread_name_prefix="study-io")
+"""Threads that write and fsync files and hash them, a view's two images and their two hashes
+at once (hashlib on large buffers, os.write and os.fsync release the GIL)."""
+
+
+_RECORDS = ThreadPoolExecutor(max_workers=1, thread_name_prefix="study-records")
+"""The thread that writes a record once its files' hashes are in and renames them all into
+place (apart from the files' own workers, so that it never waits on a busy pool)."""
 
 
 class StudyError(RuntimeError):
@@ -101,6 +106,28 @@ def _replace_atomically(path: Path, data: bytes) -> None:
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+class PendingWrite:
+    """Files being written with their record (:meth:`Study.start_write_with_record`)."""
+
+    def __init__(self, study: Study, done: Future) -> None:
+        self._study, self._done = study, done
+        self._recorded = False
+
+    @property
+    def done(self) -> bool:
+        """Finished, stored or failed (:meth:`wait` returns or raises at once)."""
+        return self._done.done()
+
+    def wait(self) -> None:
+        """Return once every file and the record are fsynced and renamed into place, with
+        their sha256 in the manifest; raise what failed (nothing of it was left behind).
+        Waiting again returns (or raises) the same."""
+        digests = self._done.result()  # raises what failed, again on every wait
+        if not self._recorded:
+            self._study.manifest["files"].update(digests)
+            self._recorded = True
 
 
 class Study:
@@ -184,37 +211,57 @@ class Study:
         content: Callable[[dict[str, str]], bytes],
     ) -> None:
         """Write new files from memory and then the record of them, e.g. a view's images and
-        the JSON that names their sha256.
+        the JSON that names their sha256; returns once all are in place
+        (:meth:`start_write_with_record`, then :meth:`PendingWrite.wait`)."""
+        self.start_write_with_record(files, record, content).wait()
 
-        ``files`` maps each path to its parts (bytes-like, C-contiguous; written one after the
-        other). Each file is written and fsynced under its temporary name on a worker thread
-        while this thread hashes the parts and writes ``content(sha256 of each file)`` as the
-        ``record``, fsynced too; then the files are renamed into place and the record last, so
-        the record exists only once its files do. Every sha256 is recorded in the manifest
-        (hashed from memory: nothing is read back). Refuses a file that exists; on failure no
-        temporary file is left."""
+    def start_write_with_record(
+        self,
+        files: dict[str, Sequence],
+        record: str,
+        content: Callable[[dict[str, str]], bytes],
+    ) -> PendingWrite:
+        """Start writing new files from memory and then the record of them; the files exist
+        (and are in the manifest) once :meth:`PendingWrite.wait` has returned.
+
+        ``files`` maps each path to its parts (bytes-like, C-contiguous, not changed until the
+        wait returns; written one after the other). Each file is written and fsynced under its
+        temporary name on a worker thread, and hashed on another at the same time; once the
+        hashes are in, ``content(sha256 of each file)`` is written as the ``record``, fsynced
+        too; then the files are renamed into place and the record last, so the record exists
+        only once its files do. Every sha256 is recorded in the manifest (hashed from memory:
+        nothing is read back). Refuses a file that exists (at once); on failure no temporary
+        file is left and the wait raises."""
         targets = {relpath: self.path / relpath for relpath in (*files, record)}
         for target in targets.values():
             if target.exists():
                 raise StudyError(f"{target} exists: files of a study are never rewritten")
             target.parent.mkdir(parents=True, exist_ok=True)
         tmps = {relpath: _temporary(target) for relpath, target in targets.items()}
-        pending = [_IO.submit(_write_synced, tmps[r], parts) for r, parts in files.items()]
-        try:
-            digests = {relpath: _sha256_of(parts) for relpath, parts in files.items()}
-            data = content(dict(digests))
-            _write_synced(tmps[record], (data,))
-            for done in pending:
-                done.result()
-            for relpath, target in targets.items():
-                os.replace(tmps[relpath], target)
-        except BaseException:
-            wait(pending)
-            for tmp in tmps.values():
-                tmp.unlink(missing_ok=True)
-            raise
-        digests[record] = _sha256_of((data,))
-        self.manifest["files"].update(digests)
+        # the files' writes start at once, their hashes alongside on other workers (hashlib
+        # and os.write release the GIL); the record follows once the hashes are in
+        writing = [_IO.submit(_write_synced, tmps[r], parts) for r, parts in files.items()]
+        hashing = {relpath: _IO.submit(_sha256_of, parts) for relpath, parts in files.items()}
+
+        def finish() -> dict[str, str]:
+            pending = [*writing, *hashing.values()]
+            try:
+                digests = {relpath: digest.result() for relpath, digest in hashing.items()}
+                data = content(dict(digests))
+                _write_synced(tmps[record], (data,))
+                for done in writing:
+                    done.result()
+                for relpath, target in targets.items():
+                    os.replace(tmps[relpath], target)
+            except BaseException:
+                wait(pending)
+                for tmp in tmps.values():
+                    tmp.unlink(missing_ok=True)
+                raise
+            digests[record] = _sha256_of((data,))
+            return digests
+
+        return PendingWrite(self, _RECORDS.submit(finish))
 
     def write_json(self, relpath: str, payload: dict) -> Path:
         text = json.dumps(payload, indent=2)

@@ -239,3 +239,60 @@ def test_resume_refuses_an_altered_view(reference, tmp_path):
     assert (
         json.loads((study_path / "study.json").read_text())["stages"]["scan"]["views_stored"] == 5
     )
+
+
+def test_no_pulse_while_an_acquired_view_is_not_on_disk(tmp_path, monkeypatch):
+    """A view's files are written while the plan streams on and the next pose is checked, but
+    every pulse finds each view acquired before it stored: its images and record in place."""
+    from scanner.generator import SerialGenerator
+
+    expose = SerialGenerator.expose
+    pulses = []
+
+    def checked_expose(self, timeout_s):
+        views = tmp_path / "study" / "scan" / "views"
+        on_disk = sorted(p.name for p in views.glob("view_*.json")) if views.is_dir() else []
+        assert on_disk == [f"view_{k:04d}.json" for k in range(len(pulses))]
+        for k in range(len(pulses)):
+            assert (views / f"view_{k:04d}.mha").is_file()
+            assert (views / f"view_{k:04d}_counts.mha").is_file()
+        pulses.append(len(on_disk))
+        return expose(self, timeout_s)
+
+    monkeypatch.setattr(SerialGenerator, "expose", checked_expose)
+    run_session(tmp_path / "study", inputs(tmp_path))
+    assert len(pulses) == 90
+    assert Study.open(tmp_path / "study").verify() == []
+
+
+def test_a_view_that_cannot_be_stored_stops_the_scan_before_the_next_pulse(tmp_path, monkeypatch):
+    """The storage of view 5 fails (its record cannot be written) while view 6 is being
+    checked: SAFE before view 6's pulse, views 0-4 stored, nothing of view 5 left behind."""
+    import scanner.study
+    from scanner.generator import SerialGenerator
+
+    write_synced = scanner.study._write_synced
+    expose = SerialGenerator.expose
+    pulses = []
+
+    def failing(path, parts):
+        if path.name == ".view_0005.tmp.json":
+            raise OSError(28, "No space left on device")
+        return write_synced(path, parts)
+
+    def counted(self, timeout_s):
+        pulses.append(1)
+        return expose(self, timeout_s)
+
+    monkeypatch.setattr(scanner.study, "_write_synced", failing)
+    monkeypatch.setattr(SerialGenerator, "expose", counted)
+    with pytest.raises(ScanFault, match="No space left") as fault:
+        run_session(tmp_path / "study", inputs(tmp_path))
+    assert fault.value.views_stored == 5
+    assert len(pulses) == 6  # views 0-5: none after the failed storage
+    study = Study.open(tmp_path / "study")
+    assert study.stage("scan")["status"] == "incomplete"
+    assert "view 5 could not be stored" in study.stage("scan")["reason"]
+    views = study.path / "scan" / "views"
+    assert sorted(p.name for p in views.iterdir() if "0005" in p.name) == []
+    assert study.verify() == []

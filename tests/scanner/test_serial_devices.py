@@ -111,6 +111,17 @@ def test_link_times_out_on_silence() -> None:
         link.close()
 
 
+def test_link_over_a_port_without_a_file_descriptor() -> None:
+    """pyserial URLs without a descriptor (loop:// echoes what is written) go through
+    pyserial's read and write: the echoed request is read back whole and refused as a reply."""
+    link = SerialLink("loop://", device="gen0")
+    try:
+        with pytest.raises(DeviceError, match=r"bad reply to 'ID\?': neither .*ID\?\*CC"):
+            link.request("ID?", timeout_s=0.5)
+    finally:
+        link.close()
+
+
 # -- generator ---------------------------------------------------------------------------------
 
 

@@ -62,6 +62,17 @@ def test_a_failed_record_leaves_nothing_and_nothing_is_rewritten(tmp_path):
     assert (study.path / "v/a.mha").read_bytes() == b"a"
 
 
+def test_a_failed_hash_leaves_nothing(tmp_path):
+    """The files are hashed on the writer threads: a part that cannot be hashed fails the
+    write before any file is renamed into place, and leaves no temporary file."""
+    study = Study.create(tmp_path / "s", {})
+    strided = np.arange(64, dtype=np.float32).reshape(8, 8)[:, ::2]  # not C-contiguous
+    with pytest.raises((BufferError, TypeError, ValueError)):
+        study.write_with_record({"v/a.mha": (b"a",), "v/b.mha": (strided,)}, "v/a.json", bytes)
+    assert list((study.path / "v").iterdir()) == []
+    assert not any(key.startswith("v/") for key in study.manifest["files"])
+
+
 def _record(k: int) -> ViewRecord:
     matrix = np.array([[1000.0, 0, 32, 0], [0, 0, 32, 0], [0, 0, 1, 1000.0]])
     return ViewRecord(k, 0.1 * k, 0.1 * k, 0.1 * k, np.zeros(2), matrix, np.zeros(3), 80, 1, 10, k)
@@ -191,3 +202,34 @@ def test_a_killed_sessions_partial_recording_is_kept(tmp_path):
     recorder = ScanRecorder(study, ("rotary", "lift"), 1.0)
     assert recorder.close() == study.path / "scan" / "recording-2.rrd"
     assert killed.read_bytes() == b"what the killed session recorded"
+
+
+def test_stored_views_name_the_sha256_of_their_files_on_disk(tmp_path):
+    """Each view's record, and the manifest, carry the sha256 of the bytes on disk (hashed
+    from memory on the writer threads, never read back); images large enough that hashlib
+    releases the GIL, several views in a row."""
+    panel = DetectorSpec(rows=64, cols=96, pixel_pitch_mm=1.0)
+    planned = circular_orbit(4, 500.0, 1000.0, panel)
+    study = Study.create(tmp_path / "s", {})
+    store = ScanStore(study, panel, ("rotary", "lift"), 4, planned)
+    rng = np.random.default_rng(7)
+    for k in range(4):
+        line_integrals = rng.random((64, 96), dtype=np.float32)
+        store.put(_record(k), line_integrals, rng.random((64, 96), dtype=np.float32))
+    views = study.path / "scan" / "views"
+    for k in range(4):
+        record = json.loads((views / f"view_{k:04d}.json").read_text())
+        assert sorted(record["files"]) == [
+            f"scan/views/view_{k:04d}.mha",
+            f"scan/views/view_{k:04d}_counts.mha",
+        ]
+        for relpath, digest in record["files"].items():
+            on_disk = hashlib.sha256((study.path / relpath).read_bytes()).hexdigest()
+            assert digest == on_disk == study.manifest["files"][relpath]
+        json_path = f"scan/views/view_{k:04d}.json"
+        on_disk = hashlib.sha256((study.path / json_path).read_bytes()).hexdigest()
+        assert study.manifest["files"][json_path] == on_disk
+    assert study.verify() == []
+    assert not list(views.glob(".*"))  # no temporary file left
+    reopened = ScanStore(Study.open(study.path), panel, ("rotary", "lift"), 4, planned)
+    assert reopened.stored == {0, 1, 2, 3}
