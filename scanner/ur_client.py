@@ -45,6 +45,7 @@ class URClient:
         self._process: subprocess.Popen[bytes] | None = None
         self._requests: Connection | None = None
         self._answers: Connection | None = None
+        self._owed = 0  # answers not yet read: the worker answers every request, in order
 
     @property
     def alive(self) -> bool:
@@ -118,8 +119,14 @@ class URClient:
         t0 = time.monotonic()
         try:
             self._requests.send(request)
-            if self._answers.poll(max(timeout_s, 0.0)):
-                return self._answers.recv()
+            self._owed += 1
+            # an earlier call interrupted while it waited (Ctrl-C) left its answer unread: it
+            # comes first, and is dropped, within this call's deadline
+            while self._answers.poll(max(t0 + timeout_s - time.monotonic(), 0.0)):
+                answer = self._answers.recv()
+                self._owed -= 1
+                if not self._owed:
+                    return answer
         except (OSError, EOFError) as exc:
             code = self._end()
             raise DeviceError(
@@ -147,4 +154,5 @@ class URClient:
             if channel is not None:
                 channel.close()
         self._requests = self._answers = None
+        self._owed = 0
         return process.returncode

@@ -296,3 +296,29 @@ def test_fake_answers_ur_rtde_default_receive_recipe(fakes):
         assert receive.getOutputIntRegister(12) == 0
     finally:
         del receive
+
+
+def test_a_call_interrupted_by_ctrl_c_leaves_no_answer_for_the_next(fakes):
+    """Ctrl-C (a real SIGINT) while a blocking moveJ waits for its answer: the answer that
+    comes later is dropped, and the next call (the SAFE stop, here a read of the joints) gets
+    its own, not the moveJ's (the soak saw 'too many values to unpack' in SAFE's stop)."""
+    from scanner.ur_client import URClient
+
+    client = URClient("source_arm", SOURCE_HOST)
+    client.open(-1.0, ["actual_q"], False, 5.0)
+    try:
+        goal = np.deg2rad(SOURCE_HOME + 20.0).tolist()
+        previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGALRM, lambda *_: signal.raise_signal(signal.SIGINT))
+        signal.setitimer(signal.ITIMER_REAL, 0.1)
+        try:
+            with pytest.raises(KeyboardInterrupt):  # a 20 deg move at 10 deg/s takes 2 s
+                client.call("control", "moveJ", goal, 0.17, 1.0, False, timeout_s=10, what="m")
+        finally:
+            signal.setitimer(signal.ITIMER_REAL, 0)
+            signal.signal(signal.SIGINT, previous)
+        q = client.call("receive", "getActualQ", timeout_s=10, what="read the joints")
+        assert isinstance(q, list) and len(q) == 6  # the moveJ's answer was True
+        client.call("control", "stopJ", 2.0, False, timeout_s=10, what="stop")
+    finally:
+        client.close(5.0)
