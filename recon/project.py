@@ -381,28 +381,39 @@ def _backproject_kernel(
                 out[z, y, x] += acc[y - y0, x]
 
 
+@numba.njit(fastmath=True, error_model="numpy", inline="always")
+def _quad_row(quad, below, a, b):  # pragma: no cover
+    """Taps (2 below, 2 below + 1) of a row of pixel quads (cols, 4): ``a * b`` (two rows of
+    ``cols`` values, either may be strided) and its right-hand neighbour, 0 after the last."""
+    tap = 2 * below
+    cols = quad.shape[0]
+    for c in range(cols):
+        quad[c, tap] = a[c] * b[c]
+    for c in range(cols - 1):
+        quad[c, tap + 1] = quad[c + 1, tap]
+    quad[cols - 1, tap + 1] = 0.0
+
+
 @numba.njit(parallel=True, fastmath=True, cache=True, error_model="numpy", nogil=True)
-def _quads_kernel(a, b, out):  # pragma: no cover
+def quads_kernel(a, b, out, packed):  # pragma: no cover
     """out[k, r, c] = (p[r, c], p[r, c + 1], p[r + 1, c], p[r + 1, c + 1]) of the k-th image
-    p = a * b (broadcast over axes 0 and 1), 0 past the last row and column."""
+    p = a * b (broadcast over axes 0 and 1), 0 past the last row and column. ``packed``: ``a``
+    holds complex rows as interleaved float32, image rows 2j and 2j + 1 in the real and the
+    imaginary parts of row j (:class:`recon.ramp.RowFilter`)."""
     n, rows, cols = out.shape[:3]
     for job in numba.prange(n * rows):
         k = job // rows
         r = job - k * rows
-        quad = out[k, r]
         for below in range(2):
-            tap = 2 * below
             rr = r + below
             if rr == rows:
-                quad[:, tap : tap + 2] = 0.0
+                out[k, r, :, 2:] = 0.0
                 continue
-            ra = a[min(k, a.shape[0] - 1), min(rr, a.shape[1] - 1)]
-            rb = b[min(k, b.shape[0] - 1), min(rr, b.shape[1] - 1)]
-            for c in range(cols):
-                quad[c, tap] = ra[c] * rb[c]
-            for c in range(cols - 1):
-                quad[c, tap + 1] = quad[c + 1, tap]
-            quad[cols - 1, tap + 1] = 0.0
+            if packed:
+                ra = a[k, rr // 2, rr % 2 : 2 * cols : 2]
+            else:
+                ra = a[min(k, a.shape[0] - 1), min(rr, a.shape[1] - 1)]
+            _quad_row(out[k, r], below, ra, b[min(k, b.shape[0] - 1), min(rr, b.shape[1] - 1)])
 
 
 def pixel_quads(images: np.ndarray, factor: np.ndarray | None = None) -> np.ndarray:
@@ -419,7 +430,7 @@ def pixel_quads(images: np.ndarray, factor: np.ndarray | None = None) -> np.ndar
         raise ValueError(f"images {a.shape} and factor {b.shape} must be 3-d with equal columns")
     shape = np.broadcast_shapes(a.shape, b.shape)
     out = np.empty((*shape, 4), dtype=np.float32)
-    _quads_kernel(a, b, out)
+    quads_kernel(a, b, out, False)
     return out
 
 

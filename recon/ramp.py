@@ -17,6 +17,8 @@ import numba
 import numpy as np
 import scipy.fft
 
+from recon.project import quads_kernel
+
 
 @numba.njit(parallel=True, fastmath=True, cache=True, error_model="numpy", nogil=True)
 def _pack_kernel(images, panels, scale, columns, out):  # pragma: no cover
@@ -46,32 +48,6 @@ def _pack_kernel(images, panels, scale, columns, out):  # pragma: no cover
                 row_out[2 * c + part] = image[c] * cosine * scale[k] * col[c]
         for c in range(2 * cols, width):
             row_out[c] = 0.0
-
-
-@numba.njit(parallel=True, fastmath=True, cache=True, error_model="numpy", nogil=True)
-def _unpack_quads_kernel(filtered, support, out):  # pragma: no cover
-    """out[k, r, c] = (p[r, c], p[r, c + 1], p[r + 1, c], p[r + 1, c + 1]) of p = ``filtered``
-    (rows 2j and 2j + 1 in the real and imaginary parts of row j) times ``support``, 0 past
-    the last row and column."""
-    n, rows, cols = out.shape[:3]
-    for job in numba.prange(n * rows):
-        k = job // rows
-        r = job - k * rows
-        quad = out[k, r]
-        for below in range(2):
-            tap = 2 * below
-            rr = r + below
-            if rr == rows:
-                quad[:, tap : tap + 2] = 0.0
-                continue
-            src = filtered[k, rr // 2]
-            part = rr % 2
-            weight = support[min(k, support.shape[0] - 1), rr]
-            for c in range(cols):
-                quad[c, tap] = src[2 * c + part] * weight[c]
-            for c in range(cols - 1):
-                quad[c, tap + 1] = quad[c + 1, tap]
-            quad[cols - 1, tap + 1] = 0.0
 
 
 class RowFilter:
@@ -138,7 +114,6 @@ class RowFilter:
         spectrum *= self._response
         filtered = scipy.fft.ifft(spectrum, axis=2, overwrite_x=True, workers=-1)
         out = self._buffer("quads", (n, rows, cols, 4), np.float32)
-        _unpack_quads_kernel(
-            filtered.view(np.float32), np.ascontiguousarray(support, dtype=np.float32), out
-        )
+        support = np.ascontiguousarray(support, dtype=np.float32)
+        quads_kernel(filtered.view(np.float32), support, out, True)
         return out
