@@ -416,20 +416,20 @@ class FDKAccumulator:
         # 1 / pitch turns it into 1/mm. Per-view constants and the Parker weights (along u)
         # go before the filter; the edge taper after it, where it is a plain per-pixel view
         # weight that the views' weighted count carries as well
-        sdd = np.array([v.sdd_mm for v in virtual])
-        scale = orbit.dbeta_rad[index] * orbit.sod_mm[index] / (sdd * virtual[0].pitch_u_mm)
-        pre = None if self._parker is None else self._parker[index, None, :].astype(np.float32)
-        support = (
-            aligned.images(np.broadcast_to(self._taper, (n, *self._taper.shape)), first)
-            if aligned.turned
-            else self._taper[None]
-        )
         # rows are filtered one by one: only those the grid projects onto are needed, on
         # panels cropped to them
         r0, r1 = rows_seen(virtual, self._coarse)  # the coarse grid holds the grid
         seen = Geometry([v.cropped(r0, 0, r1 - r0, v.cols) for v in virtual])
         panels = np.array(
             [(v.sdd_mm, *v.principal_point_px, v.pitch_u_mm, v.pitch_v_mm) for v in seen]
+        )
+        sdd, pitch = panels[:, 0], panels[:, 3]
+        scale = orbit.dbeta_rad[index] * orbit.sod_mm[index] / (sdd * pitch)
+        pre = None if self._parker is None else self._parker[index, None, :].astype(np.float32)
+        support = (
+            aligned.images(np.broadcast_to(self._taper, (n, *self._taper.shape)), first)
+            if aligned.turned
+            else self._taper[None]
         )
         # only the pixel quads stay alive during the backprojection
         quads = self._filter(
