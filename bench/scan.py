@@ -13,6 +13,12 @@ competing for the same two cores).
   ``SimDetector.read_frame`` timed around each call): the state machine, the other device
   models, the conversion to line integrals and the storage, on cores the reconstruction's
   and the recording's worker threads share.
+- ``storage_wait_ms``: of that, the exposure loop's mean wait per view for the previous view's
+  files to be on disk (written, fsynced, renamed) before the next pulse.
+- ``disk_view_store_ms``: the same storage of one view's files (two images of the panel and
+  their record, :meth:`scanner.study.Study.write_with_record`) on the same disk with nothing
+  else running, the median of 30, measured just before the scan: how fast the disk is today
+  (the figures above move with it; this virtual disk took from 1.4 to 3.3 ms within an hour).
 - ``recon_ready_after_last_view_s``: from the moment the last view is stored to the volume on
   disk (``recon/volume.mha`` written; the NIfTI, the DICOM series and the rest of the stage
   follow).
@@ -43,10 +49,11 @@ sys.path.insert(0, str(ROOT))
 
 from recon.config import ScanProtocol, load_config, load_protocol  # noqa: E402
 from recon.fdk import fdk_reconstruct  # noqa: E402
-from recon.io import read_projections, read_volume  # noqa: E402
+from recon.io import encode_projections, read_projections, read_volume  # noqa: E402
 from recon.rtk_xml import read_rtk_geometry  # noqa: E402
-from scanner.scan import ScanSettings  # noqa: E402
+from scanner.scan import ScanRun, ScanSettings  # noqa: E402
 from scanner.session import read_inputs, run_session  # noqa: E402
+from scanner.study import Study  # noqa: E402
 from sim.detector import SimDetector  # noqa: E402
 from sim.generator import MockGenerator  # noqa: E402
 from sim.stage import MockStage  # noqa: E402
@@ -75,6 +82,23 @@ def knee_protocol(cfg: dict) -> ScanProtocol:
     return ScanProtocol.model_validate(data)
 
 
+def disk_view_store_ms(tmp: Path, panel: int, repeats: int = 30) -> float:
+    """Median wall time to store one view's files in a study on ``tmp``'s disk, ms."""
+    study = Study.create(tmp, {})
+    rng = np.random.default_rng(0)
+    images = [encode_projections(rng.random((1, panel, panel), np.float32), 1.0) for _ in "ab"]
+    times = []
+    for k in range(repeats):
+        started = time.perf_counter()
+        study.write_with_record(
+            {f"views/{k}.mha": images[0], f"views/{k}_counts.mha": images[1]},
+            f"views/{k}.json",
+            lambda digests: json.dumps(digests).encode("utf-8"),
+        )
+        times.append(time.perf_counter() - started)
+    return 1e3 * float(np.median(times))
+
+
 def sim_scan(tmp: Path, cfg: dict, log) -> dict:
     """The knee scan on the simulated backend with the reconstruction during acquisition."""
     tmp.mkdir()
@@ -98,7 +122,17 @@ def sim_scan(tmp: Path, cfg: dict, log) -> dict:
         render_s.append(time.perf_counter() - started)
         return frame
 
+    waits_s: list[float] = []
+    finish_storing = ScanRun._finish_storing
+
+    def timed_finish_storing(self):  # the wait for the previous view's files, per view
+        started = time.perf_counter()
+        finish_storing(self)
+        waits_s.append(time.perf_counter() - started)
+
+    disk_ms = disk_view_store_ms(tmp / "disk_probe", cfg["panel"])
     SimDetector.read_frame = timed_read_frame
+    ScanRun._finish_storing = timed_finish_storing
     live = LiveRecon(cfg["recon_voxel_mm"])
     backlog: list[int] = []
 
@@ -113,6 +147,7 @@ def sim_scan(tmp: Path, cfg: dict, log) -> dict:
         study = run_session(tmp / "study", inputs, progress=progress, sink=live)
     finally:
         SimDetector.read_frame = read_frame
+        ScanRun._finish_storing = finish_storing
     sim_wall = time.perf_counter() - started
     recon_stage(
         study,
@@ -145,6 +180,8 @@ def sim_scan(tmp: Path, cfg: dict, log) -> dict:
         "sim_wall_s": round(sim_wall, 2),
         "render_s": round(sum(render_s), 2),
         "per_view_overhead_ms": round(1e3 * overhead, 2),
+        "storage_wait_ms": round(1e3 * sum(waits_s) / n, 2),
+        "disk_view_store_ms": round(disk_ms, 2),
         "projections_per_s": round((n - 1) / between, 2),
         "recon_backlog_max_views": max(backlog),
         "recon_backlog_at_last_view": backlog[-1],

@@ -6,7 +6,8 @@ into one zero-padded complex row; complex FFTs filter both at once, since the ra
 real and even, so its response is real and ``filter(a + i b) = filter(a) + i filter(b)``
 exactly; a second pass unpacks the rows, multiplies them by a per-pixel weight (the detector
 edge taper) and lays them out as :func:`recon.project.pixel_quads` for the backprojector. All
-of it runs on every core: the whole filtering costs about a fifth of the backprojection.
+of it runs on the calling thread's numba threads (``numba.get_num_threads()``, every core
+unless the caller set fewer): the whole filtering costs about a fifth of the backprojection.
 """
 
 from __future__ import annotations
@@ -110,9 +111,10 @@ class RowFilter:
             else np.ascontiguousarray(columns, dtype=np.float32),
             packed.view(np.float32),
         )
-        spectrum = scipy.fft.fft(packed, axis=2, overwrite_x=True, workers=-1)
+        workers = numba.get_num_threads()  # the caller's share of the cores, as the kernels
+        spectrum = scipy.fft.fft(packed, axis=2, overwrite_x=True, workers=workers)
         spectrum *= self._response
-        filtered = scipy.fft.ifft(spectrum, axis=2, overwrite_x=True, workers=-1)
+        filtered = scipy.fft.ifft(spectrum, axis=2, overwrite_x=True, workers=workers)
         out = self._buffer("quads", (n, rows, cols, 4), np.float32)
         support = np.ascontiguousarray(support, dtype=np.float32)
         quads_kernel(filtered.view(np.float32), support, out, True)

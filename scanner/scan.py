@@ -312,7 +312,7 @@ class ScanRun:
         and the pulse (no pulse while an acquired view is not yet on disk), and the stored view
         is handed on after the pulse."""
         b, timeout = self.backend, self.settings.device_timeout_s
-        planned = view_at(self.model, self.plan.view_q[k], self.panel)
+        planned = self.plan.achieved[k]  # the view the plan's joints realise
         q, realised = self._settled(k, planned)
         t_reading = b.clock.now()
         self._finish_storing()  # the previous view is on disk before anything else

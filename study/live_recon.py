@@ -2,8 +2,9 @@
 it is stored, on a worker thread, so that the volume is ready when the scan ends.
 
 A :class:`LiveRecon` is the scan's view sink (:class:`scanner.session.ViewSink`). The exposure
-loop only queues each stored view (no copy, no wait); the worker, whose backprojector leaves
-one core to the exposure loop, gathers them into the batches
+loop only queues each stored view (no copy, no wait); the worker, whose filter and
+backprojector leave one core to the exposure loop and which runs at the lowest CPU priority
+(:data:`WORKER_NICENESS`), gathers them into the batches
 of the offline reconstruction (views ``16 j .. 16 j + 15``, :data:`BATCH_VIEWS`) and adds each
 batch to an :class:`recon.fdk.FDKAccumulator` once all its views are in. The geometry is the
 one the offline recon stage uses (:func:`study.stages.recon_geometry`): the calibrated views
@@ -19,8 +20,10 @@ as its own (:func:`study.stages.recon_stage`) and adds the rest.
 
 from __future__ import annotations
 
+import os
 import queue
 import shutil
+import sys
 import threading
 from pathlib import Path
 
@@ -35,6 +38,11 @@ from study.stages import recon_geometry, recon_grid, scan_protocol
 
 BATCH_VIEWS = 16
 """Views filtered and backprojected together, as the offline reconstruction batches them."""
+WORKER_NICENESS = 19
+"""The worker thread's nice value (Linux; 19, the lowest priority): the exposure loop, its
+storage and the recording take a core whenever they need one, the reconstruction the rest (a
+batch runs for about a quarter of a second; at the same priority it stretched the loop's work
+after each pulse by up to 5 ms while it ran)."""
 LIVE_FOLDER = "recon.live"
 """Where the worker writes the finished volume, in the study folder (derived data: a new
 session's reconstruction clears it)."""
@@ -111,8 +119,11 @@ class LiveRecon:
         self._thread.join()
 
     def _work(self) -> None:
-        # one core fewer for the backprojector: the exposure loop keeps a core to itself
+        # one core fewer for the filter and backprojector, at the lowest priority: the
+        # exposure loop keeps a core to itself and gets the other one when it needs it
         numba.set_num_threads(max(1, numba.config.NUMBA_NUM_THREADS - 1))
+        if sys.platform == "linux":  # a thread's own priority (elsewhere: the process's)
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), WORKER_NICENESS)
         while (item := self._queue.get()) is not None:
             if self._error is not None:
                 continue  # keep draining: the scan must never wait on a failed worker
