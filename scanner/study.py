@@ -3,8 +3,9 @@
 ``study.json`` is the manifest: software version, the config snapshot the study was made with,
 each stage's status (``complete`` or ``incomplete`` with the reason), and the sha256 of every
 file written. Every file goes through :meth:`Study.write`: written to a temporary name in its
-folder, flushed to disk, then renamed into place, so a file either exists whole or not at all;
-an existing file is never replaced. The manifest itself is replaced atomically the same way.
+folder, flushed to disk, then renamed into place and the folder flushed too (its new name
+survives a power loss), so a file either exists whole or not at all; an existing file is never
+replaced. The manifest itself is replaced atomically the same way.
 Files in memory with a record of them (an acquired view's images and the record naming their
 sha256) go through :meth:`Study.write_with_record`: written, fsynced and hashed from memory
 concurrently on worker threads, the record renamed into place last.
@@ -95,6 +96,24 @@ def _write_synced(path: Path, parts: Sequence) -> None:
         os.close(fd)
 
 
+def _fsync_folder(folder: Path) -> None:
+    """Flush a folder's entries (names created, renamed or removed in it) to disk."""
+    fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _make_folder(folder: Path) -> None:
+    """Create ``folder`` and its missing parents, each new name flushed to disk."""
+    if folder.is_dir():
+        return
+    _make_folder(folder.parent)
+    folder.mkdir(exist_ok=True)
+    _fsync_folder(folder.parent)
+
+
 def _replace_atomically(path: Path, data: bytes) -> None:
     tmp = path.with_name(f".{path.name}.tmp")
     try:
@@ -103,6 +122,7 @@ def _replace_atomically(path: Path, data: bytes) -> None:
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, path)
+        _fsync_folder(path.parent)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
@@ -146,7 +166,7 @@ class Study:
                 f"{path} exists and is not empty: a study is never overwritten "
                 "(choose a new folder, or continue it with --resume)"
             )
-        path.mkdir(parents=True, exist_ok=True)
+        _make_folder(path)
         manifest = {
             "software_version": software_version(),
             "created": _now(),
@@ -190,7 +210,7 @@ class Study:
         target = self.path / relpath
         if target.exists():
             raise StudyError(f"{target} exists: files of a study are never rewritten")
-        target.parent.mkdir(parents=True, exist_ok=True)
+        _make_folder(target.parent)
         tmp = _temporary(target)
         tmp.unlink(missing_ok=True)
         try:
@@ -198,6 +218,7 @@ class Study:
             with open(tmp, "rb+") as fh:
                 os.fsync(fh.fileno())
             os.replace(tmp, target)
+            _fsync_folder(target.parent)
         except BaseException:
             tmp.unlink(missing_ok=True)
             raise
@@ -229,14 +250,15 @@ class Study:
         temporary name on a worker thread, and hashed on another at the same time; once the
         hashes are in, ``content(sha256 of each file)`` is written as the ``record``, fsynced
         too; then the files are renamed into place and the record last, so the record exists
-        only once its files do. Every sha256 is recorded in the manifest (hashed from memory:
+        only once its files do, and their folder is flushed (the wait returns once the names
+        would survive a power loss). Every sha256 is recorded in the manifest (hashed from memory:
         nothing is read back). Refuses a file that exists (at once); on failure no temporary
         file is left and the wait raises."""
         targets = {relpath: self.path / relpath for relpath in (*files, record)}
         for target in targets.values():
             if target.exists():
                 raise StudyError(f"{target} exists: files of a study are never rewritten")
-            target.parent.mkdir(parents=True, exist_ok=True)
+            _make_folder(target.parent)
         tmps = {relpath: _temporary(target) for relpath, target in targets.items()}
         # the files' writes start at once, their hashes alongside on other workers (hashlib
         # and os.write release the GIL); the record follows once the hashes are in
@@ -253,6 +275,8 @@ class Study:
                     done.result()
                 for relpath, target in targets.items():
                     os.replace(tmps[relpath], target)
+                for folder in {target.parent for target in targets.values()}:
+                    _fsync_folder(folder)  # the new names on disk: stored means stored
             except BaseException:
                 wait(pending)
                 for tmp in tmps.values():

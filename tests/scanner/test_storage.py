@@ -47,6 +47,27 @@ def test_record_is_written_last_and_names_the_files_it_follows(tmp_path):
     ]
 
 
+def test_a_stored_files_name_is_flushed_before_the_write_returns(tmp_path, monkeypatch):
+    """A rename reaches the disk with its folder: the folder is fsynced after the record is
+    in place and before the wait returns, else a view reported stored could come back under
+    its temporary name after a power loss (and new folders are flushed into their parents)."""
+    fsynced = []
+    fsync = os.fsync
+
+    def logged(fd: int) -> None:
+        path = Path(os.readlink(f"/proc/self/fd/{fd}"))
+        fsynced.append((path, path.is_dir() and (path / "a.json").exists()))
+        fsync(fd)
+
+    study = Study.create(tmp_path / "s", {})
+    monkeypatch.setattr(os, "fsync", logged)
+    study.write_with_record({"scan/views/a.mha": (b"a",)}, "scan/views/a.json", lambda _d: b"{}")
+    folders = [path for path, _ in fsynced if path.is_dir()]
+    assert (study.path / "scan/views", True) in fsynced  # the folder, with the record in it
+    assert folders.index(study.path / "scan") < folders.index(study.path / "scan/views")
+    assert study.path in folders  # scan/ made in the study's folder
+
+
 def test_a_failed_record_leaves_nothing_and_nothing_is_rewritten(tmp_path):
     study = Study.create(tmp_path / "s", {})
 
