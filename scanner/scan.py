@@ -6,7 +6,8 @@ technique accepted, interlocks closed), the arms at the plan's start, and asks t
 APPROACH streams the planned approach and warms the tube up, then asks again before exposure.
 ACQUIRE streams the planned scan; at each view's time it reads both arms and the stage, checks
 that the realised view is the planned one within tolerance, that the interlocks are closed and
-that the study's disk can take the view, and only then fires one pulse, reads the frame and
+that the study's disk can take the view (its files' space allocated), and only then fires one
+pulse, reads the frame and
 stores it with the joint state it was taken at (:class:`scanner.storage.ScanStore`): its files
 are written and fsynced while the plan streams on to the next view and its pose is checked,
 and the next view's interlock check and pulse wait until they are in place (no pulse while an
@@ -305,7 +306,8 @@ class ScanRun:
         self._report_stored()
 
     def _acquire(self, k: int) -> None:
-        """One view: pose check, interlock check, expose, read, start storing it.
+        """One view: pose check, interlock check, its files' disk space reserved, expose,
+        read, start storing it.
 
         The previous view's storage (its files' writes and fsyncs) runs while the plan streams
         on to this view and its pose is checked; it is waited for before the interlock check
@@ -322,7 +324,17 @@ class ScanRun:
             raise DeviceError(f"view {k}: interlock open ({', '.join(opened)}): not exposing")
         if not status.ready or status.fault:
             raise DeviceError(f"view {k}: generator not ready ({status.fault or 'not prepared'})")
-        self.store.check_room(k)  # no dose for a view that cannot be stored
+        reserved = self.store.reserve(k)  # no dose for a view that cannot be stored
+        try:
+            self._expose_and_store(k, q, realised, t_reading)
+        except BaseException:
+            if self._storing is None:  # the view's files were never started
+                reserved.release()
+            raise
+
+    def _expose_and_store(self, k: int, q: np.ndarray, realised: View, t_reading: float) -> None:
+        """Pulse, hand the previous view on, read the frame and start storing it."""
+        b, timeout = self.backend, self.settings.device_timeout_s
         b.detector.arm(timeout)
         exposure = b.generator.expose(timeout)
         self._report_stored()  # handed on while the panel reads out, not amid the requests

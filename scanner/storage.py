@@ -34,7 +34,7 @@ import numpy as np
 from recon.geometry import DetectorSpec, Geometry, View
 from recon.io import encode_projections, read_projections, write_projections
 from recon.rtk_xml import write_rtk_geometry
-from scanner.study import PendingWrite, Study, StudyError, sha256
+from scanner.study import PendingWrite, Reservation, Study, StudyError, sha256
 
 SCAN_FOLDERS = {"scan": "scan", "calibration_scan": "calibration_scan"}
 """Folder of each scan stage in the study."""
@@ -226,6 +226,23 @@ class ScanStore:
                 f"{need / 2**20:.2f} MiB (images, record, manifest, margin): not exposing"
             )
 
+    def reserve(self, k: int) -> Reservation:
+        """Before view ``k``'s pulse: check the room for it (:meth:`check_room`) and allocate
+        its files' space (:meth:`scanner.study.Study.reserve`), so that a disk another program
+        fills after the check cannot refuse a view already exposed. :meth:`start_put` writes
+        the reserved files; release the reservation when the view is not acquired after all.
+        Raises StudyError (not exposing) when the disk cannot take the view."""
+        self.check_room(k)
+        if k in self.records or k in self._storing:
+            raise StudyError(f"view {k} is already stored: acquired views are never replaced")
+        image = self.panel.rows * self.panel.cols * 4 + _HEADER_BYTES
+        base = self._name(k)
+        sizes = {base + ".mha": image, base + "_counts.mha": image, base + ".json": _RECORD_BYTES}
+        try:
+            return self.study.reserve(sizes)
+        except StudyError as err:
+            raise StudyError(f"view {k}: {err}: not exposing") from None
+
     def image(self, k: int) -> np.ndarray:
         """The stored line integrals of view ``k``, float32 (rows, cols)."""
         if k not in self.records:
@@ -244,7 +261,8 @@ class ScanStore:
     def start_put(
         self, record: ViewRecord, line_integrals: np.ndarray, counts: np.ndarray
     ) -> PendingView:
-        """Start storing one view: both images, then its record, which carries their sha256,
+        """Start storing one view (into the files :meth:`reserve` allocated, when it was
+        called): both images, then its record, which carries their sha256,
         each fsynced under a temporary name, the record renamed into place last
         (:meth:`scanner.study.Study.start_write_with_record`). The view is stored (in
         :attr:`records`, :attr:`stored`) once :meth:`PendingView.wait` has returned; the

@@ -84,13 +84,17 @@ def _sha256_of(parts: Sequence) -> str:
 
 
 def _write_synced(path: Path, parts: Sequence) -> None:
-    """Write ``parts`` to ``path`` (created or truncated) and fsync it."""
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+    """Write ``parts`` to ``path`` (created, or a file reserved by :meth:`Study.reserve`: its
+    allocated space written over, then cut to the length written) and fsync it."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT, 0o644)
     try:
+        length = 0
         for part in parts:
             view = memoryview(part).cast("B")
+            length += len(view)
             while view:
                 view = view[os.write(fd, view) :]
+        os.ftruncate(fd, length)
         os.fsync(fd)
     finally:
         os.close(fd)
@@ -148,6 +152,20 @@ class PendingWrite:
         if not self._recorded:
             self._study.manifest["files"].update(digests)
             self._recorded = True
+
+
+class Reservation:
+    """New files of a study with their disk space allocated before their content exists
+    (:meth:`Study.reserve`): written by :meth:`Study.start_write_with_record`, or released."""
+
+    def __init__(self, paths: list[Path]) -> None:
+        self.paths = paths
+        """The files' temporary names, where they are written."""
+
+    def release(self) -> None:
+        """Remove the reserved files (when nothing will be written to them)."""
+        for path in self.paths:
+            path.unlink(missing_ok=True)
 
 
 class Study:
@@ -225,6 +243,36 @@ class Study:
         self.manifest["files"][relpath] = sha256(target)
         return target
 
+    def reserve(self, sizes: dict[str, int]) -> Reservation:
+        """Allocate the disk space of new files before their content exists (e.g. before the
+        pulse that makes it): each created under its temporary name with ``sizes[relpath]``
+        bytes allocated; :meth:`start_write_with_record` then writes them within that space.
+        Raises StudyError, and leaves nothing, when the disk cannot take them or one exists."""
+        targets = [self.path / relpath for relpath in sizes]
+        for target in targets:
+            if target.exists():
+                raise StudyError(f"{target} exists: files of a study are never rewritten")
+            _make_folder(target.parent)
+        reservation = Reservation([_temporary(target) for target in targets])
+        try:
+            for path, size in zip(reservation.paths, sizes.values(), strict=True):
+                fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+                try:
+                    os.posix_fallocate(fd, 0, size)
+                finally:
+                    os.close(fd)
+        except OSError as err:
+            reservation.release()
+            need = sum(sizes.values()) / 2**20
+            raise StudyError(
+                f"cannot reserve {need:.2f} MiB for {', '.join(sizes)} on the study's disk: "
+                f"{err.strerror or err}"
+            ) from err
+        except BaseException:
+            reservation.release()
+            raise
+        return reservation
+
     def write_with_record(
         self,
         files: dict[str, Sequence],
@@ -246,8 +294,9 @@ class Study:
         (and are in the manifest) once :meth:`PendingWrite.wait` has returned.
 
         ``files`` maps each path to its parts (bytes-like, C-contiguous, not changed until the
-        wait returns; written one after the other). Each file is written and fsynced under its
-        temporary name on a worker thread, and hashed on another at the same time; once the
+        wait returns; written one after the other; reserved by :meth:`reserve` or not). Each
+        file is written and fsynced under its temporary name on a worker thread, and hashed
+        on another at the same time; once the
         hashes are in, ``content(sha256 of each file)`` is written as the ``record``, fsynced
         too; then the files are renamed into place and the record last, so the record exists
         only once its files do, and their folder is flushed (the wait returns once the names

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 from collections import defaultdict
 from pathlib import Path
 
@@ -262,6 +263,35 @@ def test_no_pulse_while_an_acquired_view_is_not_on_disk(tmp_path, monkeypatch):
     monkeypatch.setattr(SerialGenerator, "expose", checked_expose)
     run_session(tmp_path / "study", inputs(tmp_path))
     assert len(pulses) == 90
+    assert Study.open(tmp_path / "study").verify() == []
+
+
+def test_a_view_whose_disk_space_cannot_be_reserved_is_not_exposed(tmp_path, monkeypatch):
+    """The disk fills (another program) after view 5's room check: allocating its files'
+    space fails, SAFE before its pulse, views 0-4 stored, no file of view 5 left behind.
+    Before the reservation, the pulse fired and the view then failed to store."""
+    from scanner.generator import SerialGenerator
+
+    fallocate, expose = os.posix_fallocate, SerialGenerator.expose
+    pulses = []
+
+    def full_at_view_5(fd: int, offset: int, length: int) -> None:
+        if os.readlink(f"/proc/self/fd/{fd}").endswith(".view_0005_counts.tmp.mha"):
+            raise OSError(28, "No space left on device")
+        fallocate(fd, offset, length)
+
+    def counted(self, timeout_s):
+        pulses.append(1)
+        return expose(self, timeout_s)
+
+    monkeypatch.setattr(os, "posix_fallocate", full_at_view_5)
+    monkeypatch.setattr(SerialGenerator, "expose", counted)
+    with pytest.raises(ScanFault, match=r"view 5: cannot reserve .* not exposing") as fault:
+        run_session(tmp_path / "study", inputs(tmp_path))
+    assert fault.value.views_stored == 5
+    assert len(pulses) == 5  # none for view 5
+    views = tmp_path / "study" / "scan" / "views"
+    assert sorted(p.name for p in views.iterdir() if "0005" in p.name) == []
     assert Study.open(tmp_path / "study").verify() == []
 
 

@@ -17,7 +17,7 @@ import pytest
 from recon.geometry import DetectorSpec, circular_orbit
 from scanner.scan_recording import ScanRecorder
 from scanner.storage import ScanStore, ViewRecord
-from scanner.study import Study, StudyError
+from scanner.study import Study, StudyError, sha256
 
 
 def test_record_is_written_last_and_names_the_files_it_follows(tmp_path):
@@ -223,6 +223,45 @@ def test_a_killed_sessions_partial_recording_is_kept(tmp_path):
     recorder = ScanRecorder(study, ("rotary", "lift"), 1.0)
     assert recorder.close() == study.path / "scan" / "recording-2.rrd"
     assert killed.read_bytes() == b"what the killed session recorded"
+
+
+def test_a_reserved_view_is_stored_on_a_disk_filled_after_its_reservation(tmp_path):
+    """Another program fills the study's disk after view 0's files were reserved (before its
+    pulse): view 0 is still stored whole, within its reserved space; view 1, not reserved,
+    cannot be stored, and cannot be reserved either (nothing left behind)."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    mount = ["mount", "-t", "tmpfs", "-o", "size=8m", "tmpfs", str(disk)]
+    if subprocess.run(mount, capture_output=True, check=False).returncode != 0:
+        pytest.skip("cannot mount a small tmpfs here (needs root)")
+    try:
+        panel = DetectorSpec(rows=64, cols=64, pixel_pitch_mm=1.0)
+        study = Study.create(disk / "s", {})
+        store = ScanStore(study, panel, ("rotary", "lift"), 3, circular_orbit(3, 500.0, 1e3, panel))
+        reserved = store.reserve(0)
+        stat = os.statvfs(disk)
+        fd = os.open(disk / "ballast", os.O_WRONLY | os.O_CREAT)
+        os.posix_fallocate(fd, 0, stat.f_bavail * stat.f_frsize)  # the disk is full
+        os.close(fd)
+        rng = np.random.default_rng(1)
+        images = [rng.random((64, 64), dtype=np.float32) for _ in range(4)]
+        store.put(_record(0), images[0], images[1])  # into its reserved space
+        assert store.image(0).tobytes() == images[0].tobytes()
+        views = study.path / "scan" / "views"
+        for path in views.glob("view_0000*"):  # cut to what was written, as recorded
+            assert sha256(path) == study.manifest["files"][f"scan/views/{path.name}"]
+        assert not any(path in reserved.paths for path in views.iterdir())
+        with pytest.raises(OSError, match="No space left"):
+            store.put(_record(1), images[2], images[3])
+        with pytest.raises(StudyError, match=r"view 1: .* not exposing"):
+            store.reserve(1)
+        assert sorted(p.name for p in views.iterdir()) == [
+            "view_0000.json",
+            "view_0000.mha",
+            "view_0000_counts.mha",
+        ]
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], check=False)
 
 
 def test_stored_views_name_the_sha256_of_their_files_on_disk(tmp_path):
