@@ -9,6 +9,7 @@ import os
 import subprocess
 import sys
 import threading
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -192,9 +193,9 @@ except RuntimeError as err:
     assert "[Errno 28] No space left on device" in done.stdout, done.stdout
 
 
-def test_a_view_is_not_exposed_when_the_disk_cannot_take_it(tmp_path):
-    """check_room, called before each pulse, refuses a view the study's disk has no room for
-    (the soak's full disk let one more pulse fire per fault, its view then unstorable)."""
+@pytest.fixture
+def small_disk(tmp_path) -> Iterator[ScanStore]:
+    """A store of three 64² views in a study on an 8 MB tmpfs of its own (root only)."""
     disk = tmp_path / "disk"
     disk.mkdir()
     mount = ["mount", "-t", "tmpfs", "-o", "size=8m", "tmpfs", str(disk)]
@@ -203,16 +204,27 @@ def test_a_view_is_not_exposed_when_the_disk_cannot_take_it(tmp_path):
     try:
         panel = DetectorSpec(rows=64, cols=64, pixel_pitch_mm=1.0)
         study = Study.create(disk / "s", {})
-        store = ScanStore(study, panel, ("rotary", "lift"), 3, circular_orbit(3, 500.0, 1e3, panel))
-        store.check_room(0)  # 8 MB free
-        fd = os.open(disk / "ballast", os.O_WRONLY | os.O_CREAT)
-        os.posix_fallocate(fd, 0, 5 << 20)  # 3 MB left: less than a view and the margin
-        os.close(fd)
-        full = r"view 1: the study's disk has 3\.\d\d MiB free, a view needs 4\.\d\d MiB"
-        with pytest.raises(StudyError, match=full):
-            store.check_room(1)
+        yield ScanStore(study, panel, ("rotary", "lift"), 3, circular_orbit(3, 500.0, 1e3, panel))
     finally:
         subprocess.run(["umount", "-l", str(disk)], check=False)
+
+
+def _ballast(disk: Path, size: int) -> None:
+    """Another program's file taking ``size`` bytes of ``disk``."""
+    fd = os.open(disk / "ballast", os.O_WRONLY | os.O_CREAT)
+    os.posix_fallocate(fd, 0, size)
+    os.close(fd)
+
+
+def test_a_view_is_not_exposed_when_the_disk_cannot_take_it(small_disk):
+    """check_room, called before each pulse, refuses a view the study's disk has no room for
+    (the soak's full disk let one more pulse fire per fault, its view then unstorable)."""
+    store = small_disk
+    store.check_room(0)  # 8 MB free
+    _ballast(store.study.path.parent, 5 << 20)  # 3 MB left: less than a view and the margin
+    full = r"view 1: the study's disk has 3\.\d\d MiB free, a view needs 4\.\d\d MiB"
+    with pytest.raises(StudyError, match=full):
+        store.check_room(1)
 
 
 def test_a_killed_sessions_partial_recording_is_kept(tmp_path):
@@ -225,43 +237,31 @@ def test_a_killed_sessions_partial_recording_is_kept(tmp_path):
     assert killed.read_bytes() == b"what the killed session recorded"
 
 
-def test_a_reserved_view_is_stored_on_a_disk_filled_after_its_reservation(tmp_path):
+def test_a_reserved_view_is_stored_on_a_disk_filled_after_its_reservation(small_disk):
     """Another program fills the study's disk after view 0's files were reserved (before its
     pulse): view 0 is still stored whole, within its reserved space; view 1, not reserved,
     cannot be stored, and cannot be reserved either (nothing left behind)."""
-    disk = tmp_path / "disk"
-    disk.mkdir()
-    mount = ["mount", "-t", "tmpfs", "-o", "size=8m", "tmpfs", str(disk)]
-    if subprocess.run(mount, capture_output=True, check=False).returncode != 0:
-        pytest.skip("cannot mount a small tmpfs here (needs root)")
-    try:
-        panel = DetectorSpec(rows=64, cols=64, pixel_pitch_mm=1.0)
-        study = Study.create(disk / "s", {})
-        store = ScanStore(study, panel, ("rotary", "lift"), 3, circular_orbit(3, 500.0, 1e3, panel))
-        reserved = store.reserve(0)
-        stat = os.statvfs(disk)
-        fd = os.open(disk / "ballast", os.O_WRONLY | os.O_CREAT)
-        os.posix_fallocate(fd, 0, stat.f_bavail * stat.f_frsize)  # the disk is full
-        os.close(fd)
-        rng = np.random.default_rng(1)
-        images = [rng.random((64, 64), dtype=np.float32) for _ in range(4)]
-        store.put(_record(0), images[0], images[1])  # into its reserved space
-        assert store.image(0).tobytes() == images[0].tobytes()
-        views = study.path / "scan" / "views"
-        for path in views.glob("view_0000*"):  # cut to what was written, as recorded
-            assert sha256(path) == study.manifest["files"][f"scan/views/{path.name}"]
-        assert not any(path in reserved.paths for path in views.iterdir())
-        with pytest.raises(OSError, match="No space left"):
-            store.put(_record(1), images[2], images[3])
-        with pytest.raises(StudyError, match=r"view 1: .* not exposing"):
-            store.reserve(1)
-        assert sorted(p.name for p in views.iterdir()) == [
-            "view_0000.json",
-            "view_0000.mha",
-            "view_0000_counts.mha",
-        ]
-    finally:
-        subprocess.run(["umount", "-l", str(disk)], check=False)
+    store = small_disk
+    reserved = store.reserve(0)
+    stat = os.statvfs(store.study.path)
+    _ballast(store.study.path.parent, stat.f_bavail * stat.f_frsize)  # the disk is full
+    rng = np.random.default_rng(1)
+    images = [rng.random((64, 64), dtype=np.float32) for _ in range(4)]
+    store.put(_record(0), images[0], images[1])  # into its reserved space
+    assert store.image(0).tobytes() == images[0].tobytes()
+    views = store.study.path / "scan" / "views"
+    for path in views.glob("view_0000*"):  # cut to what was written, as recorded
+        assert sha256(path) == store.study.manifest["files"][f"scan/views/{path.name}"]
+    assert not any(path in reserved.paths for path in views.iterdir())
+    with pytest.raises(OSError, match="No space left"):
+        store.put(_record(1), images[2], images[3])
+    with pytest.raises(StudyError, match=r"view 1: .* not exposing"):
+        store.reserve(1)
+    assert sorted(p.name for p in views.iterdir()) == [
+        "view_0000.json",
+        "view_0000.mha",
+        "view_0000_counts.mha",
+    ]
 
 
 def test_stored_views_name_the_sha256_of_their_files_on_disk(tmp_path):
