@@ -7,15 +7,15 @@ APPROACH streams the planned approach and warms the tube up, then asks again bef
 ACQUIRE streams the planned scan; at each view's time it reads both arms and the stage, checks
 that the realised view is the planned one within tolerance, that the interlocks are closed and
 that the study's disk can take the view (its files' space allocated), and only then fires one
-pulse, reads the frame and
-stores it with the joint state it was taken at (:class:`scanner.storage.ScanStore`): its files
-are written and fsynced while the plan streams on to the next view and its pose is checked,
-and the next view's interlock check and pulse wait until they are in place (no pulse while an
-acquired view is not on disk). RETREAT
-streams the planned retreat; DONE assembles the stack. Any failure (a device error, a
-protective stop, an off-pose view, an open interlock, a full disk, Ctrl-C) goes to SAFE: X-ray
-off first, then every joint group stops, then what was acquired is flushed and the scan marked
-incomplete with the reason; ``cbct scan --resume`` continues with the views not yet stored.
+pulse, reads the frame and stores it with the joint state it was taken at
+(:class:`scanner.storage.ScanStore`): its files are written and fsynced while the plan streams
+on to the next view and its pose is checked, and the next view's interlock check and pulse
+wait until they are in place (no pulse while an acquired view is not on disk). RETREAT streams
+the planned retreat; DONE assembles the stack. Any failure (a device error, a protective stop,
+an off-pose view, an open interlock, a full disk, Ctrl-C) goes to SAFE: X-ray off first, then
+every joint group stops, then what was acquired is flushed (and the space of a view not
+acquired released) and the scan marked incomplete with the reason; ``cbct scan --resume``
+continues with the views not yet stored.
 """
 
 from __future__ import annotations
@@ -32,6 +32,7 @@ from recon.config import ScanProtocol
 from recon.geometry import DetectorSpec, View
 from scanner.hardware import Backend, DeviceError, Technique
 from scanner.storage import PendingView, ScanStore, ViewRecord
+from scanner.study import Reservation
 from trajectories.model import ScannerModel
 from trajectories.plan import Plan, view_at
 
@@ -164,6 +165,7 @@ class ScanRun:
 
     def __post_init__(self) -> None:
         self._storing: tuple[PendingView, np.ndarray] | None = None  # the view being stored
+        self._reserved: Reservation | None = None  # the files of the view about to be exposed
         self._unreported: tuple[ViewRecord, np.ndarray] | None = None  # stored, not handed on
         e = self.protocol.exposure
         self.technique = Technique(e.tube_kv, e.tube_ma, e.pulse_ms)
@@ -324,17 +326,7 @@ class ScanRun:
             raise DeviceError(f"view {k}: interlock open ({', '.join(opened)}): not exposing")
         if not status.ready or status.fault:
             raise DeviceError(f"view {k}: generator not ready ({status.fault or 'not prepared'})")
-        reserved = self.store.reserve(k)  # no dose for a view that cannot be stored
-        try:
-            self._expose_and_store(k, q, realised, t_reading)
-        except BaseException:
-            if self._storing is None:  # the view's files were never started
-                reserved.release()
-            raise
-
-    def _expose_and_store(self, k: int, q: np.ndarray, realised: View, t_reading: float) -> None:
-        """Pulse, hand the previous view on, read the frame and start storing it."""
-        b, timeout = self.backend, self.settings.device_timeout_s
+        self._reserved = self.store.reserve(k)  # no dose for a view that cannot be stored
         b.detector.arm(timeout)
         exposure = b.generator.expose(timeout)
         self._report_stored()  # handed on while the panel reads out, not amid the requests
@@ -359,6 +351,7 @@ class ScanRun:
             true_matrix=self.truth(),
         )
         self._storing = (self.store.start_put(record, line_integrals, frame.counts), line_integrals)
+        self._reserved = None  # its files are being written
 
     def _finish_storing(self) -> None:
         """Wait until the view being stored is on disk (then it is stored, to be handed on by
@@ -440,6 +433,9 @@ class ScanRun:
             except BaseException as store_err:  # e.g. the disk is full: it was not stored
                 self._storing = None
                 reason += f"; view {k} could not be stored: {store_err}"
+        if self._reserved is not None:  # a view not acquired (or not stored) after all
+            self._reserved.release()
+            self._reserved = None
         try:
             self._report_stored()
         except Exception as report_err:  # e.g. the recording failed: the view is stored

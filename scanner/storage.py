@@ -262,8 +262,8 @@ class ScanStore:
         self, record: ViewRecord, line_integrals: np.ndarray, counts: np.ndarray
     ) -> PendingView:
         """Start storing one view (into the files :meth:`reserve` allocated, when it was
-        called): both images, then its record, which carries their sha256,
-        each fsynced under a temporary name, the record renamed into place last
+        called): both images, then its record, which carries their sha256, each fsynced under
+        a temporary name, the record renamed into place last
         (:meth:`scanner.study.Study.start_write_with_record`). The view is stored (in
         :attr:`records`, :attr:`stored`) once :meth:`PendingView.wait` has returned; the
         images must not change until then. The manifest is saved with the stage's status

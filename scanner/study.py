@@ -295,14 +295,13 @@ class Study:
 
         ``files`` maps each path to its parts (bytes-like, C-contiguous, not changed until the
         wait returns; written one after the other; reserved by :meth:`reserve` or not). Each
-        file is written and fsynced under its temporary name on a worker thread, and hashed
-        on another at the same time; once the
-        hashes are in, ``content(sha256 of each file)`` is written as the ``record``, fsynced
-        too; then the files are renamed into place and the record last, so the record exists
-        only once its files do, and their folder is flushed (the wait returns once the names
-        would survive a power loss). Every sha256 is recorded in the manifest (hashed from memory:
-        nothing is read back). Refuses a file that exists (at once); on failure no temporary
-        file is left and the wait raises."""
+        file is written and fsynced under its temporary name on a worker thread, and hashed on
+        another at the same time; once the hashes are in, ``content(sha256 of each file)`` is
+        written as the ``record``, fsynced too; then the files are renamed into place and the
+        record last, so the record exists only once its files do, and their folder is flushed
+        (the wait returns once the names would survive a power loss). Every sha256 is recorded
+        in the manifest (hashed from memory: nothing is read back). Refuses a file that exists
+        (at once); on failure no temporary file is left and the wait raises."""
         targets = {relpath: self.path / relpath for relpath in (*files, record)}
         for target in targets.values():
             if target.exists():

@@ -155,6 +155,7 @@ def test_fault_ends_in_safe_and_resume_completes_the_same_scan(fault, reference,
     scan = study.stage("scan")
     assert scan["status"] == "incomplete" and scan["views_stored"] == FAULT_VIEW
     assert study.verify() == []
+    assert not list((study_path / "scan" / "views").glob(".*"))  # reserved files released
 
     # SAFE: X-ray off first, then every joint group stops; no pulse after the fault
     events = device_events(study_path, 1)
