@@ -212,14 +212,19 @@ class ScanStore:
                 os.rename(path, target)
                 return
 
+    def _file_bytes(self, k: int) -> dict[str, int]:
+        """View ``k``'s files (both images and the record) and the most each takes, bytes."""
+        image = self.panel.rows * self.panel.cols * 4 + _HEADER_BYTES
+        base = self._name(k)
+        return {base + ".mha": image, base + "_counts.mha": image, base + ".json": _RECORD_BYTES}
+
     def check_room(self, k: int) -> None:
         """Raise StudyError unless the study's filesystem can take view ``k``: both images,
         its record and a save of the manifest, with :data:`ROOM_MARGIN_BYTES` to spare."""
         stat = os.statvfs(self.study.path)
         free = stat.f_bavail * stat.f_frsize
-        image = self.panel.rows * self.panel.cols * 4 + _HEADER_BYTES
         manifest = (self.study.path / "study.json").stat().st_size
-        need = 2 * image + _RECORD_BYTES + manifest + ROOM_MARGIN_BYTES
+        need = sum(self._file_bytes(k).values()) + manifest + ROOM_MARGIN_BYTES
         if free < need:
             raise StudyError(
                 f"view {k}: the study's disk has {free / 2**20:.2f} MiB free, a view needs "
@@ -235,11 +240,8 @@ class ScanStore:
         self.check_room(k)
         if k in self.records or k in self._storing:
             raise StudyError(f"view {k} is already stored: acquired views are never replaced")
-        image = self.panel.rows * self.panel.cols * 4 + _HEADER_BYTES
-        base = self._name(k)
-        sizes = {base + ".mha": image, base + "_counts.mha": image, base + ".json": _RECORD_BYTES}
         try:
-            return self.study.reserve(sizes)
+            return self.study.reserve(self._file_bytes(k))
         except StudyError as err:
             raise StudyError(f"view {k}: {err}: not exposing") from None
 

@@ -222,13 +222,18 @@ class Study:
         data = json.dumps(self.manifest, indent=2).encode("utf-8")
         _replace_atomically(self.path / MANIFEST, data)
 
-    def write(self, relpath: str, writer: Callable[[Path], object]) -> Path:
-        """Write one file of the study: ``writer(tmp_path)`` writes it, then it is renamed to
-        ``relpath`` and its sha256 recorded. Refuses a file that exists."""
+    def _new(self, relpath: str) -> Path:
+        """The path of a new file of the study, its folder made; StudyError if it exists."""
         target = self.path / relpath
         if target.exists():
             raise StudyError(f"{target} exists: files of a study are never rewritten")
         _make_folder(target.parent)
+        return target
+
+    def write(self, relpath: str, writer: Callable[[Path], object]) -> Path:
+        """Write one file of the study: ``writer(tmp_path)`` writes it, then it is renamed to
+        ``relpath`` and its sha256 recorded. Refuses a file that exists."""
+        target = self._new(relpath)
         tmp = _temporary(target)
         tmp.unlink(missing_ok=True)
         try:
@@ -248,12 +253,7 @@ class Study:
         pulse that makes it): each created under its temporary name with ``sizes[relpath]``
         bytes allocated; :meth:`start_write_with_record` then writes them within that space.
         Raises StudyError, and leaves nothing, when the disk cannot take them or one exists."""
-        targets = [self.path / relpath for relpath in sizes]
-        for target in targets:
-            if target.exists():
-                raise StudyError(f"{target} exists: files of a study are never rewritten")
-            _make_folder(target.parent)
-        reservation = Reservation([_temporary(target) for target in targets])
+        reservation = Reservation([_temporary(self._new(relpath)) for relpath in sizes])
         try:
             for path, size in zip(reservation.paths, sizes.values(), strict=True):
                 fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
@@ -302,11 +302,7 @@ class Study:
         (the wait returns once the names would survive a power loss). Every sha256 is recorded
         in the manifest (hashed from memory: nothing is read back). Refuses a file that exists
         (at once); on failure no temporary file is left and the wait raises."""
-        targets = {relpath: self.path / relpath for relpath in (*files, record)}
-        for target in targets.values():
-            if target.exists():
-                raise StudyError(f"{target} exists: files of a study are never rewritten")
-            _make_folder(target.parent)
+        targets = {relpath: self._new(relpath) for relpath in (*files, record)}
         tmps = {relpath: _temporary(target) for relpath, target in targets.items()}
         # the files' writes start at once, their hashes alongside on other workers (hashlib
         # and os.write release the GIL); the record follows once the hashes are in
