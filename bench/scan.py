@@ -13,8 +13,11 @@ competing for the same two cores).
   ``SimDetector.read_frame`` timed around each call): the state machine, the other device
   models, the conversion to line integrals and the storage, on cores the reconstruction's
   and the recording's worker threads share.
-- ``storage_wait_ms``: of that, the exposure loop's mean wait per view for the previous view's
-  files to be on disk (written, fsynced, renamed) before the next pulse.
+  A view's storage runs alongside the next view's exposure and image formation
+  (scanner.scan.VIEWS_STORING_AT_A_PULSE): on two cores its CPU then slows the rendering,
+  which this figure leaves out; ``projections_per_s`` counts everything.
+- ``storage_wait_ms``: of that, the exposure loop's mean wait per view for earlier views' files
+  to be on disk (written, fsynced, renamed) before the next pulse: all but the view before.
 - ``disk_view_store_ms``: the same storage of one view's files (two images of the panel and
   their record, :meth:`scanner.study.Study.write_with_record`) on the same disk with nothing
   else running, the median of 30, measured just before the scan: how fast the disk is today
@@ -125,9 +128,9 @@ def sim_scan(tmp: Path, cfg: dict, log) -> dict:
     waits_s: list[float] = []
     finish_storing = ScanRun._finish_storing
 
-    def timed_finish_storing(self):  # the wait for the previous view's files, per view
+    def timed_finish_storing(self, keep=0):  # the wait for earlier views' files, per view
         started = time.perf_counter()
-        finish_storing(self)
+        finish_storing(self, keep)
         waits_s.append(time.perf_counter() - started)
 
     disk_ms = disk_view_store_ms(tmp / "disk_probe", cfg["panel"])

@@ -123,6 +123,11 @@ class PendingView:
     def __init__(self, store: ScanStore, record: ViewRecord, writing: PendingWrite) -> None:
         self.store, self.record, self._writing = store, record, writing
 
+    @property
+    def failed(self) -> bool:
+        """Its storage has failed already (:meth:`wait` raises at once)."""
+        return self._writing.failed
+
     def wait(self) -> None:
         """Return once the view is stored (its files fsynced and in place, the view in the
         store's records); raise what failed (the view is then not stored, nothing of it left
@@ -218,17 +223,21 @@ class ScanStore:
         base = self._name(k)
         return {base + ".mha": image, base + "_counts.mha": image, base + ".json": _RECORD_BYTES}
 
-    def check_room(self, k: int) -> None:
+    def check_room(self, k: int, reserved: bool = False) -> None:
         """Raise StudyError unless the study's filesystem can take view ``k``: both images,
-        its record and a save of the manifest, with :data:`ROOM_MARGIN_BYTES` to spare."""
+        its record and a save of the manifest, with :data:`ROOM_MARGIN_BYTES` to spare;
+        ``reserved``: the view's files are allocated already (:meth:`reserve`), the rest must
+        still fit (a disk another program filled since: no more pulses)."""
         stat = os.statvfs(self.study.path)
         free = stat.f_bavail * stat.f_frsize
         manifest = (self.study.path / "study.json").stat().st_size
-        need = sum(self._file_bytes(k).values()) + manifest + ROOM_MARGIN_BYTES
+        files = 0 if reserved else sum(self._file_bytes(k).values())
+        need = files + manifest + ROOM_MARGIN_BYTES
         if free < need:
+            what = "beyond its reserved files (" if reserved else "(images, record, "
             raise StudyError(
                 f"view {k}: the study's disk has {free / 2**20:.2f} MiB free, a view needs "
-                f"{need / 2**20:.2f} MiB (images, record, manifest, margin): not exposing"
+                f"{need / 2**20:.2f} MiB {what}manifest, margin): not exposing"
             )
 
     def reserve(self, k: int) -> Reservation:

@@ -144,6 +144,11 @@ class PendingWrite:
         """Finished, stored or failed (:meth:`wait` returns or raises at once)."""
         return self._done.done()
 
+    @property
+    def failed(self) -> bool:
+        """Finished, and failed (:meth:`wait` raises at once)."""
+        return self._done.done() and self._done.exception() is not None
+
     def wait(self) -> None:
         """Return once every file and the record are fsynced and renamed into place, with
         their sha256 in the manifest; raise what failed (nothing of it was left behind).

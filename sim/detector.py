@@ -20,7 +20,7 @@ import numpy as np
 
 from recon.config import ExposureSpec
 from recon.geometry import DetectorSpec, View
-from sim.scan import add_noise, photons_per_pixel
+from sim.scan import detected_counts, photons_per_pixel
 
 
 class SimFrame(NamedTuple):
@@ -113,7 +113,7 @@ class SimDetector:
         line_integrals = self._subject(view)
         photons = photons_per_pixel(technique, self.panel, view.sdd_mm)
         rng = np.random.default_rng([self.seed, zlib.crc32(view.matrix.tobytes())])
-        counts, _ = add_noise(np.asarray(line_integrals), photons, rng)
+        counts = detected_counts(np.asarray(line_integrals), photons, rng)
         return SimFrame(counts, self._now())
 
     def flood_counts(self, technique) -> np.ndarray:

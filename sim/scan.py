@@ -40,6 +40,21 @@ def photons_per_pixel(exposure: ExposureSpec, detector: DetectorSpec, sdd_mm: fl
     return fluence * detector.pixel_pitch_mm**2 * (1000.0 / sdd_mm) ** 2
 
 
+def _counts(line_integrals: np.ndarray, photons: float, rng: np.random.Generator) -> np.ndarray:
+    """Poisson(photons * exp(-p)) plus Gaussian readout noise, clipped to one photon, float64."""
+    expected = photons * np.exp(-line_integrals.astype(np.float64))
+    counts = rng.poisson(expected) + rng.normal(0.0, ELECTRONIC_NOISE_PHOTONS, expected.shape)
+    return np.maximum(counts, 1.0)
+
+
+def detected_counts(
+    line_integrals: np.ndarray, photons: float, rng: np.random.Generator
+) -> np.ndarray:
+    """The detector counts of :func:`add_noise` alone (the same for the same ``rng``), float32;
+    a panel's read-out, whose logarithm the scanner takes itself."""
+    return _counts(line_integrals, photons, rng).astype(np.float32)
+
+
 def add_noise(
     line_integrals: np.ndarray, photons: float, rng: np.random.Generator
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -48,9 +63,7 @@ def add_noise(
     Counts are Poisson(photons * exp(-p)) plus Gaussian readout noise; counts below one
     photon are clipped to one before the logarithm (a saturated-dark pixel).
     """
-    expected = photons * np.exp(-line_integrals.astype(np.float64))
-    counts = rng.poisson(expected) + rng.normal(0.0, ELECTRONIC_NOISE_PHOTONS, expected.shape)
-    counts = np.maximum(counts, 1.0)
+    counts = _counts(line_integrals, photons, rng)
     noisy = -np.log(counts / photons)
     return counts.astype(np.float32), noisy.astype(np.float32)
 

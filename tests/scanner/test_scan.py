@@ -243,28 +243,39 @@ def test_resume_refuses_an_altered_view(reference, tmp_path):
     )
 
 
-def test_no_pulse_while_an_acquired_view_is_not_on_disk(tmp_path, monkeypatch):
-    """A view's files are written while the plan streams on and the next pose is checked, but
-    every pulse finds each view acquired before it stored: its images and record in place."""
+def test_at_a_pulse_only_the_view_before_may_not_be_on_disk_yet(tmp_path, monkeypatch):
+    """A view's files are written while the plan streams on and the next view is exposed, but
+    every pulse finds each view acquired before the one before it stored (its images and record
+    in place) and its own view's space reserved; SAFE and DONE leave every view stored."""
     from scanner.generator import SerialGenerator
 
     expose = SerialGenerator.expose
-    pulses = []
+    pulses, not_yet = [], 0
 
     def checked_expose(self, timeout_s):
+        nonlocal not_yet
+        n = len(pulses)
         views = tmp_path / "study" / "scan" / "views"
-        on_disk = sorted(p.name for p in views.glob("view_*.json")) if views.is_dir() else []
-        assert on_disk == [f"view_{k:04d}.json" for k in range(len(pulses))]
-        for k in range(len(pulses)):
+        on_disk = sorted(p.name for p in views.glob("view_*.json"))
+        assert on_disk[: max(n - 1, 0)] == [f"view_{k:04d}.json" for k in range(max(n - 1, 0))]
+        assert len(on_disk) in (max(n - 1, 0), n)
+        not_yet += len(on_disk) < n
+        for k in range(n - 1):
             assert (views / f"view_{k:04d}.mha").is_file()
             assert (views / f"view_{k:04d}_counts.mha").is_file()
-        pulses.append(len(on_disk))
+        reserved = sorted(p.name for p in views.glob(f".view_{n:04d}*"))
+        suffixes = ("_counts.tmp.mha", ".tmp.json", ".tmp.mha")
+        assert reserved == sorted(f".view_{n:04d}{suffix}" for suffix in suffixes)
+        pulses.append(n)
         return expose(self, timeout_s)
 
     monkeypatch.setattr(SerialGenerator, "expose", checked_expose)
     run_session(tmp_path / "study", inputs(tmp_path))
     assert len(pulses) == 90
-    assert Study.open(tmp_path / "study").verify() == []
+    assert not_yet > 0  # the storage does overlap the next pulse
+    study = Study.open(tmp_path / "study")
+    assert study.verify() == [] and study.stage("scan")["views"] == 90
+    assert list((tmp_path / "study" / "scan" / "views").glob(".*")) == []
 
 
 def test_a_view_whose_disk_space_cannot_be_reserved_is_not_exposed(tmp_path, monkeypatch):
@@ -296,9 +307,10 @@ def test_a_view_whose_disk_space_cannot_be_reserved_is_not_exposed(tmp_path, mon
     assert Study.open(tmp_path / "study").verify() == []
 
 
-def test_a_view_that_cannot_be_stored_stops_the_scan_before_the_next_pulse(tmp_path, monkeypatch):
-    """The storage of view 5 fails (its record cannot be written) while view 6 is being
-    checked: SAFE before view 6's pulse, views 0-4 stored, nothing of view 5 left behind."""
+def test_a_view_that_cannot_be_stored_stops_the_scan_by_the_pulse_after_next(tmp_path, monkeypatch):
+    """The storage of view 5 fails (its record cannot be written) while view 6 is exposed: SAFE
+    before view 7's pulse at the latest (before view 6's when the failure is known by then),
+    views 0-4 stored and view 6 if it was exposed, nothing of view 5 left behind."""
     import scanner.study
     from scanner.generator import SerialGenerator
 
@@ -319,11 +331,14 @@ def test_a_view_that_cannot_be_stored_stops_the_scan_before_the_next_pulse(tmp_p
     monkeypatch.setattr(SerialGenerator, "expose", counted)
     with pytest.raises(ScanFault, match="No space left") as fault:
         run_session(tmp_path / "study", inputs(tmp_path))
-    assert fault.value.views_stored == 5
-    assert len(pulses) == 6  # views 0-5: none after the failed storage
+    assert len(pulses) in (6, 7)  # views 0-5, and 6 when 5's failure was not known yet
+    assert fault.value.views_stored == len(pulses) - 1
     study = Study.open(tmp_path / "study")
     assert study.stage("scan")["status"] == "incomplete"
     assert "view 5 could not be stored" in study.stage("scan")["reason"]
     views = study.path / "scan" / "views"
+    stored = sorted(p.name for p in views.glob("view_*.json"))
+    assert stored == [f"view_{k:04d}.json" for k in (0, 1, 2, 3, 4, 6)[: len(pulses) - 1]]
     assert sorted(p.name for p in views.iterdir() if "0005" in p.name) == []
+    assert list(views.glob(".*")) == []
     assert study.verify() == []

@@ -238,13 +238,18 @@ def test_a_killed_sessions_partial_recording_is_kept(tmp_path):
 
 
 def test_a_reserved_view_is_stored_on_a_disk_filled_after_its_reservation(small_disk):
-    """Another program fills the study's disk after view 0's files were reserved (before its
-    pulse): view 0 is still stored whole, within its reserved space; view 1, not reserved,
-    cannot be stored, and cannot be reserved either (nothing left behind)."""
+    """Another program fills the study's disk after view 0's files were reserved: the room
+    check before its pulse refuses it; a view exposed all the same is stored whole, within its
+    reserved space; view 1, not reserved, can be neither stored nor reserved (nothing left
+    behind)."""
     store = small_disk
     reserved = store.reserve(0)
+    store.check_room(0, reserved=True)  # the margin is still free
     stat = os.statvfs(store.study.path)
     _ballast(store.study.path.parent, stat.f_bavail * stat.f_frsize)  # the disk is full
+    full = r"view 0: .* 0\.00 MiB free, a view needs 4\.\d\d MiB beyond its reserved files"
+    with pytest.raises(StudyError, match=full):  # the scan stops before its pulse
+        store.check_room(0, reserved=True)
     rng = np.random.default_rng(1)
     images = [rng.random((64, 64), dtype=np.float32) for _ in range(4)]
     store.put(_record(0), images[0], images[1])  # into its reserved space
