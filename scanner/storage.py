@@ -34,7 +34,15 @@ import numpy as np
 from recon.geometry import DetectorSpec, Geometry, View
 from recon.io import encode_projections, read_projections, write_projections
 from recon.rtk_xml import write_rtk_geometry
-from scanner.study import PendingWrite, Reservation, Study, StudyError, sha256
+from scanner.study import (
+    PendingWrite,
+    Reservation,
+    Study,
+    StudyError,
+    fsync_folder,
+    make_folder,
+    sha256,
+)
 
 SCAN_FOLDERS = {"scan": "scan", "calibration_scan": "calibration_scan"}
 """Folder of each scan stage in the study."""
@@ -208,13 +216,16 @@ class ScanStore:
                 self._set_aside(path)
 
     def _set_aside(self, path: Path) -> None:
-        """Move an image whose view has no record to ``interrupted/`` under a new name."""
+        """Move an image whose view has no record to ``interrupted/`` under a new name, both
+        folders flushed (its new name survives a power loss, whatever is stored after it)."""
         aside = path.parent / "interrupted"
-        aside.mkdir(exist_ok=True)
+        make_folder(aside)
         for n in itertools.count():
             target = aside / (path.name if n == 0 else f"{path.stem}.{n}{path.suffix}")
             if not target.exists():
                 os.rename(path, target)
+                fsync_folder(aside)
+                fsync_folder(path.parent)
                 return
 
     def _file_bytes(self, k: int) -> dict[str, int]:

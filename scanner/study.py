@@ -100,7 +100,7 @@ def _write_synced(path: Path, parts: Sequence) -> None:
         os.close(fd)
 
 
-def _fsync_folder(folder: Path) -> None:
+def fsync_folder(folder: Path) -> None:
     """Flush a folder's entries (names created, renamed or removed in it) to disk."""
     fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
     try:
@@ -109,13 +109,13 @@ def _fsync_folder(folder: Path) -> None:
         os.close(fd)
 
 
-def _make_folder(folder: Path) -> None:
+def make_folder(folder: Path) -> None:
     """Create ``folder`` and its missing parents, each new name flushed to disk."""
     if folder.is_dir():
         return
-    _make_folder(folder.parent)
+    make_folder(folder.parent)
     folder.mkdir(exist_ok=True)
-    _fsync_folder(folder.parent)
+    fsync_folder(folder.parent)
 
 
 def _replace_atomically(path: Path, data: bytes) -> None:
@@ -126,7 +126,7 @@ def _replace_atomically(path: Path, data: bytes) -> None:
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, path)
-        _fsync_folder(path.parent)
+        fsync_folder(path.parent)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
@@ -189,7 +189,7 @@ class Study:
                 f"{path} exists and is not empty: a study is never overwritten "
                 "(choose a new folder, or continue it with --resume)"
             )
-        _make_folder(path)
+        make_folder(path)
         manifest = {
             "software_version": software_version(),
             "created": _now(),
@@ -232,7 +232,7 @@ class Study:
         target = self.path / relpath
         if target.exists():
             raise StudyError(f"{target} exists: files of a study are never rewritten")
-        _make_folder(target.parent)
+        make_folder(target.parent)
         return target
 
     def write(self, relpath: str, writer: Callable[[Path], object]) -> Path:
@@ -246,7 +246,7 @@ class Study:
             with open(tmp, "rb+") as fh:
                 os.fsync(fh.fileno())
             os.replace(tmp, target)
-            _fsync_folder(target.parent)
+            fsync_folder(target.parent)
         except BaseException:
             tmp.unlink(missing_ok=True)
             raise
@@ -325,7 +325,7 @@ class Study:
                 for relpath, target in targets.items():
                     os.replace(tmps[relpath], target)
                 for folder in {target.parent for target in targets.values()}:
-                    _fsync_folder(folder)  # the new names on disk: stored means stored
+                    fsync_folder(folder)  # the new names on disk: stored means stored
             except BaseException:
                 wait(pending)
                 for tmp in tmps.values():

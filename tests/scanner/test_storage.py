@@ -147,6 +147,29 @@ def test_an_image_left_without_its_record_is_set_aside_and_the_view_acquired_aga
     assert again.stored == {0, 1}
 
 
+def test_an_image_set_aside_is_flushed_under_its_new_name(tmp_path, monkeypatch):
+    """Setting an image aside renames it across folders: ``interrupted/`` is flushed into
+    ``views/``, then both folders once the image is in ``interrupted/``; else a power loss
+    after the view is stored again could lose the image set aside ("kept" was the promise)."""
+    panel = DetectorSpec(rows=4, cols=4, pixel_pitch_mm=1.0)
+    planned = circular_orbit(3, 500.0, 1000.0, panel)
+    study = Study.create(tmp_path / "s", {})
+    views = study.path / "scan" / "views"
+    views.mkdir(parents=True)
+    (views / "view_0001.mha").write_bytes(b"half a view")
+    fsynced = []
+    fsync = os.fsync
+
+    def logged(fd: int) -> None:
+        path = Path(os.readlink(f"/proc/self/fd/{fd}"))
+        fsynced.append((path, (views / "interrupted" / "view_0001.mha").exists()))
+        fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", logged)
+    ScanStore(Study.open(study.path), panel, ("rotary", "lift"), 3, planned)
+    assert fsynced == [(views, False), (views / "interrupted", True), (views, True)]
+
+
 def test_a_full_disk_fails_the_recording_instead_of_hanging(tmp_path):
     """The recording on a full filesystem (a 256 kB tmpfs): the failure is raised and the
     process exits; rerun's own file sink blocked its flush, its disconnect and the
