@@ -251,6 +251,11 @@ class ScanStore:
                 f"{need / 2**20:.2f} MiB {what}manifest, margin): not exposing"
             )
 
+    def _refuse_stored(self, k: int) -> None:
+        """StudyError when view ``k`` is stored or being stored (never replaced)."""
+        if k in self.records or k in self._storing:
+            raise StudyError(f"view {k} is already stored: acquired views are never replaced")
+
     def reserve(self, k: int) -> Reservation:
         """Before view ``k``'s pulse: check the room for it (:meth:`check_room`) and allocate
         its files' space (:meth:`scanner.study.Study.reserve`), so that a disk another program
@@ -258,8 +263,7 @@ class ScanStore:
         the reserved files; release the reservation when the view is not acquired after all.
         Raises StudyError (not exposing) when the disk cannot take the view."""
         self.check_room(k)
-        if k in self.records or k in self._storing:
-            raise StudyError(f"view {k} is already stored: acquired views are never replaced")
+        self._refuse_stored(k)
         try:
             return self.study.reserve(self._file_bytes(k))
         except StudyError as err:
@@ -292,8 +296,7 @@ class ScanStore:
         (done, or SAFE); a view stored after its last save is verified against its record on
         reopening (:meth:`_load`)."""
         k = record.view
-        if k in self.records or k in self._storing:
-            raise StudyError(f"view {k} is already stored: acquired views are never replaced")
+        self._refuse_stored(k)
         pitch = self.panel.pixel_pitch_mm
         base = self._name(k)
         images = {
