@@ -12,9 +12,10 @@ a random view of its own session; after each fault the scan is continued with ``
   controller stops answering at a random set-point (``--silent-after-servo``). The scan's
   other fault, if any, comes from the same devices' hooks (a fake's protective stop, the mock
   generator's timeout and interlock; the UR backend's panel has no dropped-frame hook);
-- ``sigint``, ``sigkill``: this process signals the scanning process once the study holds a
-  random number of views; SIGKILL waits for a view's temporary file, to land mid-write, and
-  kills the whole process group;
+- ``sigint``, ``sigterm``, ``sighup``, ``sigquit`` (the stop signals: Ctrl-C, a service
+  manager's stop, a closed terminal, Ctrl-\\) and ``sigkill``: this process signals the
+  scanning process once the study holds a random number of views; SIGKILL waits for a view's
+  temporary file, to land mid-write, and kills the whole process group;
 - ``disk_full``: the study lives on a tmpfs of its own, which this process fills once the
   study holds a random number of views and empties after the session (without permission to
   mount: the child's RLIMIT_FSIZE set to 0 with prlimit; no timing then).
@@ -26,7 +27,13 @@ Measured (printed as one JSON object):
 - ``corrupt_files``: files of the finished study failing study.json's sha256, and projections
   (views and stacks) or JSON files that do not read (recon.io); ``stray_temp_files`` apart;
 - ``x_ray_on_after_fault``: pulses the generator switched on after a fault and before its
-  ABORT (the device event log; for a full disk, after the fill ended);
+  ABORT (the device event log; for a full disk, after the fill ended); after a stop signal,
+  the pulses commanded after it: their ``EXP`` was sent (the session's generator command log,
+  ``scan/generator_commands-N.csv``, times each command as the scanning process sent it)
+  after ``os.kill`` had returned, i.e. once the signal was pending in the process;
+- ``exp_after_stop``: ``EXP`` commands sent after a stop signal, whether or not the generator
+  fired (after its ABORT it refuses); ``pulses_in_flight_at_stop``: pulses whose ``EXP`` went
+  out before the signal and whose X-ray came on after it (not counted above);
 - ``max_time_to_safe_ms``: from a fault to X-ray off (the generator's ABORT) and every joint
   group stopped (a protective stop stops its arm; a silent controller cannot be stopped and is
   left out), over the faults the software is told of at once; faults found by a deadline
@@ -34,7 +41,11 @@ Measured (printed as one JSON object):
   controller (``silence_s`` + one set-point period) and a full disk on the UR backend (the
   next view), ``time_to_safe_bound_ms``. SIGKILL has none (nothing is left to act).
 
-Usage: ``python bench/soak.py [--scans 20] [--seed 0] [--views 24] [--kinds a,b,...]``.
+Each scan runs on a backend drawn from ``--backends`` (a ``controller_silent`` scan on the UR
+backend, a ``dropped_frame`` one on the simulated backend, whose hook it is).
+
+Usage: ``python bench/soak.py [--scans 20] [--seed 0] [--views 24] [--kinds a,b,...]
+[--backends sim,ur]``.
 """
 
 from __future__ import annotations
@@ -44,6 +55,7 @@ import contextlib
 import json
 import math
 import os
+import platform
 import resource
 import signal
 import subprocess
@@ -81,16 +93,26 @@ KINDS = (
     "interlock",
     "controller_silent",
     "sigint",
+    "sigterm",
+    "sighup",
+    "sigquit",
     "sigkill",
     "disk_full",
 )
+BACKENDS = ("sim", "ur")
 SIM_HOOKS = {
     "protective_stop": "protective_stop_at_view",
     "generator_timeout": "generator_timeout_at_view",
     "dropped_frame": "dropped_frame_at_view",
     "interlock": "interlock_open_at_view",
 }
-PROCESS_FAULTS = ("sigint", "sigkill", "disk_full")
+STOP_SIGNALS = {
+    "sigint": signal.SIGINT,
+    "sigterm": signal.SIGTERM,
+    "sighup": signal.SIGHUP,
+    "sigquit": signal.SIGQUIT,
+}
+PROCESS_FAULTS = (*STOP_SIGNALS, "sigkill", "disk_full")
 SIGNALLED_BOUND_MS = 100.0
 """Fault to SAFE for a fault the software is told of (an error reply, an exception, a signal)."""
 DEVICE_TIMEOUT_S = ScanSettings().device_timeout_s
@@ -137,6 +159,8 @@ class FaultRecord:
     certain_s: float | None = None  # when the fault surely holds (a filled disk), else injected_s
     time_to_safe_ms: float | None = None
     xray_after: int = 0
+    exp_after: int = 0  # EXP commands sent after a stop signal
+    in_flight: int = 0  # pulses on after a stop signal whose EXP went out before it
     note: str = ""
 
 
@@ -300,6 +324,53 @@ def injection_time(kind: str, events: list[Event]) -> float | None:
     return min(times) if times else None
 
 
+def read_commands(path: Path) -> list[tuple[float, str]]:
+    """A session's generator command log: (monotonic s when sent, command)."""
+    commands = []
+    for line in path.read_text(encoding="utf-8").splitlines()[1:]:
+        t, _, body = line.split(",", 2)
+        commands.append((float(t), body))
+    return commands
+
+
+def new_command_log(study: Path, before: set[Path]) -> Path | None:
+    """The generator command log a session wrote (None: it wrote none, e.g. killed)."""
+    logs = set((study / "scan").glob("generator_commands-*.csv")) - before
+    return max(logs, key=lambda p: int(p.stem.rsplit("-", 1)[1])) if logs else None
+
+
+def pulses_after_stop(fault: FaultRecord, log: Path | None, events: list[Event]) -> None:
+    """Tell the pulses on after a stop signal apart: commanded after it (their EXP sent once
+    ``os.kill`` had returned, ``fault.certain_s``: the signal was pending then) or in flight
+    (on once ``os.kill`` was called, ``fault.injected_s``, their EXP sent before it returned),
+    from the session's generator command ``log``; without one every pulse after the signal
+    counts as commanded after it."""
+    if fault.injected_s is None or fault.certain_s is None:
+        return
+    if log is None:
+        fault.note += " no generator command log: every pulse after the signal counted;"
+        return
+    sent = fault.certain_s
+    exps_after = [t for t, body in read_commands(log) if body == "EXP" and t >= sent]
+    aborts = [
+        t
+        for t, who, what in events
+        if who == "generator" and what == "abort" and t >= fault.injected_s
+    ]
+    end = aborts[0] if aborts else math.inf
+    pulses = [
+        t
+        for t, who, what in events
+        if who == "generator" and what == "xray_on" and fault.injected_s <= t < end
+    ]
+    # the host sends the next EXP only after the last one's reply: a pulse on after the first
+    # EXP sent after the signal is one of those EXPs'
+    first = min(exps_after, default=math.inf)
+    fault.exp_after = len(exps_after)
+    fault.xray_after = sum(1 for t in pulses if t >= first)
+    fault.in_flight = len(pulses) - fault.xray_after
+
+
 def time_to_safe(fault: FaultRecord, events: list[Event], exempt: dict[str, str]) -> None:
     """Fill in the fault's time to SAFE and pulses after it from the session's device log.
 
@@ -339,8 +410,15 @@ def time_to_safe(fault: FaultRecord, events: list[Event], exempt: dict[str, str]
 class Soak:
     """The soak's state: work folder, protocol, plan (for the UR fakes' start and set-points)."""
 
-    def __init__(self, work: Path, views: int, seed: int, kinds: tuple[str, ...]) -> None:
-        self.work, self.views, self.kinds = work, views, kinds
+    def __init__(
+        self,
+        work: Path,
+        views: int,
+        seed: int,
+        kinds: tuple[str, ...],
+        backends: tuple[str, ...] = BACKENDS,
+    ) -> None:
+        self.work, self.views, self.kinds, self.backends = work, views, kinds, backends
         self.rng = np.random.default_rng(seed)
         self.protocol_path = work / "protocol.yaml"
         data = protocol_data(views)
@@ -365,9 +443,18 @@ class Soak:
             kinds = [k for k in kinds if k != "dropped_frame"] or ["controller_silent"]
         return [str(k) for k in kinds]
 
+    def backend_for(self, kinds: list[str]) -> str:
+        """The scan's backend: the UR backend for a silent controller, the simulated one for
+        a dropped frame (their hooks), else drawn from ``backends``."""
+        if "controller_silent" in kinds:
+            return "ur"
+        if "dropped_frame" in kinds:
+            return "sim"
+        return str(self.rng.choice(self.backends))
+
     def scan(self, index: int) -> None:
         kinds = self.draw()
-        backend = "ur" if "controller_silent" in kinds else "sim"
+        backend = self.backend_for(kinds)
         folder = self.work / f"scan{index:02d}"
         mounted = "disk_full" in kinds and mount_tmpfs(folder)
         if "disk_full" in kinds and not mounted:
@@ -430,9 +517,10 @@ class Soak:
                 if fault is not None and fault.kind in PROCESS_FAULTS:
                     target = count_views(study) + fault.view + 1
                     if wait_for_views(study, target, process):
-                        if fault.kind == "sigint":
-                            fault.injected_s = time.monotonic()
-                            process.send_signal(signal.SIGINT)
+                        if fault.kind in STOP_SIGNALS:  # timed from before the kill; pending
+                            fault.injected_s = time.monotonic()  # in the process once it returns
+                            os.kill(process.pid, STOP_SIGNALS[fault.kind])
+                            fault.certain_s = time.monotonic()
                         elif fault.kind == "sigkill":
                             fault.note = kill_mid_write(study, process)
                             fault.injected_s = time.monotonic()
@@ -475,6 +563,7 @@ class Soak:
         config = folder.parent / f"{folder.name}-session{session}-sim.yaml"
         spec = {"seed": 3, "faults": faults, "event_log": str(events_path)}
         config.write_text(yaml.safe_dump(spec), encoding="utf-8")
+        logs = set((study / "scan").glob("generator_commands-*.csv"))
         code = self.run_child(self.command("sim", study, config, session > 1), study, fault, log)
         if fault is not None and fault.kind != "sigkill":
             events = read_sim_events(events_path)
@@ -482,6 +571,8 @@ class Soak:
                 fault.injected_s = injection_time(fault.kind, events)
             exempt = {}
             time_to_safe(fault, events, exempt)
+            if fault.kind in STOP_SIGNALS:
+                pulses_after_stop(fault, new_command_log(study, logs), events)
             self._check_injected(fault, code, log)
         return code
 
@@ -544,6 +635,7 @@ class Soak:
                 "generator_port": generator.port,
             }
             config.write_text(yaml.safe_dump(spec), encoding="utf-8")
+            logs = set((study / "scan").glob("generator_commands-*.csv"))
             code = self.run_child(self.command("ur", study, config, session > 1), study, fault, log)
             for arm, fake in fakes.items():
                 events += [(t, arm, name) for name, t in fake.events()]
@@ -556,6 +648,8 @@ class Soak:
             elif kind in ("generator_timeout", "interlock"):
                 fault.injected_s = injection_time(kind, events)
             time_to_safe(fault, events, exempt)
+            if kind in STOP_SIGNALS:
+                pulses_after_stop(fault, new_command_log(study, logs), events)
             self._check_injected(fault, code, log)
         return code
 
@@ -573,11 +667,18 @@ def soak(
     views: int = 24,
     kinds: tuple[str, ...] = KINDS,
     work: Path | None = None,
+    backends: tuple[str, ...] = BACKENDS,
 ) -> dict:
     """Run the soak; the benchmark's JSON object."""
     unknown = sorted(set(kinds) - set(KINDS))
     if unknown:
         raise ValueError(f"unknown fault kinds {unknown}; kinds are {KINDS}")
+    if not backends or set(backends) - set(BACKENDS):
+        raise ValueError(f"backends must be some of {BACKENDS}, got {backends}")
+    if "controller_silent" in kinds and "ur" not in backends:
+        raise ValueError("the controller_silent fault needs the ur backend in backends")
+    if "dropped_frame" in kinds and "sim" not in backends:
+        raise ValueError("the dropped_frame fault needs the sim backend in backends")
     if not 8 <= views <= 360:
         raise ValueError(f"views must be in [8, 360], got {views}")
     started = time.perf_counter()
@@ -585,7 +686,7 @@ def soak(
         if work is None:
             work = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="soak-")))
         work.mkdir(parents=True, exist_ok=True)
-        state = Soak(work, views, seed, kinds)
+        state = Soak(work, views, seed, kinds, backends)
         for index in range(scans):
             state.scan(index)
     totals = state.totals
@@ -597,11 +698,11 @@ def soak(
     signalled = [f.time_to_safe_ms for f in timed if state.bound_ms(f) == SIGNALLED_BOUND_MS]
     over = [f for f in timed if f.time_to_safe_ms > state.bound_ms(f)]
     for f in totals.faults:
-        if f.xray_after or f in over:
+        if f.xray_after or f.exp_after or f in over:
             totals.problems.append(
                 f"{f.kind} in scan {f.scan} session {f.session} ({f.backend} backend) at view "
                 f"{f.view}: {f.time_to_safe_ms} ms to SAFE (bound {state.bound_ms(f):.0f}), "
-                f"{f.xray_after} pulses after it;{f.note}"
+                f"{f.xray_after} pulses after it ({f.exp_after} EXP sent after it);{f.note}"
             )
     xray_by_kind = Counter()
     for f in totals.faults:
@@ -612,6 +713,8 @@ def soak(
         if f.time_to_safe_ms is None and f.kind != "sigkill" and "no timing" not in f.note
     ]
     xray = sum(f.xray_after for f in totals.faults)
+    exp_after = sum(f.exp_after for f in totals.faults)
+    stops = [f for f in injected if f.kind in STOP_SIGNALS]
     result = {
         "benchmark": "soak",
         "scans": scans,
@@ -626,6 +729,12 @@ def soak(
         "stray_temp_files": totals.stray_temp_files,
         "x_ray_on_after_fault": xray,
         "x_ray_on_after_fault_by_kind": {k: v for k, v in sorted(xray_by_kind.items()) if v},
+        "exp_after_stop": exp_after,
+        "pulses_in_flight_at_stop": sum(f.in_flight for f in stops),
+        "stop_signals_by_backend": dict(sorted(Counter(f.backend for f in stops).items())),
+        "max_kill_call_ms": round(
+            max((f.certain_s - f.injected_s for f in stops), default=0) * 1e3, 2
+        ),
         "resumes": totals.resumes,
         "hangs": totals.hangs,
         "max_time_to_safe_ms": round(max(signalled), 1) if signalled else None,
@@ -642,18 +751,30 @@ def soak(
         "faults_over_bound": len(over),
         "faults_safe_unconfirmed": len(untimed),
         "problems": totals.problems[:20],
+        "backends": list(backends),
+        "cpu_model": cpu_model(),
         "wall_s": round(time.perf_counter() - started, 1),
     }
     result["targets_met"] = (
         totals.views_lost == 0
         and totals.corrupt_files == 0
         and xray == 0
+        and exp_after == 0
         and totals.complete == scans
         and totals.hangs == 0
         and not over
         and not untimed
     )
     return result
+
+
+def cpu_model() -> str:
+    """The CPU's model name (/proc/cpuinfo), or the machine type."""
+    with contextlib.suppress(OSError):
+        for line in Path("/proc/cpuinfo").read_text(encoding="utf-8").splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    return platform.machine()
 
 
 def main() -> None:
@@ -663,11 +784,15 @@ def main() -> None:
     parser.add_argument("--views", type=int, default=24, help="views per scan")
     parser.add_argument("--kinds", default=",".join(KINDS), help="fault kinds to draw from")
     parser.add_argument("--work", type=Path, default=None, help="keep the studies here")
+    parser.add_argument(
+        "--backends", default=",".join(BACKENDS), help="backends the scans are drawn from"
+    )
     args = parser.parse_args()
     if args.work is not None and args.work.exists() and any(args.work.iterdir()):
         parser.error(f"--work {args.work} exists and is not empty")
     kinds = tuple(k for k in args.kinds.split(",") if k)
-    print(json.dumps(soak(args.scans, args.seed, args.views, kinds, args.work)))
+    backends = tuple(b for b in args.backends.split(",") if b)
+    print(json.dumps(soak(args.scans, args.seed, args.views, kinds, args.work, backends)))
 
 
 if __name__ == "__main__":

@@ -63,9 +63,11 @@ def open_backend(
     panel: DetectorSpec,
     sdd_mm: float,
     subject: Callable[[View], np.ndarray],
+    on_generator_sent: Callable[[str, float], None] | None = None,
 ) -> tuple[Backend, object | None]:
     """The devices of ``spec`` (not yet connected), and the simulated scanner when there is
-    one (its ``world`` holds the truth and the ordered event log)."""
+    one (its ``world`` holds the truth and the ordered event log). ``on_generator_sent``
+    hears every command sent to the generator with its ``time.monotonic()``."""
     if isinstance(spec, SimBackendSpec):
         simulated = simulated_scanner(model, start_q, panel, sdd_mm, subject, spec)
         backend = Backend(
@@ -74,7 +76,9 @@ def open_backend(
             stage=simulated.stage,
             source_arm=simulated.source_arm,
             detector_arm=simulated.detector_arm,
-            generator=_ClosingGenerator(SerialGenerator(simulated.generator.port), simulated),
+            generator=_ClosingGenerator(
+                SerialGenerator(simulated.generator.port, on_sent=on_generator_sent), simulated
+            ),
             detector=simulated.detector,
         )
         return backend, simulated
@@ -102,7 +106,7 @@ def open_backend(
     detector = SimDetector(
         panel, measured_view, subject, clock.now, sdd_mm=sdd_mm, seed=spec.simulated_panel.seed
     )
-    driver = SerialGenerator(spec.generator_port, baudrate=spec.baudrate)
+    driver = SerialGenerator(spec.generator_port, baudrate=spec.baudrate, on_sent=on_generator_sent)
     generator = _PanelSensing(driver, detector)
     return Backend("ur", clock, stage, arms[0], arms[1], generator, detector), None
 
@@ -128,8 +132,8 @@ class _PanelSensing:
     def __getattr__(self, name: str):
         return getattr(self._driver, name)
 
-    def expose(self, timeout_s: float):
-        exposure = self._driver.expose(timeout_s)
+    def expose(self, timeout_s: float, permit: Callable[[], None] | None = None):
+        exposure = self._driver.expose(timeout_s, permit)
         t = exposure.technique
         self._panel.exposed(t.kv, t.ma, t.ms, exposure.sequence)
         return exposure

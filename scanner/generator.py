@@ -8,6 +8,7 @@ The command set (framing, checksum, replies, commands) is specified in
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 from scanner.hardware import (
     DeviceError,
@@ -31,6 +32,8 @@ class SerialGenerator:
         name: the device's name in error messages.
         poll_s: STATUS? polling period while waiting for READY, s.
         close_abort_timeout_s: timeout of the ABORT sent by :meth:`close`, s.
+        on_sent: called with every command sent and the ``time.monotonic()`` it was sent at
+            (:class:`~scanner.serial_link.SerialLink`): the session's command log.
     """
 
     def __init__(
@@ -41,12 +44,13 @@ class SerialGenerator:
         *,
         poll_s: float = 0.01,
         close_abort_timeout_s: float = 0.5,
+        on_sent: Callable[[str, float], None] | None = None,
     ) -> None:
         self.name = name
         self.poll_s = poll_s
         self.close_abort_timeout_s = close_abort_timeout_s
         self.ident: str | None = None
-        self._link = SerialLink(port, device=name, baudrate=baudrate)
+        self._link = SerialLink(port, device=name, baudrate=baudrate, on_sent=on_sent)
 
     def connect(self, timeout_s: float) -> None:
         """Open the port and read the generator's identification (``ID?``)."""
@@ -78,14 +82,16 @@ class SerialGenerator:
                 raise DeviceTimeout(f"{self.name}: 'PREP': not READY within {timeout_s:.3g} s")
             time.sleep(self.poll_s)
 
-    def expose(self, timeout_s: float) -> Exposure:
+    def expose(self, timeout_s: float, permit: Callable[[], None] | None = None) -> Exposure:
         """Fire one pulse; returns the technique delivered and its sequence number.
 
-        Raises DeviceError when the generator refuses (interlock open, not ready, fault: nothing
-        fired) or cuts the pulse, DeviceTimeout when it does not answer in ``timeout_s`` s: the
-        pulse's state is then unknown, so call :meth:`abort`.
+        ``permit`` is called immediately before ``EXP`` is written (the link held); what it
+        raises is raised and nothing is sent. Raises DeviceError when the generator refuses
+        (interlock open, not ready, fault: nothing fired) or cuts the pulse, DeviceTimeout when
+        it does not answer in ``timeout_s`` s: the pulse's state is then unknown, so call
+        :meth:`abort`.
         """
-        reply = self._call("EXP", timeout_s=timeout_s)
+        reply = self._call("EXP", timeout_s=timeout_s, gate=permit)
         kv, ma, ms, seq = self._link.numbers(reply, 4)
         if seq != int(seq):
             raise DeviceError(f"{self.name}: 'EXP': sequence not an integer: {reply.line!r}")
@@ -147,8 +153,10 @@ class SerialGenerator:
     def __exit__(self, *_: object) -> None:
         self.close()
 
-    def _call(self, command: str, *args: str, timeout_s: float) -> Reply:
-        reply = self._link.request(command, *args, timeout_s=timeout_s)
+    def _call(
+        self, command: str, *args: str, timeout_s: float, gate: Callable[[], None] | None = None
+    ) -> Reply:
+        reply = self._link.request(command, *args, timeout_s=timeout_s, gate=gate)
         if not reply.ok:
             raise self._link.refused(reply)
         return reply

@@ -13,6 +13,7 @@ does not answer in time or answers wrongly: it never returns a stale or guessed 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
@@ -150,8 +151,10 @@ class XrayGenerator(Protocol):
         """Warm up; returns when ready."""
         ...
 
-    def expose(self, timeout_s: float) -> Exposure:
-        """Fire one pulse at the set technique; refuses (raises) with an interlock open."""
+    def expose(self, timeout_s: float, permit: Callable[[], None] | None = None) -> Exposure:
+        """Fire one pulse at the set technique; refuses (raises) with an interlock open.
+        ``permit`` is called immediately before the pulse is commanded; what it raises is
+        raised and nothing is commanded."""
         ...
 
     def abort(self, timeout_s: float) -> None:

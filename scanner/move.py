@@ -11,7 +11,9 @@ are then streamed to the three joint groups in time, as the scan streams its app
 the interlocks read every :data:`INTERLOCK_POLL_S` of motion; the groups must settle within
 the scan's start tolerance of the goal, and leave streaming mode. Any failure while moving
 goes the scan's SAFE way: X-ray off first, then every group stops, and :class:`MoveFault`
-says why and where the arms stopped. The caller owns the devices (connects nothing it did not
+says why and where the arms stopped. The operator's stop (:mod:`scanner.stop`) is checked
+before every set-point, and its watchdog stops the arms itself when the move has not reached
+SAFE within a few milliseconds of it. The caller owns the devices (connects nothing it did not
 open, closes nothing).
 """
 
@@ -32,6 +34,7 @@ from scanner.scan import (
     measured_joints,
     stop_safely,
 )
+from scanner.stop import StopRequest
 from trajectories.errors import PlanningError
 from trajectories.model import ScannerModel
 from trajectories.move import JointMove, plan_move
@@ -71,15 +74,18 @@ def move_scanner(
     settings: ScanSettings | None = None,
     confirm: Callable[[str], bool] = lambda _q: True,
     say: Callable[[str], None] = lambda _m: None,
+    stop: StopRequest | None = None,
 ) -> MoveResult:
     """Move the scanner from its measured joints to ``goal_q`` (plan units, (14,)).
 
-    Raises PreflightError (naming the check) or OperatorDeclined before anything moves,
-    MoveFault after SAFE when the move fails on the way or does not end within
-    ``settings.start_tolerance`` of the goal.
+    Raises PreflightError (naming the check), OperatorDeclined or OperatorStop before anything
+    moves, MoveFault after SAFE when the move fails on the way (``stop``, the operator's stop
+    request, included) or does not end within ``settings.start_tolerance`` of the goal.
     """
     settings = settings or ScanSettings()
+    stop = stop or StopRequest()
     timeout = settings.device_timeout_s
+    stop.check(f"the move to {target}")
     try:
         for device in (*backend.groups, backend.generator):
             device.connect(timeout)
@@ -98,25 +104,25 @@ def move_scanner(
         )
         return MoveResult(target, None, start, offset)
     say(f"move to {target}: {move.headline()}\n{move.table()}")
-    if not confirm(f"Move the scanner to {target}? {move.headline()}"):
-        raise OperatorDeclined(f"operator declined the move to {target}: nothing moved")
-    try:
-        _stream(backend, move, timeout)
-        reached = _settled(backend, move, settings)
-        for group in backend.groups:  # leave streaming mode, at rest on the goal
-            group.stop()
-    except BaseException as err:  # Ctrl-C included: X-ray off, arms stop
-        problems = stop_safely(backend, timeout)
+    with stop.interrupting():
+        if not confirm(f"Move the scanner to {target}? {move.headline()}"):
+            raise OperatorDeclined(f"operator declined the move to {target}: nothing moved")
+    with stop.guarding(lambda: stop_safely(backend, timeout)) as guard, stop.deferring():
         try:
-            where = f"; arms at {np.round(measured_joints(backend, timeout), 2).tolist()}"
-        except Exception:
-            where = ""
-        if isinstance(err, KeyboardInterrupt):
-            reason = "interrupted by the operator (Ctrl-C)"
-        else:
-            reason = f"{type(err).__name__}: {err}"
-        outcome = "; ".join(problems) if problems else "X-ray off, arms stopped"
-        raise MoveFault(f"move to {target} stopped: {reason} ({outcome}{where})") from err
+            _stream(backend, move, timeout, stop)
+            reached = _settled(backend, move, settings, stop)
+            for group in backend.groups:  # leave streaming mode, at rest on the goal
+                group.stop()
+        except BaseException as err:  # the operator's stop included: X-ray off, arms stop
+            guard.acknowledge()
+            problems = stop_safely(backend, timeout)
+            try:
+                where = f"; arms at {np.round(measured_joints(backend, timeout), 2).tolist()}"
+            except Exception:
+                where = ""
+            reason = stop.explain(err)
+            outcome = "; ".join(problems) if problems else "X-ray off, arms stopped"
+            raise MoveFault(f"move to {target} stopped: {reason} ({outcome}{where})") from err
     error = float(np.abs(reached - move.goal_q).max())
     say(f"at {target}: largest joint error {error:.3f} (tolerance {settings.start_tolerance})")
     return MoveResult(target, move, reached, error)
@@ -129,8 +135,9 @@ def _check_interlocks(backend: Backend, timeout_s: float) -> None:
         raise DeviceError(f"interlocks open: {opened or 'none reported'}")
 
 
-def _stream(backend: Backend, move: JointMove, timeout_s: float) -> None:
-    """Stream the move's samples to the groups in time; read the interlocks on the way."""
+def _stream(backend: Backend, move: JointMove, timeout_s: float, stop: StopRequest) -> None:
+    """Stream the move's samples to the groups in time (each once the operator's stop is
+    checked); read the interlocks on the way."""
     clock = backend.clock
     origin = clock.now()
     checked = 0.0
@@ -138,20 +145,24 @@ def _stream(backend: Backend, move: JointMove, timeout_s: float) -> None:
         dt = float(move.t_s[k] - move.t_s[k - 1])
         if dt <= 0:
             continue
-        for group, idx in zip(backend.groups, GROUP_SLICES, strict=True):
-            group.servo(move.q[k, idx], dt)
+        with stop.commanding(f"move set-point at {move.t_s[k]:.3f} s"):
+            for group, idx in zip(backend.groups, GROUP_SLICES, strict=True):
+                group.servo(move.q[k, idx], dt)
         clock.sleep_until(origin + move.t_s[k])
         if move.t_s[k] - checked >= INTERLOCK_POLL_S:
             _check_interlocks(backend, timeout_s)
             checked = float(move.t_s[k])
 
 
-def _settled(backend: Backend, move: JointMove, settings: ScanSettings) -> np.ndarray:
+def _settled(
+    backend: Backend, move: JointMove, settings: ScanSettings, stop: StopRequest
+) -> np.ndarray:
     """The measured joints once every one is within the start tolerance of the move's goal;
     groups that lag get ``settle_s`` after the last set-point."""
     goal, clock = move.goal_q, backend.clock
     deadline = clock.now() + settings.settle_s
     while True:
+        stop.check("the move's settling")
         q = measured_joints(backend, settings.device_timeout_s)
         error = np.abs(q - goal)
         worst = int(np.argmax(error))

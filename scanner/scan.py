@@ -13,10 +13,15 @@ on, the next view is exposed and its panel reads out; the pulse after that waits
 are in place (:data:`VIEWS_STORING_AT_A_PULSE`: at most one acquired view is not yet on disk
 when a pulse fires, and none whose storage is known to have failed). RETREAT streams
 the planned retreat; DONE assembles the stack. Any failure (a device error, a protective stop,
-an off-pose view, an open interlock, a full disk, Ctrl-C) goes to SAFE: X-ray off first, then
-every joint group stops, then what was acquired is flushed (and the space of a view not
-acquired released) and the scan marked incomplete with the reason; ``cbct scan --resume``
+an off-pose view, an open interlock, a full disk, the operator's stop) goes to SAFE: X-ray off
+first, then every joint group stops, then what was acquired is flushed (and the space of a view
+not acquired released) and the scan marked incomplete with the reason; ``cbct scan --resume``
 continues with the views not yet stored.
+
+The operator's stop (:mod:`scanner.stop`: Ctrl-C and the other stop signals) is a request that
+every set-point and every ``EXP`` is checked against right before it is sent; from APPROACH on,
+a watchdog switches the X-ray off and stops the arms itself when the loop has not reached SAFE
+within a few milliseconds of the request.
 """
 
 from __future__ import annotations
@@ -33,6 +38,7 @@ import numpy as np
 from recon.config import ScanProtocol
 from recon.geometry import DetectorSpec, View
 from scanner.hardware import Backend, DeviceError, Technique
+from scanner.stop import StopRequest
 from scanner.storage import PendingView, ScanStore, ViewRecord
 from scanner.study import Reservation, StudyError
 from trajectories.model import ScannerModel
@@ -155,6 +161,8 @@ class ScanRun:
         truth: the true view matrix of the last pulse, where a simulator knows it.
         close_backend: close the devices when the run ends (False: the caller closes them,
             e.g. after parking the arms).
+        stop: the operator's stop request (a session routes the stop signals to it:
+            :func:`scanner.stop.stop_signals`).
     """
 
     backend: Backend
@@ -168,6 +176,7 @@ class ScanRun:
     on_view: Callable[[ViewRecord, np.ndarray], None] = lambda _r, _img: None
     truth: Callable[[], np.ndarray | None] = lambda: None
     close_backend: bool = True
+    stop: StopRequest = field(default_factory=StopRequest)
     state: State = State.PREFLIGHT
     transitions: list[tuple[float, State]] = field(default_factory=list)
 
@@ -187,34 +196,43 @@ class ScanRun:
     # -- the machine --------------------------------------------------------------------
 
     def run(self) -> None:
-        """Run the scan to DONE; raises PreflightError / OperatorDeclined before anything moves,
-        ScanFault after SAFE."""
+        """Run the scan to DONE; raises PreflightError / OperatorDeclined / OperatorStop before
+        anything moves, ScanFault after SAFE."""
         self._enter(State.PREFLIGHT)
         try:
+            self.stop.check("the scan")
             summary = self.preflight()
-            if not self.confirm(f"Start motion? {summary.text()}"):
+            if not self._ask(f"Start motion? {summary.text()}"):
                 raise OperatorDeclined("operator declined motion: nothing moved, nothing exposed")
         except BaseException:
             self._shutdown()
             raise
-        try:
-            self._enter(State.APPROACH)
-            self.backend.generator.prepare(self.settings.warmup_timeout_s)
-            self._stream("approach")
-            question = f"Arms at the scan start. Expose {summary.views_to_acquire} views?"
-            if not self.confirm(question):
-                raise OperatorDeclined("operator declined exposure")
-            self._enter(State.ACQUIRE)
-            self._stream("scan", acquire=True)
-            self._enter(State.RETREAT)
-            self._stream("retreat")
-        except BaseException as err:  # Ctrl-C included: X-ray off, arms stop, data flushed
-            self._safe(err)
+        with self.stop.guarding(self._stop_devices) as guard, self.stop.deferring():
+            try:
+                self._enter(State.APPROACH)
+                self.stop.check("PREP")
+                self.backend.generator.prepare(self.settings.warmup_timeout_s)
+                self._stream("approach")
+                question = f"Arms at the scan start. Expose {summary.views_to_acquire} views?"
+                if not self._ask(question):
+                    raise OperatorDeclined("operator declined exposure")
+                self._enter(State.ACQUIRE)
+                self._stream("scan", acquire=True)
+                self._enter(State.RETREAT)
+                self._stream("retreat")
+            except BaseException as err:  # the operator's stop included: X-ray off, arms stop
+                guard.acknowledge()
+                self._safe(err)
         try:  # assembling the stacks can fail too (a full disk): the devices are released
             self.store.finish()
             self._enter(State.DONE)
         finally:
             self._shutdown()
+
+    def _ask(self, question: str) -> bool:
+        """The operator's answer; a stop signal while waiting for it ends the wait."""
+        with self.stop.interrupting():
+            return self.confirm(question)
 
     def preflight(self) -> Preflight:
         """Check plan, dose, devices and start pose; raises PreflightError naming the problem."""
@@ -303,8 +321,9 @@ class ScanRun:
         for t, q, view in events:
             dt = max(t - previous, 0.0)
             if dt > 0:
-                for group, idx in zip(self.backend.groups, GROUP_SLICES, strict=True):
-                    group.servo(q[idx], dt)
+                with self.stop.commanding(f"{phase} set-point at {t:.3f} s"):
+                    for group, idx in zip(self.backend.groups, GROUP_SLICES, strict=True):
+                        group.servo(q[idx], dt)
                 clock.sleep_until(origin + t)
             previous = t
             if view is not None and view not in self.store.stored:
@@ -341,7 +360,7 @@ class ScanRun:
         self._reserved[k].result()  # no dose for a view that cannot be stored
         self.store.check_room(k, reserved=True)  # nor on a disk filled since the reservation
         b.detector.arm(timeout)
-        exposure = b.generator.expose(timeout)
+        exposure = b.generator.expose(timeout, permit=lambda: self.stop.check(f"view {k}: EXP"))
         self._reserve_next(k)  # while the panel reads out
         self._report_stored()  # handed on while the panel reads out, not amid the requests
         frame = b.detector.read_frame(timeout)
@@ -430,6 +449,7 @@ class ScanRun:
         clock = self.backend.clock
         deadline = clock.now() + self.settings.settle_s
         while True:
+            self.stop.check(f"view {k}")
             q = self._read_q()
             realised = view_at(self.model, q, self.panel)
             off = self._pose_error(k, realised, planned)
@@ -460,17 +480,14 @@ class ScanRun:
     def _safe(self, err: BaseException) -> None:
         failed_in = self.state
         self._enter(State.SAFE)
-        problems = stop_safely(self.backend, self.settings.device_timeout_s)
-        if isinstance(err, KeyboardInterrupt):
-            reason = "interrupted by the operator (Ctrl-C)"
-        else:
-            reason = f"{type(err).__name__}: {err}"
+        problems = self._stop_devices()
+        reason = self.stop.explain(err)
         if problems:
             reason += "; " + "; ".join(problems)
         while self._storing:  # the data so far is flushed: the last views' files
             try:
                 self._finish_storing()
-            except BaseException as store_err:  # e.g. the disk is full: it was not stored
+            except Exception as store_err:  # e.g. the disk is full: it was not stored
                 reason += f"; {store_err}"
         self._release_reserved()  # views not acquired after all
         try:
@@ -484,6 +501,11 @@ class ScanRun:
         self._shutdown()
         stored, views = len(self.store.stored), len(self.plan.view_times_s)
         raise ScanFault(failed_in, reason, stored, views) from err
+
+    def _stop_devices(self) -> list[str]:
+        """X-ray off, then every joint group stops (:func:`stop_safely`): SAFE's first step,
+        also the watchdog's action on a stop the loop has not taken in hand."""
+        return stop_safely(self.backend, self.settings.device_timeout_s)
 
     def _shutdown(self) -> None:
         if not self.close_backend:

@@ -91,6 +91,7 @@ import os
 import select
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import serial
@@ -198,6 +199,9 @@ class SerialLink:
         device: the device's name in error messages.
         baudrate: bits per second.
         write_timeout_s: longest a write may block, s.
+        on_sent: called with each frame's body and the ``time.monotonic()`` taken just before
+            its last check (a request's ``gate``) and write, once it is written: an audit of
+            what was commanded when.
     """
 
     def __init__(
@@ -207,11 +211,13 @@ class SerialLink:
         device: str,
         baudrate: int = DEFAULT_BAUDRATE,
         write_timeout_s: float = 1.0,
+        on_sent: Callable[[str, float], None] | None = None,
     ) -> None:
         self.port = port
         self.device = device
         self.baudrate = baudrate
         self.write_timeout_s = write_timeout_s
+        self.on_sent = on_sent
         self._serial: serial.SerialBase | None = None
         self._buffer = bytearray()
         self._lock = threading.Lock()  # one request (write + read of its reply) at a time
@@ -244,8 +250,17 @@ class SerialLink:
             except (OSError, serial.SerialException):
                 pass
 
-    def request(self, command: str, *args: object, timeout_s: float) -> Reply:
+    def request(
+        self,
+        command: str,
+        *args: object,
+        timeout_s: float,
+        gate: Callable[[], None] | None = None,
+    ) -> Reply:
         """Send ``command args`` and return its reply (``OK`` or ``ERR``).
+
+        ``gate`` is called immediately before the frame is written, with the link held; what it
+        raises is raised and nothing is sent (e.g. the operator's stop before an ``EXP``).
 
         Raises:
             DeviceTimeout: no complete reply within ``timeout_s`` s (link lock wait included).
@@ -260,7 +275,7 @@ class SerialLink:
         try:
             self._ensure_open(body)
             self._discard_input(body)
-            self._write(encode_frame(body), body)
+            self._write(encode_frame(body), body, gate)
             return self._read_reply(command, body, deadline, timeout_s)
         finally:
             self._lock.release()
@@ -367,17 +382,24 @@ class SerialLink:
         except (OSError, serial.SerialException) as exc:
             raise self._port_error(body, exc) from exc
 
-    def _write(self, frame: bytes, body: str) -> None:
+    def _write(self, frame: bytes, body: str, gate: Callable[[], None] | None = None) -> None:
         with self._write_lock:
             port = self._serial
             if port is None:
                 raise DeviceError(f"{self.device}: {body!r}: port {self.port} is closed")
+            t_s = time.monotonic()
+            if gate is not None:
+                gate()
             try:
                 _write_all(port, frame, self.write_timeout_s)
-                return
             except (OSError, serial.SerialException) as exc:
                 failure = exc
-        raise self._port_error(body, failure) from failure
+            else:
+                failure = None
+        if failure is not None:
+            raise self._port_error(body, failure) from failure
+        if self.on_sent is not None:
+            self.on_sent(body, t_s)
 
     def _read_line(self, body: str, deadline: float, timeout_s: float) -> bytes:
         port = self._serial

@@ -11,8 +11,10 @@ stored are acquired.
 from __future__ import annotations
 
 import shutil
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Protocol
 
@@ -28,6 +30,7 @@ from scanner.move import MoveResult, move_scanner
 from scanner.scan import Progress as ScanProgress
 from scanner.scan import ScanFault, ScanRun, ScanSettings
 from scanner.scan_recording import ScanRecorder
+from scanner.stop import StopRequest, stop_signals
 from scanner.storage import ScanStore, ViewRecord
 from scanner.study import Study, StudyError
 from sim.backend import volume_subject
@@ -220,6 +223,7 @@ def scan_stage(
     sink: ViewSink | None = None,
     move_to_start: bool = False,
     park: bool = False,
+    stop: StopRequest | None = None,
 ) -> None:
     """Scan ``stage`` (``scan`` or ``calibration_scan``) of an open study: with new
     ``inputs`` (recorded as the stage's config snapshot), or, when ``inputs`` is None,
@@ -230,7 +234,11 @@ def scan_stage(
     (:func:`scanner.move.move_scanner`, confirmed through ``confirm``). ``park``: once the scan
     is done, or once a fault has reached SAFE, move it to park the same way; a park that is
     refused or fails is said and recorded in ``study.json`` (``moves``), and the scan's own
-    outcome stands."""
+    outcome stands; after the operator's stop nothing is parked.
+
+    While the devices are open the stop signals (Ctrl-C, SIGTERM, SIGHUP, SIGQUIT) set
+    ``stop`` (a new request when None; :func:`scanner.stop.stop_signals`). Every command sent
+    to the generator is logged with its time to ``<scan folder>/generator_commands-N.csv``."""
     if study.stage(stage).get("status") == "complete":
         raise StudyError(f"{study.path}: {stage} is complete; nothing to resume")
     configs = study.manifest["config"]
@@ -257,6 +265,7 @@ def scan_stage(
     store = ScanStore(study, panel, plan.joint_names, len(plan.view_times_s), plan.achieved, stage)
     if store.stored:
         say(f"{len(store.stored)} views already stored and verified")
+    commands: list[tuple[float, str]] = []  # the generator's command log of this session
     backend, simulated = open_backend(
         inputs.backend,
         model,
@@ -264,6 +273,7 @@ def scan_stage(
         panel,
         inputs.protocol.orbit.sdd_mm,
         subject(inputs, say),
+        on_generator_sent=lambda body, t_s: commands.append((t_s, body)),
     )
     truth = (lambda: simulated.detector.true_views[-1].matrix) if simulated else (lambda: None)
     recorder = ScanRecorder(study, plan.joint_names, panel.pixel_pitch_mm, stage)
@@ -276,6 +286,7 @@ def scan_stage(
             sink.view(record, image)
 
     settings = settings or ScanSettings()
+    stop = stop or StopRequest()
     run = ScanRun(
         backend=backend,
         model=model,
@@ -288,45 +299,72 @@ def scan_stage(
         on_view=on_view,
         truth=truth,
         close_backend=False,
+        stop=stop,
     )
     sessions = study.manifest.setdefault("sessions", [])
     sessions.append({"stage": stage, "backend": inputs.backend.model_dump(mode="json")})
     study.save()
 
+    def move(goal: np.ndarray, target: str) -> None:
+        move_recorded(study, backend, model, goal, target, settings, confirm, say, stop)
+
     def park_after_scan() -> None:
+        if stop.is_set:  # the operator's stop holds: nothing moves again by itself
+            say(f"PARK NOT DONE: stopped by {stop.reason}; park with: cbct move --to park")
+            return
         try:
-            move_recorded(study, backend, model, park_pose(model), "park", settings, confirm, say)
+            move(park_pose(model), "park")
         except (ValueError, RuntimeError) as err:  # the scan's outcome stands
             say(f"PARK NOT DONE: {err}")
 
     def finish_records() -> None:
         recorder.close()
+        _write_generator_commands(study, store.folder, commands, len(sessions))
         if simulated is not None:
             _write_device_events(study, store.folder, simulated.world.events, len(sessions))
 
-    try:
-        if move_to_start:
-            move_recorded(
-                study, backend, model, plan.q[0], "the plan's start", settings, confirm, say
-            )
-        say(f"{stage}: acquiring on the {inputs.backend_kind} backend")
+    with stop_signals(stop):
         try:
-            run.run()
-        except ScanFault:  # SAFE reached: X-ray off, arms stopped, the views so far kept
+            if move_to_start:
+                move(plan.q[0], "the plan's start")
+            say(f"{stage}: acquiring on the {inputs.backend_kind} backend")
+            try:
+                run.run()
+            except ScanFault:  # SAFE reached: X-ray off, arms stopped, the views so far kept
+                if park:
+                    park_after_scan()
+                raise
             if park:
                 park_after_scan()
+        except BaseException:
+            _close(backend)
+            try:  # the scan's own failure is the one to report (e.g. a full disk fails both)
+                finish_records()
+            except Exception as err:
+                say(f"the recording and device logs of this session were not finished: {err}")
             raise
-        if park:
-            park_after_scan()
-    except BaseException:
         _close(backend)
-        try:  # the scan's own failure is the one to report (e.g. a full disk fails both)
-            finish_records()
-        except Exception as err:
-            say(f"the recording and device log of this session were not finished: {err}")
-        raise
-    _close(backend)
-    finish_records()
+        finish_records()
+
+
+def _write_generator_commands(
+    study: Study, folder: str, commands: list[tuple[float, str]], session: int
+) -> None:
+    """Every command this session sent to the X-ray generator, in order, with the time it was
+    sent (``monotonic_s``: the host's ``time.monotonic()``, one clock for every process on the
+    host; ``utc``): ``<scan folder>/generator_commands-<session>.csv``."""
+    to_utc = time.time() - time.monotonic()
+    lines = ["monotonic_s,utc,command"] + [
+        f"{t:.6f},{datetime.fromtimestamp(t + to_utc, UTC).isoformat(timespec='microseconds')},"
+        f"{body}"
+        for t, body in commands
+    ]
+    text = "\n".join(lines) + "\n"
+    study.write(
+        f"{folder}/generator_commands-{session}.csv",
+        lambda p: p.write_text(text, encoding="utf-8"),
+    )
+    study.save()
 
 
 def _write_device_events(study: Study, folder: str, events: list, session: int) -> None:
@@ -351,13 +389,14 @@ def move_recorded(
     settings: ScanSettings,
     confirm: Callable[[str], bool],
     say: Say,
+    stop: StopRequest | None = None,
 ) -> MoveResult:
     """:func:`scanner.move.move_scanner`, its outcome appended to ``study.json``'s ``moves``
     (target, status, the move's summary, the joints reached) whatever it is."""
     entry: dict = {"target": target, "backend": backend.name}
     try:
         result = move_scanner(
-            backend, model, goal, target, settings=settings, confirm=confirm, say=say
+            backend, model, goal, target, settings=settings, confirm=confirm, say=say, stop=stop
         )
     except BaseException as err:
         entry.update(status="failed", reason=f"{type(err).__name__}: {err}")
@@ -411,12 +450,14 @@ def move_session(
     backend, _ = open_backend(
         inputs.backend, model, goal, panel, inputs.protocol.orbit.sdd_mm, _no_exposure
     )
-    try:
-        return move_recorded(
-            study, backend, model, goal, target, settings or ScanSettings(), confirm, say
-        )
-    finally:
-        _close(backend)
+    stop = StopRequest()
+    with stop_signals(stop):
+        try:
+            return move_recorded(
+                study, backend, model, goal, target, settings or ScanSettings(), confirm, say, stop
+            )
+        finally:
+            _close(backend)
 
 
 def _no_exposure(view: View) -> np.ndarray:

@@ -10,7 +10,8 @@ were pulled, and the call raises :class:`~scanner.hardware.DeviceTimeout`; the c
 closed and every later call raises :class:`~scanner.hardware.DeviceError`.
 
 A round trip costs tens of microseconds, so calls that belong together go in one request
-(:meth:`URClient.calls`).
+(:meth:`URClient.calls`). Calls from several threads (the watchdog's stop while the exposure
+loop streams) take turns: one request and its answer at a time.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import contextlib
 import os
 import subprocess
 import sys
+import threading
 import time
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -46,6 +48,7 @@ class URClient:
         self._requests: Connection | None = None
         self._answers: Connection | None = None
         self._owed = 0  # answers not yet read: the worker answers every request, in order
+        self._turn = threading.RLock()  # one request and its answer at a time
 
     @property
     def alive(self) -> bool:
@@ -108,13 +111,20 @@ class URClient:
     def close(self, timeout_s: float) -> None:
         """Drop the interfaces (ur-rtde disconnects) and end the worker, killed when it does
         not finish within ``timeout_s``; safe to call twice."""
-        if not self.alive:
-            return
-        with contextlib.suppress(DeviceError):
-            self._ask(("close",), timeout_s, "close")
-        self._end(timeout_s)
+        with self._turn:
+            if not self.alive:
+                return
+            with contextlib.suppress(DeviceError):
+                self._ask(("close",), timeout_s, "close")
+            self._end(timeout_s)
 
     def _ask(self, request: tuple, timeout_s: float, what: str) -> tuple:
+        with self._turn:
+            if self._requests is None or self._answers is None:  # ended by another thread
+                raise DeviceError(f"{self.label}: {what}: not connected to {self.host}")
+            return self._ask_now(request, timeout_s, what)
+
+    def _ask_now(self, request: tuple, timeout_s: float, what: str) -> tuple:
         assert self._requests is not None and self._answers is not None
         t0 = time.monotonic()
         try:

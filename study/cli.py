@@ -286,6 +286,9 @@ def scan(
     except (ValueError, OSError, RuntimeError) as err:
         live.close()
         fail(str(err))
+    except KeyboardInterrupt as err:  # a stop signal before anything moved, or after the scan
+        live.close()
+        fail(f"{err or 'interrupted'}; continue with: cbct scan --resume --study {study}")
     try:
         recon_stage(
             done,
@@ -344,6 +347,8 @@ def move(
         )
     except (ValueError, OSError, RuntimeError) as err:
         fail(str(err))
+    except KeyboardInterrupt as err:  # a stop signal before anything moved
+        fail(f"{err or 'interrupted'}: nothing moved")
     how = (
         f" after {result.move.duration_s:.1f} s ({result.move.route} route)"
         if result.move

@@ -57,6 +57,13 @@ def inputs(tmp: Path, **faults):
     )
 
 
+def exp_commands(study: Path, session: int) -> list[float]:
+    """When each EXP of a session was sent (its generator command log), monotonic s."""
+    with open(study / "scan" / f"generator_commands-{session}.csv", encoding="utf-8") as fh:
+        rows = list(csv.DictReader(fh))
+    return [float(row["monotonic_s"]) for row in rows if row["command"] == "EXP"]
+
+
 def device_events(study: Path, session: int) -> list[tuple[int, str, str]]:
     with open(study / "scan" / f"device_events-{session}.csv", encoding="utf-8") as fh:
         return [(int(r["sequence"]), r["device"], r["event"]) for r in csv.DictReader(fh)]
@@ -252,7 +259,7 @@ def test_at_a_pulse_only_the_view_before_may_not_be_on_disk_yet(tmp_path, monkey
     expose = SerialGenerator.expose
     pulses, not_yet = [], 0
 
-    def checked_expose(self, timeout_s):
+    def checked_expose(self, timeout_s, permit=None):
         nonlocal not_yet
         n = len(pulses)
         views = tmp_path / "study" / "scan" / "views"
@@ -267,7 +274,7 @@ def test_at_a_pulse_only_the_view_before_may_not_be_on_disk_yet(tmp_path, monkey
         suffixes = ("_counts.tmp.mha", ".tmp.json", ".tmp.mha")
         assert reserved == sorted(f".view_{n:04d}{suffix}" for suffix in suffixes)
         pulses.append(n)
-        return expose(self, timeout_s)
+        return expose(self, timeout_s, permit)
 
     monkeypatch.setattr(SerialGenerator, "expose", checked_expose)
     run_session(tmp_path / "study", inputs(tmp_path))
@@ -282,26 +289,18 @@ def test_a_view_whose_disk_space_cannot_be_reserved_is_not_exposed(tmp_path, mon
     """The disk fills (another program) after view 5's room check: allocating its files'
     space fails, SAFE before its pulse, views 0-4 stored, no file of view 5 left behind.
     Before the reservation, the pulse fired and the view then failed to store."""
-    from scanner.generator import SerialGenerator
-
-    fallocate, expose = os.posix_fallocate, SerialGenerator.expose
-    pulses = []
+    fallocate = os.posix_fallocate
 
     def full_at_view_5(fd: int, offset: int, length: int) -> None:
         if os.readlink(f"/proc/self/fd/{fd}").endswith(".view_0005_counts.tmp.mha"):
             raise OSError(28, "No space left on device")
         fallocate(fd, offset, length)
 
-    def counted(self, timeout_s):
-        pulses.append(1)
-        return expose(self, timeout_s)
-
     monkeypatch.setattr(os, "posix_fallocate", full_at_view_5)
-    monkeypatch.setattr(SerialGenerator, "expose", counted)
     with pytest.raises(ScanFault, match=r"view 5: cannot reserve .* not exposing") as fault:
         run_session(tmp_path / "study", inputs(tmp_path))
     assert fault.value.views_stored == 5
-    assert len(pulses) == 5  # none for view 5
+    assert len(exp_commands(tmp_path / "study", 1)) == 5  # none for view 5
     views = tmp_path / "study" / "scan" / "views"
     assert sorted(p.name for p in views.iterdir() if "0005" in p.name) == []
     assert Study.open(tmp_path / "study").verify() == []
@@ -312,25 +311,18 @@ def test_a_view_that_cannot_be_stored_stops_the_scan_by_the_pulse_after_next(tmp
     before view 7's pulse at the latest (before view 6's when the failure is known by then),
     views 0-4 stored and view 6 if it was exposed, nothing of view 5 left behind."""
     import scanner.study
-    from scanner.generator import SerialGenerator
 
     write_synced = scanner.study._write_synced
-    expose = SerialGenerator.expose
-    pulses = []
 
     def failing(path, parts):
         if path.name == ".view_0005.tmp.json":
             raise OSError(28, "No space left on device")
         return write_synced(path, parts)
 
-    def counted(self, timeout_s):
-        pulses.append(1)
-        return expose(self, timeout_s)
-
     monkeypatch.setattr(scanner.study, "_write_synced", failing)
-    monkeypatch.setattr(SerialGenerator, "expose", counted)
     with pytest.raises(ScanFault, match="No space left") as fault:
         run_session(tmp_path / "study", inputs(tmp_path))
+    pulses = exp_commands(tmp_path / "study", 1)
     assert len(pulses) in (6, 7)  # views 0-5, and 6 when 5's failure was not known yet
     assert fault.value.views_stored == len(pulses) - 1
     study = Study.open(tmp_path / "study")
