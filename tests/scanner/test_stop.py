@@ -75,7 +75,7 @@ def test_the_watchdog_acts_while_the_main_thread_is_stuck_in_a_call():
             stuck.acquire(timeout=0.5)  # never released: the whole 0.5 s
             t1 = time.monotonic()
     assert len(ran) == 1, ran
-    (t_action, thread), = ran
+    ((t_action, thread),) = ran
     assert thread == "stop-watchdog"
     assert GRACE_S <= t_action - t0 < 0.1 and t_action < t1 - 0.3
 
