@@ -4,6 +4,10 @@ SAFE's order on a fault while moving; park after a fault's SAFE; ``cbct move``."
 
 from __future__ import annotations
 
+import os
+import signal
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +22,7 @@ from scanner.cli import CONFIGS
 from scanner.move import MoveFault, move_scanner
 from scanner.scan import OperatorDeclined, PreflightError, ScanFault, ScanRun, ScanSettings
 from scanner.session import read_inputs, run_session
+from scanner.stop import StopRequest, stop_signals
 from scanner.storage import ScanStore
 from scanner.study import Study
 from sim.backend import SimBackendSpec, SimFaults, SimStartPose
@@ -25,7 +30,7 @@ from study.cli import app
 from tests.trajectories.conftest import random_rest_pose
 from trajectories.config import ScannerConfig
 from trajectories.model import ScannerModel
-from trajectories.move import park_pose
+from trajectories.move import park_pose, plan_move
 from trajectories.plan import Plan, plan_scan
 
 TOLERANCE = ScanSettings().start_tolerance
@@ -160,6 +165,40 @@ def test_a_fault_while_moving_turns_the_xray_off_then_stops_every_group(scanner)
     stops = {who: seq for seq, who, what in events if what == "stop"}
     assert set(stops) >= {"stage", "source_arm", "detector_arm"}
     assert abort < min(stops.values())
+
+
+def test_a_stop_signal_while_moving_stops_every_group_and_streams_nothing_more(scanner):
+    """SIGTERM sent to this process a fifth of the way through a move: MoveFault naming it,
+    ABORT then every group stopped, and no set-point after the request (the virtual clock, which
+    only the stream advances, stands still from the stops on)."""
+    model, _, plan = scanner
+    pose = random_rest_pose(model, np.random.default_rng(8))
+    backend, simulated = sim_at(scanner, pose)
+    world = simulated.world
+    stop = StopRequest()
+    goal = plan.q[0]
+
+    def signal_on_the_way() -> None:
+        while world.t < 0.2 * duration:
+            time.sleep(0.0002)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    duration = plan_move(model, pose, goal, "start").duration_s
+    watcher = threading.Thread(target=signal_on_the_way)
+    try:
+        with stop_signals(stop):
+            watcher.start()
+            with pytest.raises(MoveFault, match=r"stopped by SIGTERM.*\(X-ray off, arms stopped"):
+                move_scanner(backend, model, goal, "the plan's start", stop=stop)
+    finally:
+        watcher.join()
+        backend.close()
+    events = [(seq, t, who, what) for seq, t, who, what in world.events]
+    abort = min(seq for seq, _, who, what in events if who == "generator" and what == "abort")
+    stops = [(seq, t) for seq, t, _, what in events if what == "stop" and seq > abort]
+    assert len(stops) >= 3 and max(t for _, t in stops) < 0.5 * duration
+    assert world.t == max(t for _, t in stops)  # nothing streamed after the stop
+    assert np.abs(world.filtered - goal).max() > 10 * TOLERANCE  # stopped short of the goal
 
 
 def session_inputs(tmp: Path, pose: np.ndarray, **faults):
