@@ -34,6 +34,8 @@ Measured (printed as one JSON object):
 - ``exp_after_stop``: ``EXP`` commands sent after a stop signal, whether or not the generator
   fired (after its ABORT it refuses); ``pulses_in_flight_at_stop``: pulses whose ``EXP`` went
   out before the signal and whose X-ray came on after it (not counted above);
+  ``max_kill_call_ms``: the longest ``os.kill`` call, from the time before it (time to SAFE
+  runs from there) to its return (commands are judged against that);
 - ``max_time_to_safe_ms``: from a fault to X-ray off (the generator's ABORT) and every joint
   group stopped (a protective stop stops its arm; a silent controller cannot be stopped and is
   left out), over the faults the software is told of at once; faults found by a deadline
