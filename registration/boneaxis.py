@@ -266,7 +266,10 @@ class _Objective:
         if excluded is not None:
             mask &= ~excluded
             if mask.sum() < MIN_SILHOUETTE_PX:
-                raise OutOfView(f"bone {bone.name} lies where the static scan's box cuts it")
+                raise OutOfView(
+                    f"bone {bone.name} lies where the frame tells nothing: the static scan's "
+                    "box cuts it, or it is outside the exposed field"
+                )
         rows, cols = np.nonzero(mask)
         margin = math.ceil(3 * sigma_px)
         r0, r1 = max(0, rows.min() - margin), min(view.rows, rows.max() + margin + 1)
@@ -331,6 +334,26 @@ def _unit(values: np.ndarray) -> np.ndarray:
     centred = values.astype(np.float64) - values.mean(dtype=np.float64)
     norm = np.linalg.norm(centred)
     return centred / norm if norm > 0 else centred
+
+
+def _either(a: np.ndarray | None, b: np.ndarray | None) -> np.ndarray | None:
+    """The union of two optional pixel masks."""
+    if a is None or b is None:
+        return b if a is None else a
+    return a | b
+
+
+def _extend_into(image: np.ndarray, field: np.ndarray, sigma_px: float) -> np.ndarray:
+    """``image`` with the pixels outside ``field`` replaced by a smooth extension of those
+    inside (normalised convolution: Gaussian-weighted means of the field's pixels, sigma
+    ``2 sigma_px``; the field's mean where none is near)."""
+    weight = field.astype(np.float32)
+    sigma = 2.0 * sigma_px
+    num = gaussian_filter(np.where(field, image, 0.0).astype(np.float32), sigma, mode="nearest")
+    den = gaussian_filter(weight, sigma, mode="nearest")
+    fill = np.full_like(num, float(image[field].mean()))
+    np.divide(num, den, out=fill, where=den > 1e-3)
+    return np.where(field, image, fill).astype(np.float32)
 
 
 def _row_spans(mask: np.ndarray, margin_px: int) -> np.ndarray:
@@ -442,6 +465,10 @@ class Tracker:
         settings: registration settings.
         soft_tissue: the soft tissue, deformed by the femur and the tibia
             (registration.drr.SoftTissue); None leaves it out.
+        field: bool (rows, cols), the pixels the beam reaches (an image intensifier's round
+            field, a collimator's shutters: registration.frames.Frames.field); the rest, and
+            the band where the high-pass filter sees the field's edge, is left out of the
+            similarity. None: every pixel.
     """
 
     def __init__(
@@ -451,9 +478,15 @@ class Tracker:
         bones: dict[str, BoneModel],
         settings: Settings | None = None,
         soft_tissue: SoftTissue | None = None,
+        field: np.ndarray | None = None,
     ) -> None:
         self.view = view
         self.frames = np.asarray(frames, dtype=np.float32)
+        if field is not None and np.shape(field) != self.frames.shape[1:]:
+            raise ValueError(
+                f"field of {np.shape(field)} pixels for frames of {self.frames.shape[1:]}"
+            )
+        self.field = None if field is None or np.all(field) else np.asarray(field, dtype=bool)
         self.bones = bones
         self.soft_tissue = soft_tissue
         self._knees: dict[int, tuple[np.ndarray, np.ndarray]] = {}
@@ -485,6 +518,8 @@ class Tracker:
         """Per bone: its rotation when its blur was estimated (the static scan's, identity,
         for a blur given in the settings). The blur is the CBCT's, so it turns with the bone."""
         self._last_ncc: dict[str, float] = {}
+        self._outside: dict[int, np.ndarray] = {}
+        """Per pyramid level: the pixels outside the exposed field (:meth:`_outside_field`)."""
 
     def _sigma_px(self, level: int) -> float:
         return self.settings.highpass_mm / self._views[level].pitch_u_mm
@@ -508,6 +543,8 @@ class Tracker:
             blurred = key[:1] + key[2:]
             if blurred not in self._blurred:  # shared by the levels
                 image = self.frames[frame]
+                if self.field is not None:  # no step at the field's edge for the filters
+                    image = _extend_into(image, self.field, self._sigma_px(1))
                 sigma_px = (blur_mm[0] / self.view.pitch_u_mm, blur_mm[1] / self.view.pitch_v_mm)
                 if turn_deg:
                     image = turned_gaussian(image, sigma_px, math.radians(turn_deg))
@@ -568,8 +605,21 @@ class Tracker:
             self._coarse(level, name),
             None if lone else self._prior(name, poses),
             reach,
-            self._truncation(level, name, poses, reach),
+            _either(self._truncation(level, name, poses, reach), self._outside_field(level)),
         )
+
+    def _outside_field(self, level: int) -> np.ndarray | None:
+        """The pixels of ``level``'s view outside the exposed field, or within two high-pass
+        sigmas of it (where the filtered frame still sees the field's edge); None: no field."""
+        if self.field is None:
+            return None
+        if level not in self._outside:
+            rows, cols = self._views[level].rows, self._views[level].cols
+            outside = ~self.field[: rows * level, : cols * level]
+            outside = outside.reshape(rows, level, cols, level).any(axis=(1, 3))
+            band = math.ceil(2 * self._sigma_px(level))
+            self._outside[level] = binary_dilation(outside, iterations=band)
+        return self._outside[level]
 
     def _truncation(
         self, level: int, name: str, poses: dict[str, np.ndarray], reach: tuple[np.ndarray, ...]

@@ -16,7 +16,11 @@ the one place where DICOM pixels become registration frames:
   displayed with attenuation bright and approximately log-encoded;
 - the stand-in equals the line integral up to scale and offset, which the registration's
   similarity (NCC) ignores; each sequence is normalised to 0..1 by its 0.5 and 99.5
-  percentiles;
+  percentiles within the exposed field;
+- the exposed field: an image intensifier's round field or a collimator's shutters leave
+  pixels that no beam reaches, at the no-signal value (the stand-in's highest attenuation) in
+  every frame; those connected to the image's border are outside the field (``Frames.field``),
+  which the registration leaves out (a dark implant inside the field is never taken for it);
 - pixel spacing from Imager Pixel Spacing (0018,1164), else Pixel Spacing (0028,0030), else
   the caller's ``pixel_pitch_mm`` (a clear error when neither exists);
 - frame times from Frame Time (0018,1063) or the Frame Time Vector (0018,1065), in seconds;
@@ -32,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 import SimpleITK as sitk
+from scipy.ndimage import label
 
 from recon.dicom import open_dicom, series_files
 from recon.io import ImageFileError, read_projections
@@ -49,6 +54,7 @@ class Frames:
         photometric: "line integrals", "MONOCHROME1" or "MONOCHROME2".
         stand_in: how the values became the line integral's stand-in, e.g.
             "-ln(value) (LIN, sign +1)" or "max - value (MONOCHROME1)".
+        field: bool (rows, cols), the pixels the beam reaches; None: all of them.
     """
 
     data: np.ndarray
@@ -56,6 +62,7 @@ class Frames:
     times_s: np.ndarray | None
     photometric: str
     stand_in: str = "line integrals"
+    field: np.ndarray | None = None
 
     @property
     def pixel_pitch_mm(self) -> tuple[float, float]:
@@ -131,13 +138,30 @@ def read_frames(path: str | Path, pixel_pitch_mm: float | None = None) -> Frames
                 "0028,0030); give the panel's pixel pitch explicitly"
             )
         spacing = (float(pixel_pitch_mm), float(pixel_pitch_mm))
-    low, high = np.percentile(data, (0.5, 99.5))
+    field = exposed_field(data)
+    inside = data if field is None else data[:, field]
+    low, high = np.percentile(inside, (0.5, 99.5))
     normalised = ((data - low) / max(high - low, 1e-12)).astype(np.float32)
     times_s = np.array(times) if len(times) == len(data) and None not in times else None
     if not (np.isfinite(normalised).all() and (times_s is None or np.isfinite(times_s).all())):
         raise ValueError(f"{path}: pixel values or frame times overflow (beyond float range)")
     header = PanelHeader.centered(data.shape[1], data.shape[2], *spacing, source=str(path))
-    return Frames(normalised, header, times_s, photometric, stand_in)
+    return Frames(normalised, header, times_s, photometric, stand_in, field)
+
+
+def exposed_field(attenuation: np.ndarray) -> np.ndarray | None:
+    """The pixels the beam reaches in a sequence (F, rows, cols) of line integrals or their
+    stand-in: all but those at the sequence's highest value in every frame (no signal) that
+    connect to the image's border. None when that leaves every pixel."""
+    dark = np.all(attenuation == attenuation.max(), axis=0)
+    if not dark.any():
+        return None
+    labels, _ = label(dark)
+    edges = np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]])
+    outside = np.isin(labels, np.unique(edges[edges > 0]))
+    if not outside.any() or outside.all():
+        return None
+    return ~outside
 
 
 def _stand_in(

@@ -108,12 +108,17 @@ def register_files(
     frames = read_frames(frames_path, pixel_pitch_mm)
     view = fluoroscopy_view(geometry_path, frames)
     if distortion is not None:
-        frames = replace(frames, data=distortion.undistort(frames.data, view.pitch_u_mm))
+        field = frames.field
+        if field is not None:  # pixels the dewarped field fully covers
+            field = distortion.undistort(field.astype(np.float32), view.pitch_u_mm) > 0.99
+        data = distortion.undistort(frames.data, view.pitch_u_mm)
+        frames = replace(frames, data=data, field=field)
     truth = None if truth_path is None else _truth(truth_path, len(frames.data))
     start = _initial(initial_path)
     models = bone_models(volume, labels)
     _check_in_view(view, models, start, f"{frames.header.source} with {geometry_path}")
-    tracker = Tracker(view, frames.data, models, settings, SoftTissue.of(volume, labels))
+    soft = SoftTissue.of(volume, labels)
+    tracker = Tracker(view, frames.data, models, settings, soft, frames.field)
     results = tracker.track(start, progress=progress)
     _write(out, results, models, view, tracker, truth, distortion, source, frames)
     return results

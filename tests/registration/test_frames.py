@@ -9,7 +9,7 @@ import pytest
 import SimpleITK as sitk
 
 from recon.io import write_projections
-from registration.frames import read_frames
+from registration.frames import exposed_field, read_frames
 
 data_store = pytest.importorskip("data_store", reason="pydicom-data (dev extra) ships RG3_UNCR")
 
@@ -126,3 +126,19 @@ def test_a_sign_dicom_does_not_allow_is_refused_with_its_tag(tmp_path) -> None:
     stored = np.full((2, 8, 8), 100, np.uint16)
     with pytest.raises(ValueError, match=r"\(0028,1041\) is '2'"):
         read_frames(_xa_multiframe(tmp_path / "xa.dcm", stored, "LIN", "2"))
+
+
+def test_the_exposed_field_leaves_out_the_dark_round_border_but_not_a_dark_implant() -> None:
+    """An image intensifier's round field (nothing outside it in any frame) and, inside it, a
+    metal part as dark as no signal in every frame: only the border's dark region is outside."""
+    rng = np.random.default_rng(1)
+    n = 64
+    intensity = rng.uniform(200.0, 4000.0, size=(3, n, n))
+    v, u = np.mgrid[:n, :n] - (n - 1) / 2.0
+    round_field = np.hypot(u, v) <= 0.45 * n
+    intensity[:, ~round_field] = 0.0
+    intensity[:, 28:36, 28:36] = 0.0  # the implant: no signal through it either
+    attenuation = -np.log(np.maximum(intensity, 1.0))
+    field = exposed_field(attenuation)
+    np.testing.assert_array_equal(field, round_field)
+    assert exposed_field(attenuation[:, 14:-14, 14:-14]) is None  # a crop inside the field
