@@ -1,6 +1,11 @@
-"""Shared fixtures: small analytic phantoms that build in milliseconds."""
+"""Shared fixtures: small analytic phantoms that build in milliseconds; the machine the suite
+runs on, in its header (CPU, cores, numba's and BLAS's threads and code paths), so that a
+failure on another machine can be read."""
 
 from __future__ import annotations
+
+import os
+import platform
 
 import numpy as np
 import pytest
@@ -59,3 +64,88 @@ def make_ball():
 @pytest.fixture(scope="session")
 def make_cylinder():
     return cylinder
+
+
+def pytest_report_header(config) -> list[str]:
+    """The CPU, and the threads and code paths the numerical libraries chose on it."""
+    import llvmlite.binding
+    import numba
+    import threadpoolctl
+
+    model = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as fh:
+            model = next(line for line in fh if line.startswith("model name")).split(":")[1]
+    except (OSError, StopIteration):
+        pass
+    blas = ", ".join(
+        f"{lib['internal_api']} {lib['version']} {lib.get('architecture', '')} "
+        f"{lib['num_threads']} threads"
+        for lib in threadpoolctl.threadpool_info()
+        if lib["user_api"] == "blas"
+    )
+    cpu_name = numba.config.CPU_NAME or llvmlite.binding.get_host_cpu_name()
+    return [
+        f"machine: {model.strip()}, {os.cpu_count()} cores, {platform.machine()}",
+        f"numba: {numba.config.NUMBA_NUM_THREADS} threads, code for {cpu_name}; BLAS: {blas}",
+    ]
+
+
+def pytest_addoption(parser) -> None:
+    parser.addoption(
+        "--seed",
+        type=int,
+        default=0,
+        help="seed of the accuracy tests' random cases (noise, motion, starting poses); their "
+        "spread over seeds, threads and CPUs is measured by scripts/test_spread.py",
+    )
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    """Tests that check an accuracy figure (they use ``measured``) are marked ``accuracy``."""
+    for item in items:
+        if "measured" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.accuracy)
+
+
+@pytest.fixture(scope="session")
+def seed(request) -> int:
+    """The seed of the random test cases (``--seed``, 0 by default)."""
+    return request.config.getoption("--seed")
+
+
+@pytest.fixture
+def measured(request, seed):
+    """Check an accuracy figure against its bound, and record it (to the JSON-lines file
+    ``CBCT_TEST_FIGURES`` names, when set) for scripts/test_spread.py.
+
+    ``measured(name, value, below=None, above=None)``: fails unless ``value < below`` and
+    ``value > above`` (whichever are given)."""
+    path = os.environ.get("CBCT_TEST_FIGURES")
+
+    def check(name: str, value: float, *, below: float | None = None, above: float | None = None):
+        value = float(value)
+        if path:
+            import json
+
+            import numba
+
+            row = {
+                "test": request.node.nodeid,
+                "figure": name,
+                "value": value,
+                "below": below,
+                "above": above,
+                "seed": seed,
+                "numba_threads": numba.config.NUMBA_NUM_THREADS,
+                "cpu": numba.config.CPU_NAME or "host",
+                "blas": os.environ.get("OPENBLAS_CORETYPE", "auto"),
+            }
+            with open(path, "a", encoding="utf-8") as fh:
+                fh.write(json.dumps(row) + "\n")
+        if below is not None:
+            assert value < below, f"{name} = {value:.6g}, not below {below:g}"
+        if above is not None:
+            assert value > above, f"{name} = {value:.6g}, not above {above:g}"
+
+    return check
