@@ -528,6 +528,9 @@ def demo(
     resume: Annotated[
         bool, typer.Option("--resume", help="continue OUT: redo only the incomplete stages")
     ] = False,
+    seed: Annotated[
+        int, typer.Option(help="draws the simulated noise (arms, panels, fluoroscopy)")
+    ] = 0,
 ) -> None:
     """Run the main job on the simulated scanner, into one study folder: plan, calibrate,
     scan, reconstruct, segment, simulate fluoroscopy, track the bones, assess, record."""
@@ -538,6 +541,7 @@ def demo(
                 CONFIGS,
                 quick=quick,
                 resume=resume,
+                seed=seed,
                 status=lambda msg: console.print(f"  {msg}", highlight=False),
                 bars=lambda description, unit: views_done(bar, description, unit),
             )

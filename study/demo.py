@@ -263,23 +263,28 @@ def run(
     *,
     quick: bool = False,
     resume: bool = False,
+    seed: int = 0,
     status: Status | None = None,
     bars: Bars | None = None,
 ) -> str:
     """Run the demo into the new folder ``out`` (or continue it); returns the summary.
-    ``status`` takes a line per stage, ``bars(description, unit)`` a progress callback per
-    long step (views scanned and fitted, views reconstructed, frames registered)."""
+    ``seed`` draws the arms' tracking noise, the panels' quantum noise and the fluoroscopy's
+    (:func:`acquire`). ``status`` takes a line per stage, ``bars(description, unit)`` a progress
+    callback per long step (views scanned and fitted, views reconstructed, frames registered)."""
     say = status or (lambda _msg: None)
     size = QUICK if quick else FULL
     settings = load_config(configs / "registration.yaml", Settings)
     if resume:
         study = Study.open(out)
-        if study.manifest["config"].get("demo", {}).get("size") != size:
+        made = study.manifest["config"].get("demo", {})
+        if made.get("size") != size:
             raise StudyError(f"{out} was made with other demo settings (--quick differs)")
+        seed = made.get("seed", 0)
     else:
-        study = Study.create(out, {"demo": {"size": size, "varus_deg": VARUS_DEG}})
+        demo = {"size": size, "varus_deg": VARUS_DEG, "seed": seed}
+        study = Study.create(out, {"demo": demo})
     started = time.perf_counter()
-    acquire(study, configs, size, say=say, bars=bars)
+    acquire(study, configs, size, seed=seed, say=say, bars=bars)
 
     def stage(k: int, name: str, title: str) -> Say:
         say(f"stage {k}/{len(STAGES)} {name}: {title}")
