@@ -24,6 +24,7 @@ behaviour.
 from __future__ import annotations
 
 import contextlib
+import logging
 import select
 import signal
 import socket
@@ -31,6 +32,8 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
+
+log = logging.getLogger(__name__)
 
 STOP_SIGNALS: dict[signal.Signals, str] = {
     signal.SIGINT: "SIGINT (Ctrl-C)",
@@ -205,29 +208,26 @@ class StopRequest:
 
 
 class _Guard:
-    """An action the watchdog runs on a stop the loop has not acknowledged."""
+    """An action the watchdog runs, once, on a stop the loop has not acknowledged."""
 
     def __init__(self, action: Callable[[], None], grace_s: float) -> None:
         self.action, self.grace_s = action, grace_s
         self.acknowledged = threading.Event()
-        self.ran = threading.Event()
-        self.error: BaseException | None = None
-        self._once = threading.Lock()
+        self.ran = False
 
     def acknowledge(self) -> None:
         """The loop has the stop in hand: the watchdog leaves it alone."""
         self.acknowledged.set()
 
     def run(self) -> None:
-        with self._once:
-            if self.ran.is_set():
-                return
-            try:
-                self.action()
-            except Exception as err:  # reported by the loop's SAFE, which stops again
-                self.error = err
-            finally:
-                self.ran.set()
+        """Run the action (on the watchdog thread only) unless it ran already."""
+        if self.ran:
+            return
+        self.ran = True
+        try:
+            self.action()
+        except Exception:  # the loop's SAFE stops the devices again and reports what fails
+            log.exception("the stop watchdog's action failed")
 
 
 @contextlib.contextmanager
