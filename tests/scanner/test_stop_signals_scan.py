@@ -172,7 +172,7 @@ def test_a_stop_signal_while_a_ur_call_waits_on_its_worker(tmp_path):
     """The source arm's controller is frozen (SIGSTOP) for 40 ms: the exposure loop's next call
     to it waits on its ur-rtde worker. SIGINT 10 ms into the freeze: X-ray off and every group
     stopped within the bound all the same (the frozen arm's stop follows the call under way),
-    no EXP after it; the study then resumes on the UR backend to the end."""
+    no EXP after it, the stored views intact (resumes on the UR backend: the slow soak)."""
     from recon.config import ScanProtocol, load_config
     from sim.generator import MockGenerator
     from sim.stage import MockStage
@@ -229,13 +229,6 @@ def test_a_stop_signal_while_a_ur_call_waits_on_its_worker(tmp_path):
         ]
         events.sort()
         check_stopped(study, 1, signal.SIGINT, sent, events, code, log)
-
-        log = tmp_path / "session-2.log"  # the arms stopped mid-scan: back to the start first
-        resumed = cbct_scan(study, "ur", config, None, log, "--move-to-start")
-        assert resumed.wait(timeout=120) == 0, log.read_text()
-    done = Study.open(study)
-    assert done.stage("scan")["status"] == "complete" and done.verify() == []
-    assert done.stage("scan")["views"] == views
 
 
 @pytest.mark.slow
