@@ -21,8 +21,10 @@ Points that matter on hardware:
 - ``move_to`` starts an asynchronous moveJ and waits for it in Python, so its timeout holds
   (a blocking moveJ only gives up after ur-rtde's 300 s); on timeout the arm is stopped.
 - A reading is fresh when the controller's timestamp is no older than ``freshness_s`` by the
-  host clock (their offset is tracked with a small allowance for clock drift): a stalled or
-  dropped RTDE stream raises instead of returning the last value again. A stream that has not
+  host clock (their offset is tracked with a small allowance for clock drift) and newer than
+  the last command sent to the arm (a set-point or a move): a stalled or dropped RTDE stream
+  raises instead of returning the last value again, and a pose an exposure is decided on was
+  read from a controller that was alive after it was told where to be. A stream that has not
   moved for ``silence_s`` is a silent controller: ``state`` and ``servo`` raise DeviceTimeout at
   once (not at the end of the caller's timeout), so a scan reaches SAFE within ``silence_s``
   plus one set-point period.
@@ -120,7 +122,8 @@ class URArm:
         servo_gain: servoJ proportional gain (ur-rtde: 100 to 2000).
         arrival_tolerance_deg: how close to the goal a finished move must be, deg, per joint.
         freshness_s: the oldest reading ``state`` returns, s (5 RTDE periods at 500 Hz: the
-            pose an exposure is decided on is at most this old).
+            pose an exposure is decided on is at most this old, and newer than the last
+            command).
         silence_s: the longest pause of the RTDE stream before the controller counts as
             silent (``state`` and ``servo`` raise at once), s.
         call_timeout_s: deadline of a ur-rtde call that does not wait for motion (readings,
@@ -191,6 +194,7 @@ class URArm:
         self._client: URClient | None = None
         self._servoing = False
         self._freshness = _Freshness()
+        self._commanded_s = -math.inf  # time.monotonic() once the last command was sent
 
     def __repr__(self) -> str:
         state = "connected" if self.connected else "not connected"
@@ -337,9 +341,11 @@ class URArm:
         return bool(stopped or safety_mode == SAFETY_MODE_PROTECTIVE_STOP)
 
     def state(self, timeout_s: float) -> JointState:
-        """The measured joints (deg) and the controller timestamp of one fresh RTDE package;
-        raises DeviceTimeout when none is fresh within ``timeout_s``, at once when the stream
-        has been silent for ``silence_s``."""
+        """The measured joints (deg) and the controller timestamp of one fresh RTDE package
+        (at most ``freshness_s`` old and newer than the last command: waits for the next
+        package, one RTDE period at most, after a set-point); raises DeviceTimeout when none
+        is fresh within ``timeout_s``, at once when the stream has been silent for
+        ``silence_s``."""
         deadline = time.monotonic() + timeout_s
         age = math.nan
         reading = [
@@ -357,7 +363,7 @@ class URArm:
             now = time.monotonic()
             if t0 == t1:  # q and the flags belong to one package
                 age = self._freshness.age_s(t1, now)
-                if age <= self.freshness_s:
+                if age <= self.freshness_s and now - age > self._commanded_s:
                     q = np.rad2deg(np.asarray(q_rad, dtype=np.float64))
                     if q.shape != (6,):
                         raise DeviceError(
@@ -418,6 +424,7 @@ class URArm:
             True,
         )
         (ok,) = self._calls("move_to", [("control", "moveJ", args)])
+        self._commanded_s = time.monotonic()
         if not ok:
             self._raise_refused("move_to", what)
         self._servoing = False
@@ -483,6 +490,7 @@ class URArm:
             self.servo_gain,
         )
         (ok,) = self._calls("servo", [("control", "servoJ", args)])
+        self._commanded_s = time.monotonic()
         if not ok:
             self._raise_refused("servo", f"servoJ to {np.round(goal, 4).tolist()} deg")
         self._servoing = True
