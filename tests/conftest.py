@@ -120,8 +120,11 @@ def measured(request, seed):
     ``CBCT_TEST_FIGURES`` names, when set) for scripts/test_spread.py.
 
     ``measured(name, value, below=None, above=None)``: fails unless ``value < below`` and
-    ``value > above`` (whichever are given)."""
+    ``value > above`` (whichever are given); with ``CBCT_TEST_FIGURES_ONLY`` set it only
+    records, so that a test's later figures are measured too (scripts/test_spread.py judges
+    them)."""
     path = os.environ.get("CBCT_TEST_FIGURES")
+    record_only = bool(os.environ.get("CBCT_TEST_FIGURES_ONLY"))
 
     def check(name: str, value: float, *, below: float | None = None, above: float | None = None):
         value = float(value)
@@ -143,6 +146,8 @@ def measured(request, seed):
             }
             with open(path, "a", encoding="utf-8") as fh:
                 fh.write(json.dumps(row) + "\n")
+        if record_only:
+            return
         if below is not None:
             assert value < below, f"{name} = {value:.6g}, not below {below:g}"
         if above is not None:
