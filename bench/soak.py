@@ -373,6 +373,21 @@ def pulses_after_stop(fault: FaultRecord, log: Path | None, events: list[Event])
     fault.in_flight = len(pulses) - fault.xray_after
 
 
+def write_timeline(path: Path, fault: FaultRecord, events: list[Event], log: Path | None) -> None:
+    """The session's device events and generator commands (``log``) around its fault, in ms
+    from the fault, to ``path``: what a fault over its bound is read from."""
+    t0 = fault.injected_s
+    if t0 is None:
+        return
+    rows = [(t, who, what) for t, who, what in events]
+    if log is not None:
+        rows += [(t, "host", f"sent {body}") for t, body in read_commands(log)]
+    lines = ["ms_from_fault,device,event"] + [
+        f"{(t - t0) * 1e3:.3f},{who},{what}" for t, who, what in sorted(rows) if t >= t0 - 0.5
+    ]
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+
+
 def time_to_safe(fault: FaultRecord, events: list[Event], exempt: dict[str, str]) -> None:
     """Fill in the fault's time to SAFE and pulses after it from the session's device log.
 
@@ -573,8 +588,10 @@ class Soak:
                 fault.injected_s = injection_time(fault.kind, events)
             exempt = {}
             time_to_safe(fault, events, exempt)
+            command_log = new_command_log(study, logs)
             if fault.kind in STOP_SIGNALS:
-                pulses_after_stop(fault, new_command_log(study, logs), events)
+                pulses_after_stop(fault, command_log, events)
+            write_timeline(log.with_suffix(".timeline.csv"), fault, events, command_log)
             self._check_injected(fault, code, log)
         return code
 
@@ -650,8 +667,10 @@ class Soak:
             elif kind in ("generator_timeout", "interlock"):
                 fault.injected_s = injection_time(kind, events)
             time_to_safe(fault, events, exempt)
+            command_log = new_command_log(study, logs)
             if kind in STOP_SIGNALS:
-                pulses_after_stop(fault, new_command_log(study, logs), events)
+                pulses_after_stop(fault, command_log, events)
+            write_timeline(log.with_suffix(".timeline.csv"), fault, events, command_log)
             self._check_injected(fault, code, log)
         return code
 
