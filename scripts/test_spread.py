@@ -1,8 +1,9 @@
 """The spread of the accuracy tests' figures over seeds, numba thread counts and CPU code paths.
 
 Every test that checks an accuracy figure (``measured`` in tests/conftest.py, marker
-``accuracy``) is run once per combination, each run a ``pytest -m "accuracy and not slow"
---seed S`` process with ``NUMBA_NUM_THREADS`` and the CPU profile set:
+``accuracy``; ``-m`` takes another marker expression, e.g. ``accuracy`` for the slow ones too)
+is run once per combination, each run a ``pytest -m "accuracy and not slow" --seed S`` process
+with ``NUMBA_NUM_THREADS`` and the CPU profile set:
 
 - ``native``: the code paths this machine picks (numba compiles for the host CPU, OpenBLAS
   chooses its kernels);
@@ -17,7 +18,7 @@ upper bound, worst / bound - 1 for a lower one; the suite asks for at least 10 %
 writes the rows as JSON.
 
 Usage: ``python scripts/test_spread.py [--seeds 0,1,2] [--threads 1,2] [--cpus native,haswell]
-[-k EXPR] [--out spread.json]``.
+[-k EXPR] [-m EXPR] [--out spread.json]``.
 """
 
 from __future__ import annotations
@@ -41,13 +42,13 @@ MARGIN = 0.10
 """The least margin of a bound over its figure's worst value (the suite's rule)."""
 
 
-def run(seed: int, threads: int, cpu: str, select: str | None, figures: Path) -> dict:
+def run(seed: int, threads: int, cpu: str, select: str | None, marker: str, figures: Path) -> dict:
     """One pytest run of the accuracy tests; its outcome."""
     env = dict(os.environ, NUMBA_NUM_THREADS=str(threads), CBCT_TEST_FIGURES=str(figures))
     env["CBCT_TEST_FIGURES_ONLY"] = "1"  # every figure of a test, also after one out of bounds
     env.update(CPUS[cpu])
     cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "--seed", str(seed)]
-    cmd += ["-m", "accuracy and not slow"]
+    cmd += ["-m", marker]
     if select:
         cmd += ["-k", select]
     started = time.perf_counter()
@@ -121,6 +122,9 @@ def main() -> None:
     parser.add_argument("--threads", default="1,2")
     parser.add_argument("--cpus", default=",".join(CPUS))
     parser.add_argument("-k", dest="select", default=None, help="pytest -k expression")
+    parser.add_argument(
+        "-m", dest="marker", default="accuracy and not slow", help="pytest -m expression"
+    )
     parser.add_argument("--out", type=Path, default=None, help="write the rows as JSON here")
     args = parser.parse_args()
     seeds = [int(s) for s in args.seeds.split(",")]
@@ -135,7 +139,7 @@ def main() -> None:
         for cpu in cpus:
             for n in threads:
                 for seed in seeds:
-                    outcome = run(seed, n, cpu, args.select, figures)
+                    outcome = run(seed, n, cpu, args.select, args.marker, figures)
                     runs.append(outcome)
                     print(json.dumps(outcome), file=sys.stderr, flush=True)
         rows = [json.loads(line) for line in figures.read_text(encoding="utf-8").splitlines()]

