@@ -1,0 +1,141 @@
+"""JointTrack's files: its calibration (``JT_INTCALIB``) as the fluoroscopy view, and its poses
+(``.jts``, ``JT_EULER_312``), read and written in its own camera frame, so that JointTrack and
+JTML read our results and we read theirs.
+
+JointTrack's camera frame (the world frame of a registration whose view comes from its
+calibration): origin at the X-ray focal spot, looking down -z, +x to the right of the image
+and +y to its top as the image is displayed (row 0 at the top). With principal distance ``d``,
+principal point offset ``(x_off, y_off)`` and pixel size ``p`` (mm), a point projects to
+``col = (W - 1) / 2 + x_off / p + (d / p) X / (-Z)`` and
+``row = (H - 1) / 2 - y_off / p - (d / p) Y / (-Z)``.
+
+A ``.jts`` row maps the body's mesh (mm) into the camera frame, ``p_cam = R p_mesh + t``, with
+``R = Rz(z_rot) Rx(x_rot) Ry(y_rot)`` (degrees): the translation columns first, then the
+rotations about z, x and y, one row per frame.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from recon.geometry import View
+
+CALIBRATION_TAG = "JT_INTCALIB"
+POSES_TAG = "JT_EULER_312"
+POSE_COLUMNS = ("x_tran", "y_tran", "z_tran", "z_rot", "x_rot", "y_rot")
+
+
+def read_calibration(path: str | Path, rows: int, cols: int) -> View:
+    """The view of a ``JT_INTCALIB`` file for frames of ``rows`` x ``cols`` pixels (the file
+    gives the principal distance, the principal point's offset and the pixel size, mm)."""
+    path = Path(path)
+    words = path.read_text(encoding="utf-8").split()
+    if not words or words[0] != CALIBRATION_TAG:
+        raise ValueError(f"{path}: not a JointTrack calibration (first line {CALIBRATION_TAG})")
+    try:
+        distance, x_off, y_off, pixel = (float(w) for w in words[1:5])
+    except ValueError:
+        raise ValueError(
+            f"{path}: {CALIBRATION_TAG} needs four numbers (principal distance, principal point "
+            f"x and y offsets, pixel size; mm), got {words[1:5]}"
+        ) from None
+    if len(words) != 5:
+        raise ValueError(f"{path}: {CALIBRATION_TAG} holds four numbers, got {len(words) - 1}")
+    if not (distance > 0 and pixel > 0 and np.isfinite([x_off, y_off]).all()):
+        raise ValueError(
+            f"{path}: principal distance {distance} and pixel size {pixel} must be > 0 mm, "
+            f"offsets {x_off}, {y_off} finite"
+        )
+    return camera_view(distance, x_off, y_off, pixel, rows, cols)
+
+
+def camera_view(
+    distance_mm: float, x_off_mm: float, y_off_mm: float, pixel_mm: float, rows: int, cols: int
+) -> View:
+    """JointTrack's camera as a view in its own frame (see the module docstring)."""
+    cu = 0.5 * (cols - 1) + x_off_mm / pixel_mm
+    cv = 0.5 * (rows - 1) - y_off_mm / pixel_mm
+    return View(
+        source_mm=np.zeros(3),
+        detector_origin_mm=np.array([-cu * pixel_mm, cv * pixel_mm, -distance_mm]),
+        e_u=np.array([1.0, 0.0, 0.0]),
+        e_v=np.array([0.0, -1.0, 0.0]),
+        pitch_u_mm=pixel_mm,
+        pitch_v_mm=pixel_mm,
+        rows=rows,
+        cols=cols,
+    )
+
+
+def write_calibration(path: str | Path, view: View) -> Path:
+    """A view in JointTrack's camera frame (source at the origin, panel facing +z, rows along
+    -y) as a ``JT_INTCALIB`` file; raises ValueError for any other view."""
+    path = Path(path)
+    if not (
+        np.allclose(view.source_mm, 0.0, atol=1e-9)
+        and np.allclose(view.e_u, (1, 0, 0), atol=1e-9)
+        and np.allclose(view.e_v, (0, -1, 0), atol=1e-9)
+        and np.isclose(view.pitch_u_mm, view.pitch_v_mm)
+    ):
+        raise ValueError("only a view in JointTrack's camera frame has a JT_INTCALIB form")
+    p = view.pitch_u_mm
+    distance = -float(view.detector_origin_mm[2])
+    x_off = (-view.detector_origin_mm[0] / p - 0.5 * (view.cols - 1)) * p
+    y_off = (0.5 * (view.rows - 1) - view.detector_origin_mm[1] / p) * p
+    text = "\n".join([CALIBRATION_TAG, *(f"{v:.10g}" for v in (distance, x_off, y_off, p))])
+    path.write_text(text + "\n", encoding="utf-8")
+    return path
+
+
+def read_poses(path: str | Path) -> np.ndarray:
+    """The poses of a ``.jts`` file, ``T_camera_mesh`` per row (F, 4, 4), mm."""
+    path = Path(path)
+    lines = [line.strip() for line in path.read_text(encoding="utf-8").splitlines()]
+    lines = [line for line in lines if line]
+    if not lines or lines[0] != POSES_TAG:
+        raise ValueError(f"{path}: not JointTrack poses (first line {POSES_TAG})")
+    header = [w.strip() for w in lines[1].split(",")] if len(lines) > 1 else []
+    if header != list(POSE_COLUMNS):
+        raise ValueError(f"{path}: the columns must be {', '.join(POSE_COLUMNS)}, got {header}")
+    poses = []
+    for number, line in enumerate(lines[2:], start=3):
+        try:
+            values = [float(w) for w in line.split(",")]
+        except ValueError:
+            raise ValueError(f"{path}: line {number} is not six numbers: {line!r}") from None
+        if len(values) != 6 or not np.all(np.isfinite(values)):
+            raise ValueError(f"{path}: line {number} is not six finite numbers: {line!r}")
+        poses.append(pose_of_row(values))
+    if not poses:
+        raise ValueError(f"{path}: no pose rows")
+    return np.stack(poses)
+
+
+def pose_of_row(values: Sequence[float]) -> np.ndarray:
+    """``T_camera_mesh`` (4, 4) of one ``.jts`` row (x, y, z mm; z, x, y rotations deg)."""
+    x, y, z, rz, rx, ry = values
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("ZXY", [rz, rx, ry], degrees=True).as_matrix()
+    T[:3, 3] = (x, y, z)
+    return T
+
+
+def row_of_pose(T: np.ndarray) -> list[float]:
+    """The ``.jts`` row of ``T_camera_mesh``: x, y, z (mm), then z, x, y rotations (deg)."""
+    rz, rx, ry = Rotation.from_matrix(np.asarray(T)[:3, :3]).as_euler("ZXY", degrees=True)
+    return [*(float(v) for v in np.asarray(T)[:3, 3]), float(rz), float(rx), float(ry)]
+
+
+def write_poses(path: str | Path, poses: Sequence[np.ndarray]) -> Path:
+    """``T_camera_mesh`` per frame as a ``.jts`` file."""
+    path = Path(path)
+    width = 16
+    lines = [POSES_TAG, ",".join(f"{name:>{width}}" for name in POSE_COLUMNS)]
+    for T in poses:
+        lines.append(",".join(f"{v:>{width}.9g}" for v in row_of_pose(T)))
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return path

@@ -1,0 +1,64 @@
+"""JointTrack's calibration and pose files, read and written in its own camera frame."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from registration.jointtrack import (
+    camera_view,
+    read_calibration,
+    read_poses,
+    write_calibration,
+    write_poses,
+)
+
+
+def test_a_point_projects_where_jointtracks_formula_puts_it(tmp_path):
+    path = tmp_path / "calibration.txt"
+    path.write_text("JT_INTCALIB\n1198\n2.5\n-1.5\n0.373\n", encoding="utf-8")
+    view = read_calibration(path, rows=1000, cols=1024)
+    rng = np.random.default_rng(0)
+    points = rng.uniform([-80, -80, -1150], [80, 80, -1000], size=(50, 3))
+    d, x_off, y_off, p = 1198.0, 2.5, -1.5, 0.373
+    col = (1024 - 1) / 2 + x_off / p + (d / p) * points[:, 0] / -points[:, 2]
+    row = (1000 - 1) / 2 - y_off / p - (d / p) * points[:, 1] / -points[:, 2]
+    np.testing.assert_allclose(view.project(points), np.column_stack((col, row)), atol=1e-9)
+    again = read_calibration(write_calibration(tmp_path / "again.txt", view), 1000, 1024)
+    np.testing.assert_allclose(again.matrix, view.matrix, rtol=1e-9)
+
+
+def test_poses_round_trip_with_rotations_about_z_then_x_then_y(tmp_path):
+    rng = np.random.default_rng(1)
+    poses = []
+    for _ in range(5):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.random(random_state=rng).as_matrix()
+        T[:3, 3] = rng.uniform(-50, 50, 3) + np.array([0.0, 0.0, -1080.0])
+        poses.append(T)
+    back = read_poses(write_poses(tmp_path / "body.jts", poses))
+    np.testing.assert_allclose(back, np.stack(poses), atol=1e-6)
+    one = tmp_path / "one.jts"
+    header = "JT_EULER_312\nx_tran,y_tran,z_tran,z_rot,x_rot,y_rot\n"
+    one.write_text(header + "1,2,-1000,90,0,0\n", encoding="utf-8")
+    T = read_poses(one)[0]
+    np.testing.assert_allclose(T[:3, :3] @ [1, 0, 0], [0, 1, 0], atol=1e-12)  # 90 deg about z
+
+
+def test_bad_files_are_refused_with_the_line_named(tmp_path):
+    bad = tmp_path / "bad.jts"
+    bad.write_text("JT_EULER_312\nx_tran,y_tran,z_tran,z_rot,x_rot,y_rot\n1,2,3,4,5\n")
+    with pytest.raises(ValueError, match="line 3 is not six finite numbers"):
+        read_poses(bad)
+    calibration = tmp_path / "calibration.txt"
+    calibration.write_text("JT_INTCALIB\n1198\n0\n0\n-0.373\n")
+    with pytest.raises(ValueError, match=r"pixel size -0\.373 must be > 0 mm"):
+        read_calibration(calibration, 1024, 1024)
+    with pytest.raises(ValueError, match="only a view in JointTrack's camera frame"):
+        write_calibration(
+            tmp_path / "x.txt",
+            camera_view(1198, 0, 0, 0.373, 8, 8)
+            .binned(2)
+            .transformed(np.diag([1.0, -1.0, -1.0, 1.0])),
+        )
