@@ -394,15 +394,18 @@ def patellofemoral_deviation(
 
 
 def _carried_pose(name: str, poses: dict[str, np.ndarray]) -> np.ndarray:
-    """The pose of bone ``name`` in its carrier's frame (:data:`CARRIER`), else in the world."""
+    """The pose of bone ``name`` in its carrier's frame (:data:`CARRIER`, when tracked), else in
+    the world."""
     carrier = CARRIER.get(name)
-    return poses[name] if carrier is None else np.linalg.inv(poses[carrier]) @ poses[name]
+    if carrier not in poses:
+        return poses[name]
+    return np.linalg.inv(poses[carrier]) @ poses[name]
 
 
 def _carrier_pose(name: str, poses: dict[str, np.ndarray]) -> np.ndarray:
     """The pose of bone ``name``'s carrier (:data:`CARRIER`) in ``poses``, else the identity."""
     carrier = CARRIER.get(name)
-    return np.eye(4) if carrier is None else poses[carrier]
+    return poses[carrier] if carrier in poses else np.eye(4)
 
 
 def _parabola_peak(x: np.ndarray, y: np.ndarray, i: int) -> float:
@@ -461,7 +464,9 @@ class Tracker:
     Args:
         view: the fluoroscopy view at full resolution.
         frames: line integrals (F, rows, cols).
-        bones: the tracked bones (registration.drr.bone_models).
+        bones: the tracked bodies by name (a subset of :data:`TRACK_ORDER`): bones
+            (registration.drr.bone_models) or implant components
+            (registration.implants.implant_model).
         settings: registration settings.
         soft_tissue: the soft tissue, deformed by the femur and the tibia
             (registration.drr.SoftTissue); None leaves it out.
@@ -480,6 +485,11 @@ class Tracker:
         soft_tissue: SoftTissue | None = None,
         field: np.ndarray | None = None,
     ) -> None:
+        unknown = sorted(set(bones) - set(TRACK_ORDER))
+        if unknown or not bones:
+            raise ValueError(f"tracked bodies are named from {TRACK_ORDER}, got {sorted(bones)}")
+        self.order = tuple(b for b in TRACK_ORDER if b in bones)
+        """The tracked bodies in the order they are registered in a frame."""
         self.view = view
         self.frames = np.asarray(frames, dtype=np.float32)
         if field is not None and np.shape(field) != self.frames.shape[1:]:
@@ -906,18 +916,18 @@ class Tracker:
         if s.kpm and len(history) >= 2:  # every bone at its constant-velocity prediction first
             poses = {
                 b: predict(history[-2][b], history[-1][b], self.bones[b].centroid_mm)
-                for b in TRACK_ORDER
+                for b in self.order
             }
         if history and self._by_least_squares():
             return self._register_warm(frame, poses, history)
-        spent = {name: (0.0, 0) for name in TRACK_ORDER}
+        spent = {name: (0.0, 0) for name in self.order}
         if not history and s.global_init:
-            for name in TRACK_ORDER:
+            for name in self.order:
                 start = time.perf_counter()
                 lone = name in LONG_BONES
                 poses[name], n = self._global(frame, name, poses, lone=lone)
                 spent[name] = (time.perf_counter() - start, n)
-        for name in TRACK_ORDER:
+        for name in self.order:
             start = time.perf_counter()
             try:
                 result.bones[name] = self._track_bone(frame, name, poses, history)
@@ -962,7 +972,7 @@ class Tracker:
         s = self.settings
         result = FrameResult(frame)
         coarse, finest = self.levels[:-1] or self.levels, self.levels[-1:]
-        for name in TRACK_ORDER:  # first pass: the KPM and the coarse levels
+        for name in self.order:  # first pass: the KPM and the coarse levels
             start, n = time.perf_counter(), 0
             try:
                 poses[name], n = self._place(frame, name, poses, history)
