@@ -1,4 +1,4 @@
-"""Fluoroscopy frames from files: RTK-style .mha stacks or clinical DICOM.
+"""Fluoroscopy frames from files: RTK-style .mha stacks, clinical DICOM, or TIFF/PNG images.
 
 .mha/.mhd stacks (recon.io) hold line integrals already. DICOM comes as single CR/DX images, a
 folder of them (one series, ordered by instance number), or a multi-frame XA/RF file. This is
@@ -31,6 +31,7 @@ the one place where DICOM pixels become registration frames:
 
 from __future__ import annotations
 
+import glob
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -51,7 +52,7 @@ class Frames:
         data: float32 (F, rows, cols), line integrals (or their normalised stand-in).
         header: where the pixels lie in RTK's projection plane (pitch, origin, direction).
         times_s: frame times (F,) or None.
-        photometric: "line integrals", "MONOCHROME1" or "MONOCHROME2".
+        photometric: "line integrals", "MONOCHROME1", "MONOCHROME2" or "images".
         stand_in: how the values became the line integral's stand-in, e.g.
             "-ln(value) (LIN, sign +1)" or "max - value (MONOCHROME1)".
         field: bool (rows, cols), the pixels the beam reaches; None: all of them.
@@ -70,6 +71,12 @@ class Frames:
         return self.header.spacing_mm
 
 
+IMAGE_SUFFIXES = (".tif", ".tiff", ".png")
+"""Frames as images (8 or 16 bit grey), e.g. a fluoroscopy unit's export or JTML's data."""
+POLARITIES = ("dark", "bright")
+"""How attenuation shows in images: dark (fluoroscopy's display) or bright (a radiograph's)."""
+
+
 def _tag(reader, key: str) -> str | None:
     return reader.GetMetaData(key).strip() if reader.HasMetaDataKey(key) else None
 
@@ -78,23 +85,96 @@ def _dicom_files(path: Path) -> list[str]:
     return series_files(path) if path.is_dir() else [str(path)]
 
 
-def read_frames(path: str | Path, pixel_pitch_mm: float | None = None) -> Frames:
-    """Frames from an .mha/.mhd stack, a DICOM file or a folder of DICOM files.
+def read_frames(
+    path: str | Path, pixel_pitch_mm: float | None = None, polarity: str = "dark"
+) -> Frames:
+    """Frames from an .mha/.mhd stack, a DICOM file or folder, or TIFF/PNG images (a file, a
+    folder of them or a glob pattern, in sorted order).
+
+    Images carry no pixel size a registration can trust (a TIFF's resolution tag is a print
+    size): ``pixel_pitch_mm`` gives it (e.g. the calibration's). Their ``polarity`` says how
+    attenuation shows: "dark" (as fluoroscopy displays it: the implant darkest, the stand-in
+    ``max - value``) or "bright" (as a radiograph: the value itself).
 
     Raises:
-        FileNotFoundError: ``path`` does not exist.
+        FileNotFoundError: ``path`` does not exist (or the pattern matches nothing).
         ImageFileError: a file that is not a readable image (recon.io, recon.dicom).
         ValueError: naming the file and the tag: frames that are not grey-scale, of differing
             sizes or photometric interpretations, with NaN or infinite values, or with spacing
             or frame times that are not finite numbers; no pixel spacing and no
-            ``pixel_pitch_mm``.
+            ``pixel_pitch_mm``; an unknown polarity.
     """
+    if polarity not in POLARITIES:
+        raise ValueError(f"frames polarity {polarity!r}: one of {', '.join(POLARITIES)}")
+    images = _image_files(path)
+    if images is not None:
+        return _read_images(images, str(path), pixel_pitch_mm, polarity)
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such file or folder")
     if path.suffix.lower() in (".mha", ".mhd"):
         stack = read_projections(path)
         return Frames(stack.data, stack.header, None, "line integrals")
+    return _read_dicom(path, pixel_pitch_mm)
+
+
+def _image_files(path: str | Path) -> list[Path] | None:
+    """The TIFF/PNG files ``path`` names (a file, the images in a folder, or a glob pattern),
+    sorted; None when it names none (a stack, DICOM)."""
+    text = str(path)
+    if any(c in text for c in "*?["):
+        files = sorted(Path(p) for p in glob.glob(text))
+        if not files:
+            raise FileNotFoundError(f"{text}: the pattern matches no file")
+        return files
+    path = Path(path)
+    if path.is_file():
+        return [path] if path.suffix.lower() in IMAGE_SUFFIXES else None
+    if path.is_dir():
+        images = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+        return images or None
+    return None
+
+
+def _read_images(
+    files: list[Path], source: str, pixel_pitch_mm: float | None, polarity: str
+) -> Frames:
+    """Grey-scale TIFF/PNG frames (8 or 16 bit), one per file."""
+    if pixel_pitch_mm is None:
+        raise ValueError(
+            f"{source}: images carry no pixel size to register with: give the panel's pixel "
+            "pitch (the calibration's)"
+        )
+    arrays = []
+    for name in files:
+        try:
+            image = sitk.ReadImage(str(name))
+        except RuntimeError as err:
+            raise ImageFileError(f"{name}: not a readable image ({err})") from None
+        pixels = sitk.GetArrayFromImage(image).astype(np.float64)
+        if image.GetNumberOfComponentsPerPixel() > 1:
+            if not np.all(pixels == pixels[..., :1]):
+                raise ValueError(f"{name}: a colour image; frames must be grey-scale")
+            pixels = pixels[..., 0]
+        pixels = pixels.reshape(-1, *pixels.shape[-2:])
+        if arrays and pixels.shape[1:] != arrays[0].shape[1:]:
+            raise ValueError(
+                f"{name}: frames of {pixels.shape[1:]} pixels among frames of "
+                f"{arrays[0].shape[1:]} (rows, columns)"
+            )
+        arrays.append(pixels)
+    data = np.concatenate(arrays)
+    if polarity == "dark":
+        data, stand_in = data.max() - data, "max - value (images, attenuation dark)"
+    else:
+        stand_in = "value (images, attenuation bright)"
+    pitch = float(pixel_pitch_mm)
+    header = PanelHeader.centered(data.shape[1], data.shape[2], pitch, pitch, source=source)
+    return _normalised(data, header, None, "images", stand_in, source)
+
+
+def _read_dicom(path: Path, pixel_pitch_mm: float | None) -> Frames:
+    """A DICOM file or a folder holding one series."""
     files = _dicom_files(path)
     arrays, times, spacing, photometric, stand_in = [], [], None, None, None
     for name in files:
@@ -138,14 +218,27 @@ def read_frames(path: str | Path, pixel_pitch_mm: float | None = None) -> Frames
                 "0028,0030); give the panel's pixel pitch explicitly"
             )
         spacing = (float(pixel_pitch_mm), float(pixel_pitch_mm))
+    times_s = np.array(times) if len(times) == len(data) and None not in times else None
+    header = PanelHeader.centered(data.shape[1], data.shape[2], *spacing, source=str(path))
+    return _normalised(data, header, times_s, photometric, stand_in, str(path))
+
+
+def _normalised(
+    data: np.ndarray,
+    header: PanelHeader,
+    times_s: np.ndarray | None,
+    photometric: str,
+    stand_in: str,
+    source: str,
+) -> Frames:
+    """The frames normalised to 0..1 by their 0.5 and 99.5 percentiles within the exposed
+    field."""
     field = exposed_field(data)
     inside = data if field is None else data[:, field]
     low, high = np.percentile(inside, (0.5, 99.5))
     normalised = ((data - low) / max(high - low, 1e-12)).astype(np.float32)
-    times_s = np.array(times) if len(times) == len(data) and None not in times else None
     if not (np.isfinite(normalised).all() and (times_s is None or np.isfinite(times_s).all())):
-        raise ValueError(f"{path}: pixel values or frame times overflow (beyond float range)")
-    header = PanelHeader.centered(data.shape[1], data.shape[2], *spacing, source=str(path))
+        raise ValueError(f"{source}: pixel values or frame times overflow (beyond float range)")
     return Frames(normalised, header, times_s, photometric, stand_in, field)
 
 

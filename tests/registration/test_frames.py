@@ -142,3 +142,32 @@ def test_the_exposed_field_leaves_out_the_dark_round_border_but_not_a_dark_impla
     field = exposed_field(attenuation)
     np.testing.assert_array_equal(field, round_field)
     assert exposed_field(attenuation[:, 14:-14, 14:-14]) is None  # a crop inside the field
+
+
+def test_images_by_glob_or_folder_with_their_polarity_and_shutters(tmp_path) -> None:
+    """8-bit PNGs, attenuation dark, black shutter bars at the sides (as JTML's frames): read
+    in sorted order at the given pitch, inverted, the bars outside the field; without a pitch,
+    refused; the other polarity keeps the values."""
+    rng = np.random.default_rng(2)
+    stack = rng.integers(40, 220, size=(3, 32, 48)).astype(np.uint8)
+    stack[:, :, :6] = 0
+    stack[:, :, -5:] = 0
+    stack[1, 10:14, 20:26] = 0  # an implant as dark as the bars, inside the field
+    for k in (2, 0, 1):  # written out of order
+        sitk.WriteImage(sitk.GetImageFromArray(stack[k]), str(tmp_path / f"frame_{k:02d}.png"))
+    (tmp_path / "notes.txt").write_text("not a frame")
+    for source in (tmp_path, tmp_path / "frame_*.png"):
+        frames = read_frames(source, pixel_pitch_mm=0.373)
+        assert frames.stand_in == "max - value (images, attenuation dark)"
+        assert frames.pixel_pitch_mm == (0.373, 0.373)
+        raw = 255.0 - stack.astype(np.float64)
+        corr = np.corrcoef(frames.data[:, :, 6:-5].ravel(), raw[:, :, 6:-5].ravel())[0, 1]
+        assert corr == pytest.approx(1.0, abs=1e-9)
+        assert frames.field[:, 6:-5].all() and not frames.field[:, :6].any()
+        assert not frames.field[:, -5:].any()
+    bright = read_frames(tmp_path, pixel_pitch_mm=0.373, polarity="bright")
+    assert np.corrcoef(bright.data.ravel(), frames.data.ravel())[0, 1] == pytest.approx(-1.0)
+    with pytest.raises(ValueError, match="images carry no pixel size"):
+        read_frames(tmp_path)
+    with pytest.raises(FileNotFoundError, match="matches no file"):
+        read_frames(tmp_path / "nothing_*.tif", pixel_pitch_mm=0.3)
