@@ -554,7 +554,8 @@ class Tracker:
             if blurred not in self._blurred:  # shared by the levels
                 image = self.frames[frame]
                 if self.field is not None:  # no step at the field's edge for the filters
-                    image = _extend_into(image, self.field, self._sigma_px(1))
+                    sigma = self.settings.highpass_mm / self.view.pitch_u_mm
+                    image = _extend_into(image, self.field, sigma)
                 sigma_px = (blur_mm[0] / self.view.pitch_u_mm, blur_mm[1] / self.view.pitch_v_mm)
                 if turn_deg:
                     image = turned_gaussian(image, sigma_px, math.radians(turn_deg))
