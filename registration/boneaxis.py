@@ -577,7 +577,7 @@ class Tracker:
         """Render with the pooled volumes when a pixel spans two voxels at the bone."""
         view, bone = self._views[level], self.bones[name]
         pixel_at_bone = view.pitch_u_mm * float(view.depth(bone.centroid_mm)[0])
-        return pixel_at_bone >= 2.0 * bone.volume.voxel_mm()
+        return pixel_at_bone >= 2.0 * bone.voxel_mm()
 
     def _objective(
         self,

@@ -119,6 +119,10 @@ class BoneModel:
     points_mm: np.ndarray
     centroid_mm: np.ndarray
 
+    def voxel_mm(self) -> float:
+        """The model's voxel across the rays, mm (:meth:`RigidVolume.voxel_mm`)."""
+        return self.volume.voxel_mm()
+
     def render(
         self,
         view: View,

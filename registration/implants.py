@@ -1,12 +1,10 @@
-"""Implant components as tracked bodies: a CAD mesh of a known material, voxelised with
-partial-volume fractions into the rigid model a bone is (:class:`registration.drr.BoneModel`).
+"""Implant components as tracked bodies: a CAD mesh of a known material, rendered ray by ray
+through the view (:class:`ImplantModel`), tracked, refined and reported as a bone is.
 
 A femoral component or a tibial tray is metal: near-opaque in a frame, streaking in a CBCT, and
-its exact shape is known from its mesh. :func:`implant_model` turns the mesh into its
-attenuation on a fine grid (the fraction of each voxel inside the mesh, exact along z and
-sampled on ``supersample`` x ``supersample`` columns per voxel across, times the material's
-attenuation), so the tracker renders, refines and reports it as it does a bone. Radiolucent
-parts (a polyethylene insert) are not tracked alone.
+its exact shape is known from its mesh. Radiolucent parts (a polyethylene insert) are not
+tracked alone. :func:`voxelize` gives a mesh's partial volumes on a grid (its points here; a
+phantom's implants in the simulator).
 
 Meshes come in STL, OBJ or PLY (trimesh), in the unit given; one whose size does not fit a knee
 component in that unit is refused, and one that is not closed is repaired where only small
@@ -23,17 +21,14 @@ import numba
 import numpy as np
 import trimesh
 
+from recon.geometry import View
 from recon.volume import VolumeGrid
-from registration.drr import BoneModel, RigidVolume
 
 MESH_UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
 """Length of one mesh unit, mm."""
 COMPONENT_SIZE_MM = (20.0, 200.0)
 """The largest extent a knee implant component can have, mm (a patellar button to a long
 stemmed tray)."""
-VOXEL_MM = 0.25
-"""Default voxel of an implant model, mm: a third of a 0.75 mm registration pixel at the
-implant, its partial-volume edge placed to a few hundredths of a pixel."""
 
 
 @dataclass(frozen=True)
@@ -133,7 +128,7 @@ def read_mesh(path: str | Path, unit: str = "mm") -> tuple[trimesh.Trimesh, Mesh
 
 
 def voxelize(
-    mesh: trimesh.Trimesh, voxel_mm: float = VOXEL_MM, supersample: int = 4
+    mesh: trimesh.Trimesh, voxel_mm: float, supersample: int = 4
 ) -> tuple[np.ndarray, VolumeGrid]:
     """The fraction of each voxel inside a closed mesh (mm), float32 [z, y, x], on a grid of
     ``voxel_mm`` cubes one voxel beyond its bounds.
@@ -193,25 +188,172 @@ def _crossings(triangles, nx, ny, nz, s):  # pragma: no cover
     return out
 
 
+@dataclass(frozen=True)
+class ImplantModel:
+    """An implant component as a tracked body: rendered from its mesh, ray by ray.
+
+    Each sample's ray length ``L`` through the closed mesh is exact (the sum, over the faces it
+    crosses, of the distance to where it leaves minus where it enters); the pixel's value is
+    the share of the beam the component stops, ``1 - exp(-mu L)``, averaged over
+    ``supersample`` x ``supersample`` rays: a metal component's shadow, flat inside as a real
+    frame shows it (the detector chain saturates long before the metal's thickness varies),
+    its edge placed to a fraction of a pixel.
+
+    Attributes:
+        name: the body's name (registration.boneaxis.TRACK_ORDER: the femoral component
+            carries the femur's, the tibial tray the tibia's).
+        vertices_mm: the mesh's vertices in its own frame (V, 3), mm.
+        faces: the mesh's triangles (T, 3), outward by their winding.
+        mu_per_mm: the material's attenuation, 1/mm.
+        points_mm: points filling the component (the centres of its 1 mm voxels at least half
+            inside), in its frame: the TRE's and the principal axes' (N, 3).
+        centroid_mm: their mean (rotations of the 6-DoF parameterisation are about it).
+        supersample: rays per pixel along each axis.
+    """
+
+    name: str
+    vertices_mm: np.ndarray
+    faces: np.ndarray
+    mu_per_mm: float
+    points_mm: np.ndarray
+    centroid_mm: np.ndarray
+    supersample: int = 3
+
+    def voxel_mm(self) -> float:
+        """A mesh has no voxels to pool: never rendered coarse."""
+        return 0.0
+
+    def render(
+        self,
+        view: View,
+        T_world_body: np.ndarray,
+        coarse: bool = False,
+        spans: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """The share of the beam the component at ``T_world_body`` stops, float32 (rows,
+        cols) (``coarse`` and ``spans`` are a voxel model's; the whole view is rendered)."""
+        uv, coef, A = _projected(view, self.vertices_mm, self.faces, T_world_body)
+        out = np.zeros((view.rows, view.cols), dtype=np.float32)
+        _render(uv, coef, A, self.supersample, self.mu_per_mm, out)
+        return out
+
+
+def ray_lengths(
+    view: View, vertices_mm: np.ndarray, faces: np.ndarray, T_world_body: np.ndarray
+) -> np.ndarray:
+    """Length (mm) of each pixel centre's ray through a closed mesh moved by ``T_world_body``,
+    float64 (rows, cols): its silhouette is where it is > 0."""
+    uv, coef, A = _projected(view, vertices_mm, faces, T_world_body)
+    out = np.zeros((view.rows, view.cols))
+    _render(uv, coef, A, 1, 0.0, out)
+    return out
+
+
+def _projected(
+    view: View, vertices_mm: np.ndarray, faces: np.ndarray, T_world_body: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each face's corners in pixel coordinates (T, 3, 2); per face the ray's crossing
+    ``t = coef[3] / (coef[:3] . (u, v, 1))`` (``t`` = 1 on the panel); and ``A``, a sample
+    (u, v)'s ray direction ``A (u, v, 1)``."""
+    X = vertices_mm @ T_world_body[:3, :3].T + T_world_body[:3, 3]
+    P = view.matrix
+    h = X @ P[:, :3].T + P[:, 3]
+    uv = h[:, :2] / h[:, 2:3]
+    A = np.column_stack(
+        (
+            view.pitch_u_mm * view.e_u,
+            view.pitch_v_mm * view.e_v,
+            view.detector_origin_mm - view.source_mm,
+        )
+    )
+    tri = X[faces]
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    coef = np.column_stack((normal @ A, np.einsum("ij,ij->i", normal, tri[:, 0] - view.source_mm)))
+    return uv[faces], coef, A
+
+
+@numba.njit(cache=True)
+def _render(uv, coef, A, s, mu, out):  # pragma: no cover
+    """Into ``out`` (rows, cols): with ``mu`` > 0, the mean over each pixel's ``s x s`` rays of
+    ``1 - exp(-mu L)``; with ``mu`` = 0, ``L`` of its centre's ray (``s`` = 1). ``L``, a ray's
+    length through the closed mesh: over the faces it crosses, ``|d| t`` where it leaves minus
+    where it enters. Only the samples within the mesh's projected bounds are visited."""
+    rows, cols = out.shape
+    lo_u, hi_u = uv[:, :, 0].min(), uv[:, :, 0].max()
+    lo_v, hi_v = uv[:, :, 1].min(), uv[:, :, 1].max()
+    g0 = max(0, math.ceil((lo_u + 0.5) * s - 0.5))
+    g1 = min(cols * s - 1, math.floor((hi_u + 0.5) * s - 0.5))
+    h0 = max(0, math.ceil((lo_v + 0.5) * s - 0.5))
+    h1 = min(rows * s - 1, math.floor((hi_v + 0.5) * s - 0.5))
+    if g1 < g0 or h1 < h0:
+        return
+    sums = np.zeros((h1 - h0 + 1, g1 - g0 + 1))
+    for f in range(uv.shape[0]):
+        au, bu, cu = uv[f, 0, 0], uv[f, 1, 0], uv[f, 2, 0]
+        av, bv, cv = uv[f, 0, 1], uv[f, 1, 1], uv[f, 2, 1]
+        area = (bu - au) * (cv - av) - (cu - au) * (bv - av)
+        if area == 0.0:
+            continue
+        a0 = max(g0, math.ceil((min(au, bu, cu) + 0.5) * s - 0.5))
+        a1 = min(g1, math.floor((max(au, bu, cu) + 0.5) * s - 0.5))
+        b0 = max(h0, math.ceil((min(av, bv, cv) + 0.5) * s - 0.5))
+        b1 = min(h1, math.floor((max(av, bv, cv) + 0.5) * s - 0.5))
+        ku, kv, k1, num = coef[f, 0], coef[f, 1], coef[f, 2], coef[f, 3]
+        for h in range(b0, b1 + 1):
+            v = (h + 0.5) / s - 0.5
+            for g in range(a0, a1 + 1):
+                u = (g + 0.5) / s - 0.5
+                wa = ((bu - u) * (cv - v) - (cu - u) * (bv - v)) / area
+                wb = ((cu - u) * (av - v) - (au - u) * (cv - v)) / area
+                if wa < 0.0 or wb < 0.0 or wa + wb > 1.0:
+                    continue
+                denominator = ku * u + kv * v + k1
+                if denominator == 0.0:
+                    continue
+                t = num / denominator
+                sums[h - h0, g - g0] += t if denominator > 0.0 else -t
+    share = 1.0 / (s * s)
+    for h in range(h0, h1 + 1):
+        v = (h + 0.5) / s - 0.5
+        for g in range(g0, g1 + 1):
+            total = sums[h - h0, g - g0]
+            if total == 0.0:
+                continue
+            u = (g + 0.5) / s - 0.5
+            dx = A[0, 0] * u + A[0, 1] * v + A[0, 2]
+            dy = A[1, 0] * u + A[1, 1] * v + A[1, 2]
+            dz = A[2, 0] * u + A[2, 1] * v + A[2, 2]
+            length = max(total, 0.0) * math.sqrt(dx * dx + dy * dy + dz * dz)
+            if mu > 0.0:
+                out[h // s, g // s] += share * (1.0 - math.exp(-mu * length))
+            else:
+                out[h // s, g // s] += length
+
+
 def implant_model(
     name: str,
     mesh: trimesh.Trimesh,
     material: Material,
     energy_kev: float = 70.0,
-    voxel_mm: float = VOXEL_MM,
-) -> BoneModel:
-    """A component as a tracked body: its attenuation (the voxel fractions times the
-    material's, 1/mm) in the mesh's own frame (``T_world_body`` maps mesh mm to world mm), its
-    points (the centres of the voxels at least half inside, every other one along each axis)
-    and their centroid."""
+    supersample: int = 3,
+) -> ImplantModel:
+    """A component as a tracked body in the mesh's own frame (``T_world_body`` maps mesh mm
+    to world mm); its points are the centres of its 1 mm voxels at least half inside."""
     if not material.radiopaque:
         raise ValueError(
             f"{name}: {material.name} is radiolucent: it does not show in a frame by itself "
             "and is not tracked alone"
         )
-    fraction, grid = voxelize(mesh, voxel_mm)
-    mu = material.mu_per_mm(energy_kev)
-    kz, ky, kx = np.nonzero(fraction[::2, ::2, ::2] >= 0.5)
+    fraction, grid = voxelize(mesh, 1.0)
+    kz, ky, kx = np.nonzero(fraction >= 0.5)
     x, y, z = grid.axes_mm()
-    points = np.column_stack((x[::2][kx], y[::2][ky], z[::2][kz]))
-    return BoneModel(name, RigidVolume.of(mu * fraction, grid), points, points.mean(axis=0))
+    points = np.column_stack((x[kx], y[ky], z[kz]))
+    return ImplantModel(
+        name,
+        np.asarray(mesh.vertices, dtype=np.float64),
+        np.asarray(mesh.faces, dtype=np.int64),
+        material.mu_per_mm(energy_kev),
+        points,
+        points.mean(axis=0),
+        supersample,
+    )
