@@ -1,20 +1,25 @@
 """Register a fluoroscopy sequence from files: what ``cbct register`` runs.
 
-Inputs are the static scan (attenuation volume and its bone labels), the frames (an RTK
-projection stack of line integrals, or DICOM) and their view (RTK geometry XML: one view, or
-one identical view per frame; the scanner holds still during fluoroscopy) and, optionally, the
-panel's distortion (calibration.distortion: the frames are dewarped before anything else).
-Outputs go to a new folder: ``poses.csv`` (registration.poses), ``registration.json`` (per bone
-and frame: NCC, gradient NCC, seconds, evaluations, failure flag; the settings; the dewarp's
-fit), ``distortion.json`` (when dewarped) and, given the true poses, ``metrics.json``
-(registration.metrics.summarize and per-frame errors).
+Inputs are the bodies to track: the static scan's bones (attenuation volume and its labels)
+and implant components (their CAD meshes, registration.implants), a component standing for the
+bone it replaces; the frames (an RTK projection stack of line integrals, DICOM, or TIFF/PNG
+images: registration.frames) and their view (RTK geometry XML: one view, or one identical view
+per frame, the scanner holding still during fluoroscopy; or a JointTrack calibration); and,
+optionally, the panel's distortion (calibration.distortion: the frames are dewarped before
+anything else). Outputs go to a new folder: ``poses.csv`` (registration.poses), one JointTrack
+``.jts`` per body (its poses in JointTrack's camera frame of the view: ``femur.jts``,
+``tibia.jts``, ``patella.jts``), ``overlays/`` (every frame with each body's outline at its
+registered pose), ``registration.json`` (per body and frame: NCC, gradient NCC, seconds,
+evaluations, failure flag; the settings; the meshes read; the dewarp's fit),
+``distortion.json`` (when dewarped) and, given the true (or reference) poses,
+``metrics.json`` (registration.metrics.summarize and per-frame errors).
 """
 
 from __future__ import annotations
 
 import json
 from collections.abc import Callable
-from dataclasses import replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +35,12 @@ from recon.volume import Volume
 from registration.boneaxis import TRACK_ORDER, FrameResult, Settings, Tracker
 from registration.drr import SoftTissue, bone_models
 from registration.frames import Frames, read_frames
+from registration.implants import MATERIALS, implant_model, read_mesh
+from registration.jointtrack import read_calibration
+from registration.jointtrack import read_poses as read_jts
+from registration.jointtrack import write_poses as write_jts
 from registration.metrics import as_rows, pose_error, summarize
+from registration.overlays import write_overlays
 from registration.poses import BonePose, poses_by_frame, read_poses, write_poses
 
 
@@ -60,33 +70,123 @@ def fluoroscopy_view(geometry_path: Path, frames: Frames, any_count: bool = Fals
     return view
 
 
-def _initial(path: Path | None) -> dict[str, np.ndarray]:
-    """Frame-0 starting poses: the reference (CBCT) pose, or frame 0 of ``path``."""
-    if path is None:
-        return {name: np.eye(4) for name in TRACK_ORDER}
-    _, stacks = poses_by_frame(read_poses(path), TRACK_ORDER)
+BODY_NAMES = {
+    "femur": "femur",
+    "tibia": "tibia_fibula",
+    "tibia_fibula": "tibia_fibula",
+    "patella": "patella",
+}
+"""A body's name as given (``--implant tibia=...``) -> the tracker's (registration.boneaxis)."""
+FILE_NAMES = {"femur": "femur", "tibia_fibula": "tibia", "patella": "patella"}
+"""The tracker's name -> the body's name in file names (``tibia.jts``)."""
+
+
+@dataclass(frozen=True)
+class ImplantSpec:
+    """An implant component to track: which body it stands for (femur, tibia or patella), its
+    mesh file, the mesh's unit and its material (registration.implants)."""
+
+    body: str
+    mesh: Path
+    unit: str = "mm"
+    material: str = "CoCr"
+
+
+def body_name(name: str) -> str:
+    """The tracker's name of a body given as femur, tibia (tibia_fibula) or patella."""
+    if name not in BODY_NAMES:
+        raise ValueError(f"body {name!r}: one of femur, tibia, patella")
+    return BODY_NAMES[name]
+
+
+def _poses_by_body(
+    given: Path | dict[str, Path], bodies: tuple[str, ...], T_world_camera: np.ndarray, what: str
+) -> dict[str, np.ndarray]:
+    """Each body's poses (F, 4, 4), world: from one poses.csv, or per body from a poses.csv
+    or a JointTrack .jts (its camera frame is the view's, :func:`camera_frame`)."""
+    if not isinstance(given, dict):
+        frames, stacks = poses_by_frame(read_poses(given), bodies)
+        if not np.array_equal(frames, np.arange(len(frames))):
+            raise ValueError(f"{given}: {what} poses must number the frames from 0 on")
+        return stacks
+    stacks = {}
+    for name, path in given.items():
+        if name not in bodies:
+            raise ValueError(f"{path}: {what} poses for {name!r}, which is not tracked")
+        if Path(path).suffix.lower() == ".jts":
+            stacks[name] = T_world_camera @ read_jts(path)
+        else:
+            _, found = poses_by_frame(read_poses(path), (name,))
+            stacks[name] = found[name]
+    lacking = [b for b in bodies if b not in stacks]
+    if lacking:
+        raise ValueError(f"no {what} poses for {', '.join(lacking)}")
+    return stacks
+
+
+def _initial(
+    given: Path | dict[str, Path] | None, bodies: tuple[str, ...], T_world_camera: np.ndarray
+) -> dict[str, np.ndarray]:
+    """Frame-0 starting poses: the reference (CBCT or mesh) pose, or frame 0 of ``given``."""
+    if given is None:
+        return {name: np.eye(4) for name in bodies}
+    stacks = _poses_by_body(given, bodies, T_world_camera, "initial")
     return {name: stack[0] for name, stack in stacks.items()}
 
 
-def _truth(path: Path, count: int) -> list[dict[str, np.ndarray]]:
-    """True poses of frames 0..count-1 (ValueError if a frame is missing)."""
-    frames, stacks = poses_by_frame(read_poses(path), TRACK_ORDER)
-    lacking = sorted(set(range(count)) - set(frames.tolist()))
-    if lacking:
-        raise ValueError(f"{path}: no true poses for frame {lacking[0]}")
-    index = {int(f): i for i, f in enumerate(frames)}
-    return [{b: stacks[b][index[k]] for b in TRACK_ORDER} for k in range(count)]
+def _truth(
+    given: Path | dict[str, Path], count: int, bodies: tuple[str, ...], T_world_camera
+) -> list[dict[str, np.ndarray]]:
+    """True (or reference) poses of frames 0..count-1 (ValueError if one is missing)."""
+    stacks = _poses_by_body(given, bodies, T_world_camera, "true")
+    for name, stack in stacks.items():
+        if len(stack) < count:
+            raise ValueError(f"true poses of {name} for {len(stack)} frames, not {count}")
+    return [{b: stacks[b][k] for b in bodies} for k in range(count)]
+
+
+def camera_frame(view: View) -> np.ndarray:
+    """``T_world_camera`` of JointTrack's camera frame of a view: origin at the focal spot,
+    +x along the panel's columns, +y against its rows (up, as the image shows), looking down
+    -z (registration.jointtrack)."""
+    x, y = view.e_u, -view.e_v
+    z = np.cross(x, y)
+    T = np.eye(4)
+    T[:3, :3] = np.column_stack((x, y, z))
+    T[:3, 3] = view.source_mm
+    return T
+
+
+def read_view(frames: Frames, geometry_path: Path | None, calibration_path: Path | None) -> View:
+    """The fluoroscopy view: an RTK geometry (:func:`fluoroscopy_view`) or a JointTrack
+    calibration (its pixel size must be the frames')."""
+    if (geometry_path is None) == (calibration_path is None):
+        raise ValueError("give the fluoroscopy view as one of an RTK geometry or a calibration")
+    if geometry_path is not None:
+        return fluoroscopy_view(geometry_path, frames)
+    rows, cols = frames.data.shape[1:]
+    view = read_calibration(calibration_path, rows, cols)
+    pitch = frames.pixel_pitch_mm[0]
+    if abs(pitch - view.pitch_u_mm) > 1e-6 * pitch:
+        raise ValueError(
+            f"{calibration_path}: pixel size {view.pitch_u_mm} mm, the frames' "
+            f"({frames.header.source}) {pitch} mm"
+        )
+    return view
 
 
 def register_files(
-    volume_path: Path,
-    labels_path: Path,
+    volume_path: Path | None,
+    labels_path: Path | None,
     frames_path: Path,
-    geometry_path: Path,
+    geometry_path: Path | None,
     out: Path,
     *,
-    truth_path: Path | None = None,
-    initial_path: Path | None = None,
+    implants: tuple[ImplantSpec, ...] = (),
+    calibration_path: Path | None = None,
+    polarity: str = "dark",
+    truth_path: Path | dict[str, Path] | None = None,
+    initial_path: Path | dict[str, Path] | None = None,
     pixel_pitch_mm: float | None = None,
     distortion: Distortion | None = None,
     settings: Settings | None = None,
@@ -94,33 +194,56 @@ def register_files(
     unit: StaticUnit | None = None,
     effective_energy_kev: float = DEFAULT_EFFECTIVE_ENERGY_KEV,
 ) -> list[FrameResult]:
-    """``cbct register``: track every bone through every frame and write the results.
+    """``cbct register``: track every body through every frame and write the results.
 
-    Every input is read and checked before the (long) registration starts; ``out`` must not
-    exist and is written only at the end. ``distortion``: the panel's warp, the frames are
-    dewarped with it first (ValueError if it belongs to a panel of another size). The static
-    volume (a file or a DICOM CT series) may be in HU or 1/mm: ``unit`` where the file does
-    not say, HU converted at ``effective_energy_kev`` (recon.static_volume).
+    The bodies: the static scan's bones (a volume and its labels) and implant components
+    (``implants``: their meshes), a component standing for the bone it replaces. The view: an
+    RTK geometry (``geometry_path``) or a JointTrack calibration (``calibration_path``; its
+    pixel size is the frames'). Every input is read and checked before the (long)
+    registration starts; ``out`` must not exist and is written only at the end.
+    ``distortion``: the panel's warp, the frames are dewarped with it first (ValueError if it
+    belongs to a panel of another size). The static volume (a file or a DICOM CT series) may be
+    in HU or 1/mm: ``unit`` where the file does not say, HU converted at
+    ``effective_energy_kev`` (recon.static_volume). ``initial_path`` and ``truth_path``: one
+    poses.csv, or per body a poses.csv or a JointTrack .jts.
     """
     if out.exists():
         raise FileExistsError(f"{out} exists: choose a new output folder")
-    volume, labels, source = load_inputs(volume_path, labels_path, unit, effective_energy_kev)
-    frames = read_frames(frames_path, pixel_pitch_mm)
-    view = fluoroscopy_view(geometry_path, frames)
+    if (volume_path is None) != (labels_path is None):
+        raise ValueError("a static scan needs both its volume and its labels")
+    if volume_path is None and not implants:
+        raise ValueError("nothing to track: give a static scan (volume and labels) or implants")
+    if calibration_path is not None and pixel_pitch_mm is None:
+        pixel_pitch_mm = read_calibration(calibration_path, 1, 1).pitch_u_mm
+    frames = read_frames(frames_path, pixel_pitch_mm, polarity)
+    view = read_view(frames, geometry_path, calibration_path)
     if distortion is not None:
         field = frames.field
         if field is not None:  # pixels the dewarped field fully covers
             field = distortion.undistort(field.astype(np.float32), view.pitch_u_mm) > 0.99
         data = distortion.undistort(frames.data, view.pitch_u_mm)
         frames = replace(frames, data=data, field=field)
-    truth = None if truth_path is None else _truth(truth_path, len(frames.data))
-    start = _initial(initial_path)
-    models = bone_models(volume, labels)
-    _check_in_view(view, models, start, f"{frames.header.source} with {geometry_path}")
-    soft = SoftTissue.of(volume, labels)
+    models, soft, source, meshes = {}, None, None, {}
+    if volume_path is not None:
+        volume, labels, source = load_inputs(volume_path, labels_path, unit, effective_energy_kev)
+        models = bone_models(volume, labels)
+        soft = SoftTissue.of(volume, labels)
+    for spec in implants:
+        name = body_name(spec.body)
+        if spec.material not in MATERIALS:
+            raise ValueError(f"{spec.mesh}: material {spec.material!r}; one of {sorted(MATERIALS)}")
+        mesh, report = read_mesh(spec.mesh, spec.unit)
+        models[name] = implant_model(name, mesh, MATERIALS[spec.material])
+        meshes[name] = {**asdict(report), "material": spec.material}
+    bodies = tuple(b for b in TRACK_ORDER if b in models)
+    T_world_camera = camera_frame(view)
+    count = len(frames.data)
+    truth = None if truth_path is None else _truth(truth_path, count, bodies, T_world_camera)
+    start = _initial(initial_path, bodies, T_world_camera)
+    _check_in_view(view, models, start, f"{frames.header.source} with the view")
     tracker = Tracker(view, frames.data, models, settings, soft, frames.field)
     results = tracker.track(start, progress=progress)
-    _write(out, results, models, view, tracker, truth, distortion, source, frames)
+    _write(out, results, models, view, tracker, truth, distortion, source, frames, meshes)
     return results
 
 
@@ -152,8 +275,9 @@ def _write(
     tracker: Tracker,
     truth,
     distortion,
-    source: StaticSource,
+    source: StaticSource | None,
     frames: Frames,
+    meshes: dict[str, dict],
 ) -> None:
     out.mkdir(parents=True)
     if distortion is not None:
@@ -165,6 +289,11 @@ def _write(
         for name, b in r.bones.items()
     ]
     write_poses(out / "poses.csv", poses, centroids)
+    T_camera_world = np.linalg.inv(camera_frame(view))
+    for name in models:  # JointTrack's poses, in its camera frame of the view
+        stack = [T_camera_world @ r.bones[name].pose for r in results]
+        write_jts(out / f"{FILE_NAMES[name]}.jts", stack)
+    write_overlays(out / "overlays", frames.data, view, models, results)
     per_frame = [
         {
             "frame": r.frame,
@@ -179,7 +308,8 @@ def _write(
         for name, b in r.bones.items()
     ]
     report = {
-        "static_volume": source.summary(),
+        "static_volume": None if source is None else source.summary(),
+        "implants": meshes,
         "fluoroscopy": {"source": frames.header.source, "values": frames.stand_in},
         "settings": tracker.settings.model_dump(),
         "frame_blur_mm": tracker.frame_blur_mm,

@@ -26,7 +26,7 @@ from recon.attenuation import DEFAULT_EFFECTIVE_ENERGY_KEV
 from recon.config import load_config
 from recon.distortion import Distortion
 from registration.boneaxis import Settings
-from registration.track import register_files
+from registration.track import ImplantSpec, body_name, register_files
 from scanner.backends import load_backend_spec
 from scanner.cli import CONFIGS, app, console, fail, views_done, views_progress
 from scanner.scan import Progress as ScanProgress
@@ -442,22 +442,57 @@ def export(
 
 @app.command()
 def register(
-    volume: Annotated[
+    frames: Annotated[
         Path,
-        typer.Option(help="static scan: .nii.gz, .nii, .mha, or a DICOM CT series folder"),
+        typer.Option(
+            help="fluoroscopy: .mha stack, DICOM file or folder, TIFF/PNG images "
+            "(a file, a folder or a quoted glob)"
+        ),
     ],
-    labels: Annotated[Path, typer.Option(help="its bone labels on the same grid")],
-    frames: Annotated[Path, typer.Option(help="fluoroscopy: .mha stack, DICOM file or folder")],
-    geometry: Annotated[Path, typer.Option(help="the fluoroscopy view, RTK geometry XML")],
     out: Annotated[Path, typer.Option(help="new output folder")],
+    volume: Annotated[
+        Path | None,
+        typer.Option(help="static scan: .nii.gz, .nii, .mha, or a DICOM CT series folder"),
+    ] = None,
+    labels: Annotated[Path | None, typer.Option(help="its bone labels on the same grid")] = None,
+    implant: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="BODY=MESH: an implant component standing for the femur, tibia or "
+            "patella (STL, OBJ or PLY); repeatable"
+        ),
+    ] = None,
+    material: Annotated[
+        list[str] | None,
+        typer.Option(help="BODY=MATERIAL of an implant: CoCr (default), Ti6Al4V; repeatable"),
+    ] = None,
+    implant_unit: Annotated[str, typer.Option(help="the meshes' unit: mm, cm, m or in")] = "mm",
+    geometry: Annotated[
+        Path | None, typer.Option(help="the fluoroscopy view, RTK geometry XML")
+    ] = None,
+    calibration: Annotated[
+        Path | None,
+        typer.Option(help="the fluoroscopy view as a JointTrack calibration (JT_INTCALIB)"),
+    ] = None,
+    polarity: Annotated[
+        str, typer.Option(help="images: attenuation dark (fluoroscopy's display) or bright")
+    ] = "dark",
     truth: Annotated[
-        Path | None, typer.Option(help="true poses.csv: also write metrics.json")
+        list[str] | None,
+        typer.Option(
+            help="true poses: a poses.csv, or BODY=FILE (poses.csv or JointTrack "
+            ".jts) per body; also write metrics.json"
+        ),
     ] = None,
     initial: Annotated[
-        Path | None, typer.Option(help="poses.csv whose first frame starts the search")
+        list[str] | None,
+        typer.Option(
+            help="the first frame's start: a poses.csv, or BODY=FILE (poses.csv or "
+            ".jts whose first row is frame 0) per body"
+        ),
     ] = None,
     pixel_pitch_mm: Annotated[
-        float | None, typer.Option(help="panel pitch for DICOM frames without one, mm")
+        float | None, typer.Option(help="panel pitch for frames without one, mm")
     ] = None,
     distortion: Annotated[
         Path | None, typer.Option(help="the panel's distortion (cbct calibrate-fluoro)")
@@ -472,13 +507,23 @@ def register(
         float, typer.Option(help="effective energy HU are converted to 1/mm at, keV")
     ] = DEFAULT_EFFECTIVE_ENERGY_KEV,
 ) -> None:
-    """Track femur, tibia-fibula and patella through a fluoroscopy sequence (BoneAxis-Reg)."""
+    """Track the knee's bones (from a static scan) or its implant components (from their
+    meshes) through a fluoroscopy sequence (BoneAxis-Reg)."""
     if out.exists():
         fail(f"{out} exists: choose a new output folder (nothing is overwritten)")
     units = {"hu": "HU", "1/mm": "1/mm"}
     if unit is not None and unit.lower() not in units:
         fail(f"--unit {unit!r}: give hu (CT numbers) or 1/mm (linear attenuation)")
     try:
+        meshes = _body_files("--implant", implant)
+        materials = _body_words("--material", material)
+        lacking = sorted(set(materials) - set(meshes))
+        if lacking:
+            fail(f"--material {lacking[0]}=...: {lacking[0]} has no --implant")
+        implants = tuple(
+            ImplantSpec(body, path, implant_unit, materials.get(body, "CoCr"))
+            for body, path in meshes.items()
+        )
         chosen = load_config(settings, Settings)
         warp = None if distortion is None else Distortion.read(distortion)
         bar = Progress(
@@ -497,8 +542,11 @@ def register(
                 frames,
                 geometry,
                 out,
-                truth_path=truth,
-                initial_path=initial,
+                implants=implants,
+                calibration_path=calibration,
+                polarity=polarity,
+                truth_path=_poses_given("--truth", truth),
+                initial_path=_poses_given("--initial", initial),
                 pixel_pitch_mm=pixel_pitch_mm,
                 distortion=warp,
                 settings=chosen,
@@ -510,13 +558,47 @@ def register(
         fail(str(err))
     failed = sum(b.failed for r in results for b in r.bones.values())
     line = f"[green]wrote[/] {out / 'poses.csv'}: {len(results)} frames, {failed} flagged"
-    if truth is not None:
+    if truth:
         metrics = json.loads((out / "metrics.json").read_text(encoding="utf-8"))
         line += (
             f"; TRE mean {metrics['tre_mm']:.2f} mm (median {metrics['tre_mm_median']:.2f}), "
             f"RSR {metrics['rsr_pct']:.1f} %"
         )
     console.print(line, soft_wrap=True, highlight=False)
+    console.print(
+        f"  JointTrack poses beside it ({', '.join(sorted(p.name for p in out.glob('*.jts')))}), "
+        f"overlays in {out / 'overlays'}",
+        soft_wrap=True,
+        highlight=False,
+    )
+
+
+def _body_words(option: str, given: list[str] | None) -> dict[str, str]:
+    """``BODY=VALUE`` options as the tracker's body name -> value; ValueError naming the
+    option and the value otherwise."""
+    out: dict[str, str] = {}
+    for item in given or ():
+        body, sep, value = item.partition("=")
+        if not sep or not value:
+            raise ValueError(f"{option} {item!r}: give BODY=VALUE, e.g. femur=...")
+        name = body_name(body.strip())
+        if name in out:
+            raise ValueError(f"{option}: {body} given twice")
+        out[name] = value.strip()
+    return out
+
+
+def _body_files(option: str, given: list[str] | None) -> dict[str, Path]:
+    return {body: Path(value) for body, value in _body_words(option, given).items()}
+
+
+def _poses_given(option: str, given: list[str] | None) -> Path | dict[str, Path] | None:
+    """One poses file, or ``BODY=FILE`` per body."""
+    if not given:
+        return None
+    if len(given) == 1 and "=" not in given[0]:
+        return Path(given[0])
+    return _body_files(option, given)
 
 
 @app.command()

@@ -1,0 +1,69 @@
+"""QA a user can see: every frame with each tracked body's outline at its registered pose.
+
+``overlays/frame_NNNN.png``: the frame as fluoroscopy shows it (attenuation dark), each body's
+silhouette outline drawn over it in its colour (femur orange, tibia cyan, patella magenta), a
+failed registration's dashed. A component's silhouette is exact (the pixels whose ray meets its
+mesh); a bone's is its DRR's support (the objective's silhouette threshold).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import SimpleITK as sitk
+from scipy.ndimage import binary_erosion
+
+from recon.geometry import View
+from registration.implants import ImplantModel, ray_lengths
+
+COLOURS = {
+    "femur": (255, 150, 30),
+    "tibia_fibula": (40, 210, 255),
+    "patella": (240, 60, 240),
+}
+"""Outline colour of each body (RGB)."""
+BONE_SILHOUETTE = 0.02
+"""A bone's DRR above this (line integral) is its silhouette (as the objective's)."""
+
+
+def silhouette(model, view: View, T_world_body: np.ndarray) -> np.ndarray:
+    """The pixels of ``view`` the body at ``T_world_body`` covers, bool (rows, cols)."""
+    if isinstance(model, ImplantModel):
+        return ray_lengths(view, model.vertices_mm, model.faces, T_world_body) > 0.0
+    return model.render(view, T_world_body) > BONE_SILHOUETTE
+
+
+def outline(mask: np.ndarray) -> np.ndarray:
+    """The boundary pixels of a silhouette (inside, next to outside)."""
+    return mask & ~binary_erosion(mask, border_value=0)
+
+
+def overlay(frame: np.ndarray, outlines: dict[str, tuple[np.ndarray, bool]]) -> np.ndarray:
+    """An RGB image (rows, cols, 3) uint8: ``frame`` (0..1 attenuation stand-in) shown dark
+    where it attenuates, each body's outline in its colour (dashed where ``failed``)."""
+    grey = np.clip(1.0 - frame, 0.0, 1.0)
+    rgb = np.repeat((255.0 * grey).astype(np.uint8)[..., None], 3, axis=2)
+    rows, cols = np.indices(frame.shape)
+    for name, (line, failed) in outlines.items():
+        draw = line & ((rows + cols) % 6 < 3) if failed else line
+        rgb[draw] = COLOURS.get(name, (255, 255, 0))
+    return rgb
+
+
+def write_overlays(
+    folder: Path, frames: np.ndarray, view: View, models: dict, results: Sequence
+) -> list[Path]:
+    """One PNG per frame into the new ``folder`` (registration.boneaxis.FrameResult each)."""
+    folder.mkdir(parents=True)
+    written = []
+    for result in results:
+        outlines = {
+            name: (outline(silhouette(models[name], view, bone.pose)), bone.failed)
+            for name, bone in result.bones.items()
+        }
+        path = folder / f"frame_{result.frame:04d}.png"
+        sitk.WriteImage(sitk.GetImageFromArray(overlay(frames[result.frame], outlines), True), path)
+        written.append(path)
+    return written
