@@ -20,6 +20,18 @@ Two regimes (SYSTEM.md, issue "4D virtual imaging"):
   third sequence keeps the tibia still (sim.motion.flexion_extension: the femur flexes over
   it). No panel distortion, no dewarp.
 
+- ``real_tka``: real fluoroscopy. JTML's 16 flat-panel frames of a left knee replacement
+  (``../shared/data/tka-fluoro-jtml``: 8-bit, implants dark, shutter bars), its calibration and
+  the two components' meshes (CoCr); both components tracked from frame 0 started at the
+  reference poses (another program's single-plane estimates) moved by up to +-5 mm / +-5 deg
+  per axis in the image plane and +-20 mm in depth, one start per ``--seeds`` seed, with the
+  implant settings (configs/registration_implants.yaml). Reported per component: the medians
+  of the differences from the reference along the camera's axes (in-plane, depth, rotation),
+  the Dice of our silhouettes with JTML's masks (which are the reference poses' own
+  silhouettes: agreement with the reference, not with the image), how far the outlines sit
+  from the frame's Canny edges (sigma 2 px) beside the reference poses' outlines, the frames
+  tracked and the seconds per frame.
+
 In the first two regimes the frames are dewarped first (calibration.distortion), with the warp
 fitted to one exposure of the dewarp grid through the same image model as the frames
 (``--no-dewarp`` registers the distorted frames as they are); ``dewarp_rms_mm`` is the fit's
@@ -49,12 +61,13 @@ from pathlib import Path
 
 import numba
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from calibration.distortion import DewarpGridSpec, fit_distortion  # noqa: E402
-from recon.config import load_protocol  # noqa: E402
+from recon.config import load_config, load_protocol  # noqa: E402
 from recon.distortion import Distortion  # noqa: E402
 from recon.fdk import fdk_reconstruct  # noqa: E402
 from recon.geometry import DetectorSpec  # noqa: E402
@@ -62,7 +75,17 @@ from recon.rtk_peer import rtk_forward_project  # noqa: E402
 from recon.volume import Volume, VolumeGrid  # noqa: E402
 from registration.boneaxis import Settings, Tracker, compose  # noqa: E402
 from registration.drr import SoftTissue, bone_models, scene  # noqa: E402
-from registration.metrics import pose_error, summarize  # noqa: E402
+from registration.frames import read_frames  # noqa: E402
+from registration.implants import MATERIALS, implant_model, read_mesh  # noqa: E402
+from registration.jointtrack import read_calibration  # noqa: E402
+from registration.jointtrack import read_poses as read_jts  # noqa: E402
+from registration.metrics import (  # noqa: E402
+    camera_differences,
+    edge_fit_px,
+    pose_error,
+    summarize,
+)
+from registration.overlays import silhouette  # noqa: E402
 from registration.segment import segment_bones  # noqa: E402
 from sim.fluoro import (  # noqa: E402
     DISTORTION_MAX_MM,
@@ -227,7 +250,100 @@ def drr_ms_256(models, view) -> float:
     return (time.perf_counter() - started) / 20 * 1000.0
 
 
-REGIMES = ("matched", "independent", "cross_renderer")
+REGIMES = ("matched", "independent", "cross_renderer", "real_tka")
+TKA_DATA = ROOT.parent / "shared" / "data" / "tka-fluoro-jtml"
+TKA_COMPONENTS = {
+    "femur": ("KR_left_8_fem.stl", "fem"),
+    "tibia_fibula": ("KR_left_8_tib.stl", "tib"),
+}
+"""The JTML components: the tracker's body -> (mesh, JTML's short name)."""
+
+
+def real_tka(seeds: list[int]) -> dict:
+    """The ``real_tka`` regime's entry (see the module docstring)."""
+    if not TKA_DATA.is_dir():
+        return {"regime": "real_tka", "skipped": f"no data at {TKA_DATA}"}
+    import SimpleITK as sitk
+
+    files = sorted(TKA_DATA.glob("HL_V1_K1_*.tif"))
+    calibration = TKA_DATA / "calibration.txt"
+    pitch = read_calibration(calibration, 1, 1).pitch_u_mm
+    frames = read_frames(str(TKA_DATA / "HL_V1_K1_*.tif"), pitch)
+    view = read_calibration(calibration, *frames.data.shape[1:])
+    settings = load_config(ROOT / "configs" / "registration_implants.yaml", Settings)
+    models, reference, masks = {}, {}, {}
+    for name, (stl, short) in TKA_COMPONENTS.items():
+        mesh, _ = read_mesh(TKA_DATA / stl)
+        models[name] = implant_model(name, mesh, MATERIALS["CoCr"])
+        reference[name] = read_jts(TKA_DATA / f"{short}.jts")
+        masks[name] = [
+            sitk.GetArrayFromImage(
+                sitk.ReadImage(str(TKA_DATA / "Labels" / short / f"{f.stem}_label_{short}.tif"))
+            ).reshape(frames.data.shape[1:])
+            > 0
+            for f in files
+        ]
+    images = [
+        sitk.GetArrayFromImage(sitk.ReadImage(str(f))).reshape(masks["femur"][0].shape)
+        for f in files
+    ]
+    reference_fit = {
+        name: [
+            edge_fit_px(images[k], silhouette(models[name], view, reference[name][k]))
+            for k in range(len(files))
+        ]
+        for name in models
+    }
+    camera = np.eye(4)  # the calibration's view is in JointTrack's camera frame
+    rows = {name: [] for name in models}
+    seconds, first, failed = [], [], 0
+    for seed in seeds:
+        rng = np.random.default_rng(seed)
+        start = {}
+        for name, model in models.items():
+            shift = rng.uniform([-5, -5, -20, -5, -5, -5], [5, 5, 20, 5, 5, 5])
+            T = np.eye(4)
+            T[:3, :3] = Rotation.from_rotvec(np.radians(shift[3:])).as_matrix()
+            c = reference[name][0][:3, :3] @ model.centroid_mm + reference[name][0][:3, 3]
+            T[:3, 3] = c + shift[:3] - T[:3, :3] @ c  # turned about the centroid, then moved
+            start[name] = T @ reference[name][0]
+        log(f"real_tka seed {seed}: tracking {len(files)} frames")
+        results = Tracker(view, frames.data, models, settings, None, frames.field).track(start)
+        first.append(sum(b.seconds for b in results[0].bones.values()))
+        seconds += [sum(b.seconds for b in r.bones.values()) for r in results[1:]]
+        for r in results:
+            for name, bone in r.bones.items():
+                failed += bone.failed
+                k = r.frame
+                d = camera_differences(
+                    bone.pose, reference[name][k], models[name].centroid_mm, camera
+                )
+                ours = silhouette(models[name], view, bone.pose)
+                mask = masks[name][k]
+                dice = 2.0 * (ours & mask).sum() / (ours.sum() + mask.sum())
+                rows[name].append((*d, dice, edge_fit_px(images[k], ours), reference_fit[name][k]))
+    entry = {"regime": "real_tka", "seeds": seeds, "frames": len(files)}
+    for name, data in rows.items():
+        a = np.array(data)
+        entry[name] = {
+            "in_plane_mm_median": round(float(np.median(np.hypot(a[:, 0], a[:, 1]))), 3),
+            "depth_mm_median": round(float(np.median(np.abs(a[:, 2]))), 3),
+            "rotation_deg_median": round(float(np.median(np.linalg.norm(a[:, 3:6], axis=1))), 3),
+            "per_axis_median_abs": {
+                axis: round(float(np.median(np.abs(a[:, i]))), 3)
+                for i, axis in enumerate(("x_mm", "y_mm", "z_mm", "rx_deg", "ry_deg", "rz_deg"))
+            },
+            "depth_mm_median_signed": round(float(np.median(a[:, 2])), 3),
+            "dice_with_masks_median": round(float(np.median(a[:, 6])), 4),
+            "dice_with_masks_min": round(float(a[:, 6].min()), 4),
+            "edge_distance_px_median": round(float(np.median(a[:, 7])), 3),
+            "reference_edge_distance_px_median": round(float(np.median(a[:, 8])), 3),
+        }
+    entry["registrations_failed"] = int(failed)
+    entry["s_per_frame"] = round(float(np.mean(seconds)), 3)
+    entry["s_first_frame"] = round(float(np.mean(first)), 3)
+    entry["settings"] = settings.model_dump()
+    return entry
 
 
 def static_scan(regime: str) -> tuple[KneePhantomSpec, Volume, Volume]:
@@ -288,6 +404,9 @@ def main() -> None:
     parser.add_argument("--max-flexion", type=float, default=90.0, help="peak flexion, deg")
     parser.add_argument("--quick", action="store_true")
     parser.add_argument(
+        "--seeds", type=int, nargs="+", default=[0, 1, 2], help="real_tka: one start per seed"
+    )
+    parser.add_argument(
         "--no-dewarp", action="store_true", help="register the distorted frames as they are"
     )
     args = parser.parse_args()
@@ -297,6 +416,10 @@ def main() -> None:
     photons = 2.0e4 * (detector.pixel_pitch_mm / 0.3) ** 2
     entries = []
     for regime in args.regimes:
+        if regime == "real_tka":
+            entries.append(real_tka(args.seeds))
+            log(f"real_tka: {json.dumps(entries[-1])}")
+            continue
         log(f"regime {regime}: bone models")
         spec, volume, labels = static_scan(regime)
         view = lateral_view(spec, detector)

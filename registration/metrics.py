@@ -104,3 +104,30 @@ def summarize(
 def as_rows(errors: list[PoseError]) -> list[dict]:
     """Per-registration rows (for a metrics file)."""
     return [asdict(e) for e in errors]
+
+
+def camera_differences(
+    estimated: np.ndarray, reference: np.ndarray, centroid_mm: np.ndarray, T_world_camera
+) -> np.ndarray:
+    """``estimated`` minus ``reference`` along the camera's axes (registration.track's
+    camera_frame: x, y in the image plane, z along the view, towards the source): the body's
+    centroid (mm) and the rotation taking the reference to the estimate, as a rotation vector
+    about those axes (deg), (6,)."""
+    T_camera_world = np.linalg.inv(T_world_camera)
+    moved = [T_camera_world @ T for T in (estimated, reference)]
+    centre = [T[:3, :3] @ centroid_mm + T[:3, 3] for T in moved]
+    turn = Rotation.from_matrix(moved[0][:3, :3] @ moved[1][:3, :3].T).as_rotvec(degrees=True)
+    return np.concatenate((centre[0] - centre[1], turn))
+
+
+def edge_fit_px(image: np.ndarray, silhouette: np.ndarray, sigma_px: float = 2.0) -> float:
+    """How well a silhouette's outline sits on the image's edges: the mean distance (pixels)
+    from its outline pixels to the nearest edge a Canny detector finds at ``sigma_px``."""
+    from scipy.ndimage import binary_erosion, distance_transform_edt
+    from skimage.feature import canny
+
+    edges = canny(np.asarray(image, dtype=np.float64), sigma=sigma_px)
+    outline = silhouette & ~binary_erosion(silhouette, border_value=0)
+    if not edges.any() or not outline.any():
+        return float("nan")
+    return float(distance_transform_edt(~edges)[outline].mean())
