@@ -259,8 +259,10 @@ TKA_COMPONENTS = {
 """The JTML components: the tracker's body -> (mesh, JTML's short name)."""
 
 
-def real_tka(seeds: list[int]) -> dict:
-    """The ``real_tka`` regime's entry (see the module docstring)."""
+def real_tka(seeds: list[int], settings: Settings | None = None, supersample: int = 3) -> dict:
+    """The ``real_tka`` regime's entry (see the module docstring); ``settings`` default to
+    configs/registration_implants.yaml, ``supersample``: the components' rays per pixel per
+    axis (registration.implants.ImplantModel)."""
     if not TKA_DATA.is_dir():
         return {"regime": "real_tka", "skipped": f"no data at {TKA_DATA}"}
     import SimpleITK as sitk
@@ -270,11 +272,12 @@ def real_tka(seeds: list[int]) -> dict:
     pitch = read_calibration(calibration, 1, 1).pitch_u_mm
     frames = read_frames(str(TKA_DATA / "HL_V1_K1_*.tif"), pitch)
     view = read_calibration(calibration, *frames.data.shape[1:])
-    settings = load_config(ROOT / "configs" / "registration_implants.yaml", Settings)
+    if settings is None:
+        settings = load_config(ROOT / "configs" / "registration_implants.yaml", Settings)
     models, reference, masks = {}, {}, {}
     for name, (stl, short) in TKA_COMPONENTS.items():
         mesh, _ = read_mesh(TKA_DATA / stl)
-        models[name] = implant_model(name, mesh, MATERIALS["CoCr"])
+        models[name] = implant_model(name, mesh, MATERIALS["CoCr"], supersample=supersample)
         reference[name] = read_jts(TKA_DATA / f"{short}.jts")
         masks[name] = [
             sitk.GetArrayFromImage(

@@ -40,7 +40,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -99,6 +99,9 @@ which carries its share of the tissue from its pose in the deformation (to first
 FRAME_BLUR_MM = np.arange(0.0, 3.01, 0.5)
 """Candidate blurs of the frames along each panel axis (Gaussian sigma, mm) for resolution
 matching."""
+MODEL_BLUR_MM = np.arange(0.0, 1.21, 0.15)
+"""Candidate blurs of a mesh's sharp render (Gaussian sigma at the panel, mm): the imaging
+chain's (focal spot, panel, video) that the frames carry."""
 
 
 class OutOfView(ValueError):
@@ -529,6 +532,7 @@ class Tracker:
         for a blur given in the settings). The blur is the CBCT's, so it turns with the bone."""
         self._last_ncc: dict[str, float] = {}
         self._outside: dict[int, np.ndarray] = {}
+        self._extensions: dict[int, np.ndarray] = {}
         """Per pyramid level: the pixels outside the exposed field (:meth:`_outside_field`)."""
 
     def _sigma_px(self, level: int) -> float:
@@ -552,10 +556,7 @@ class Tracker:
         if key not in self._targets:
             blurred = key[:1] + key[2:]
             if blurred not in self._blurred:  # shared by the levels
-                image = self.frames[frame]
-                if self.field is not None:  # no step at the field's edge for the filters
-                    sigma = self.settings.highpass_mm / self.view.pitch_u_mm
-                    image = _extend_into(image, self.field, sigma)
+                image = self._extended(frame)
                 sigma_px = (blur_mm[0] / self.view.pitch_u_mm, blur_mm[1] / self.view.pitch_v_mm)
                 if turn_deg:
                     image = turned_gaussian(image, sigma_px, math.radians(turn_deg))
@@ -572,6 +573,17 @@ class Tracker:
                 )
             self._targets[key] = highpass(image, self._sigma_px(level))
         return self._targets[key]
+
+    def _extended(self, frame: int) -> np.ndarray:
+        """The frame, extended smoothly beyond the exposed field (no step at the field's edge
+        for the filters), once per frame."""
+        if self.field is None:
+            return self.frames[frame]
+        if frame not in self._extensions:
+            self._extensions.clear()  # one frame at a time
+            sigma = self.settings.highpass_mm / self.view.pitch_u_mm
+            self._extensions[frame] = _extend_into(self.frames[frame], self.field, sigma)
+        return self._extensions[frame]
 
     def _coarse(self, level: int, name: str) -> bool:
         """Render with the pooled volumes when a pixel spans two voxels at the bone."""
@@ -1023,11 +1035,15 @@ class Tracker:
         """Per bone, the blur of the frames along (u, v) that maximises its NCC at ``poses``:
         the best pair on the :data:`FRAME_BLUR_MM` grid, each axis refined by a parabola
         through its neighbours. The DRRs carry the CBCT's blur, the panel does not, and the
-        mismatch biases depth. Re-scores ``result``."""
+        mismatch biases depth. A mesh's render is sharper than any frame: its own blur is
+        matched instead (:meth:`_match_model_blur`). Re-scores ``result``."""
         level, grid = self.levels[-1], FRAME_BLUR_MM
         pairs = [(float(u), float(v)) for u in grid for v in grid]
         for name, bone in result.bones.items():
             if math.isnan(bone.ncc):
+                continue
+            if hasattr(self.bones[name], "blur_mm"):
+                self._match_model_blur(frame, name, poses, bone)
                 continue
             objective = self._objective(frame, level, name, poses)
             image = objective.image(poses[name])
@@ -1048,6 +1064,23 @@ class Tracker:
         chosen = set(self.frame_blur_mm.values())
         self._targets = {k: t for k, t in self._targets.items() if k[2] in chosen}
         self._blurred = {k: b for k, b in self._blurred.items() if k[1] in chosen}
+
+    def _match_model_blur(
+        self, frame: int, name: str, poses: dict[str, np.ndarray], bone: BoneResult
+    ) -> None:
+        """A mesh body's render blur (:data:`MODEL_BLUR_MM`, refined by a parabola) that
+        maximises its NCC at ``poses`` against the unblurred frame; re-scores ``bone``."""
+        level, grid = self.levels[-1], MODEL_BLUR_MM
+        body = self.bones[name]
+        scores = []
+        for blur in grid:
+            self.bones[name] = replace(body, blur_mm=float(blur))
+            objective = self._objective(frame, level, name, poses)
+            scores.append(objective.scores(poses[name])[0])
+        best = int(np.argmax(scores))
+        self.bones[name] = replace(body, blur_mm=_parabola_peak(grid, np.array(scores), best))
+        bone.scored(*self._score(frame, name, poses), self.settings.fail_ncc)
+        self._last_ncc[name] = bone.ncc
 
     def _place(
         self, frame: int, name: str, poses: dict[str, np.ndarray], history

@@ -20,6 +20,7 @@ from pathlib import Path
 import numba
 import numpy as np
 import trimesh
+from scipy.ndimage import gaussian_filter
 
 from recon.geometry import View
 from recon.volume import VolumeGrid
@@ -209,6 +210,8 @@ class ImplantModel:
             inside), in its frame: the TRE's and the principal axes' (N, 3).
         centroid_mm: their mean (rotations of the 6-DoF parameterisation are about it).
         supersample: rays per pixel along each axis.
+        blur_mm: Gaussian sigma of the imaging chain (focal spot, panel, video) at the panel,
+            mm, the render is blurred by (the tracker matches it to the frames).
     """
 
     name: str
@@ -218,6 +221,7 @@ class ImplantModel:
     points_mm: np.ndarray
     centroid_mm: np.ndarray
     supersample: int = 3
+    blur_mm: float = 0.0
 
     def voxel_mm(self) -> float:
         """A mesh has no voxels to pool: never rendered coarse."""
@@ -235,6 +239,8 @@ class ImplantModel:
         uv, coef, A = _projected(view, self.vertices_mm, self.faces, T_world_body)
         out = np.zeros((view.rows, view.cols), dtype=np.float32)
         _render(uv, coef, A, self.supersample, self.mu_per_mm, out)
+        if self.blur_mm > 0.0:
+            gaussian_filter(out, self.blur_mm / view.pitch_u_mm, output=out, mode="constant")
         return out
 
 
@@ -255,10 +261,6 @@ def _projected(
     """Each face's corners in pixel coordinates (T, 3, 2); per face the ray's crossing
     ``t = coef[3] / (coef[:3] . (u, v, 1))`` (``t`` = 1 on the panel); and ``A``, a sample
     (u, v)'s ray direction ``A (u, v, 1)``."""
-    X = vertices_mm @ T_world_body[:3, :3].T + T_world_body[:3, 3]
-    P = view.matrix
-    h = X @ P[:, :3].T + P[:, 3]
-    uv = h[:, :2] / h[:, 2:3]
     A = np.column_stack(
         (
             view.pitch_u_mm * view.e_u,
@@ -266,10 +268,45 @@ def _projected(
             view.detector_origin_mm - view.source_mm,
         )
     )
-    tri = X[faces]
-    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    coef = np.column_stack((normal @ A, np.einsum("ij,ij->i", normal, tri[:, 0] - view.source_mm)))
-    return uv[faces], coef, A
+    M = np.ascontiguousarray(T_world_body[:3], dtype=np.float64)
+    uv, coef = _project_faces(vertices_mm, faces, M, view.matrix, A, view.source_mm)
+    return uv, coef, A
+
+
+@numba.njit(cache=True)
+def _project_faces(vertices, faces, M, P, A, source):  # pragma: no cover
+    """The corners of each face moved by ``M`` (3 x 4) and projected by ``P``, and its
+    crossing coefficients (:func:`_projected`)."""
+    n = vertices.shape[0]
+    X = np.empty((n, 3))
+    uv_v = np.empty((n, 2))
+    for i in range(n):
+        for r in range(3):
+            X[i, r] = M[r, 0] * vertices[i, 0] + M[r, 1] * vertices[i, 1] + M[r, 2] * vertices[i, 2]
+            X[i, r] += M[r, 3]
+        w = P[2, 0] * X[i, 0] + P[2, 1] * X[i, 1] + P[2, 2] * X[i, 2] + P[2, 3]
+        for r in range(2):
+            h = P[r, 0] * X[i, 0] + P[r, 1] * X[i, 1] + P[r, 2] * X[i, 2] + P[r, 3]
+            uv_v[i, r] = h / w
+    m = faces.shape[0]
+    uv = np.empty((m, 3, 2))
+    coef = np.empty((m, 4))
+    for f in range(m):
+        a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+        for k in range(3):
+            corner = faces[f, k]
+            uv[f, k, 0] = uv_v[corner, 0]
+            uv[f, k, 1] = uv_v[corner, 1]
+        e1 = X[b] - X[a]
+        e2 = X[c] - X[a]
+        nx = e1[1] * e2[2] - e1[2] * e2[1]
+        ny = e1[2] * e2[0] - e1[0] * e2[2]
+        nz = e1[0] * e2[1] - e1[1] * e2[0]
+        for k in range(3):
+            coef[f, k] = nx * A[0, k] + ny * A[1, k] + nz * A[2, k]
+        coef[f, 3] = nx * (X[a, 0] - source[0]) + ny * (X[a, 1] - source[1])
+        coef[f, 3] += nz * (X[a, 2] - source[2])
+    return uv, coef
 
 
 @numba.njit(cache=True)
