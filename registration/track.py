@@ -39,6 +39,7 @@ from registration.implants import MATERIALS, implant_model, read_mesh
 from registration.jointtrack import read_calibration
 from registration.jointtrack import read_poses as read_jts
 from registration.jointtrack import write_poses as write_jts
+from registration.mayacam import is_mayacam, read_mayacam
 from registration.metrics import as_rows, pose_error, summarize
 from registration.overlays import write_overlays
 from registration.poses import BonePose, poses_by_frame, read_poses, write_poses
@@ -158,15 +159,24 @@ def camera_frame(view: View) -> np.ndarray:
 
 
 def read_view(frames: Frames, geometry_path: Path | None, calibration_path: Path | None) -> View:
-    """The fluoroscopy view: an RTK geometry (:func:`fluoroscopy_view`) or a JointTrack
-    calibration (its pixel size must be the frames')."""
+    """The fluoroscopy view: an RTK geometry (:func:`fluoroscopy_view`), a JointTrack
+    calibration (its pixel size must be the frames') or an XMALab/Autoscoper MayaCam 2.0 (its
+    image size must be the frames')."""
     if (geometry_path is None) == (calibration_path is None):
         raise ValueError("give the fluoroscopy view as one of an RTK geometry or a calibration")
     if geometry_path is not None:
         return fluoroscopy_view(geometry_path, frames)
     rows, cols = frames.data.shape[1:]
-    view = read_calibration(calibration_path, rows, cols)
     pitch = frames.pixel_pitch_mm[0]
+    if is_mayacam(calibration_path):
+        view = read_mayacam(calibration_path, pitch)
+        if (view.rows, view.cols) != (rows, cols):
+            raise ValueError(
+                f"{calibration_path}: image size {view.rows} x {view.cols}, the frames' "
+                f"({frames.header.source}) {rows} x {cols}"
+            )
+        return view
+    view = read_calibration(calibration_path, rows, cols)
     if abs(pitch - view.pitch_u_mm) > 1e-6 * pitch:
         raise ValueError(
             f"{calibration_path}: pixel size {view.pitch_u_mm} mm, the frames' "
@@ -214,6 +224,11 @@ def register_files(
     if volume_path is None and not implants:
         raise ValueError("nothing to track: give a static scan (volume and labels) or implants")
     if calibration_path is not None and pixel_pitch_mm is None:
+        if is_mayacam(calibration_path):
+            raise ValueError(
+                f"{calibration_path}: a MayaCam calibration does not give the panel's pixel "
+                "pitch: give it (--pixel-pitch-mm)"
+            )
         pixel_pitch_mm = read_calibration(calibration_path, 1, 1).pitch_u_mm
     frames = read_frames(frames_path, pixel_pitch_mm, polarity)
     view = read_view(frames, geometry_path, calibration_path)

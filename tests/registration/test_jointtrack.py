@@ -62,3 +62,30 @@ def test_bad_files_are_refused_with_the_line_named(tmp_path):
             .binned(2)
             .transformed(np.diag([1.0, -1.0, -1.0, 1.0])),
         )
+
+
+def test_a_mayacam_projects_as_opencvs_k_r_t(tmp_path):
+    """XMALab's MayaCam 2.0: x_cam = R X + t, (u, v) = (fx x / z + cx, fy y / z + cy)."""
+    from registration.mayacam import read_mayacam
+
+    rng = np.random.default_rng(3)
+    R = Rotation.random(random_state=rng).as_matrix()
+    t = np.array([12.0, -30.0, 900.0])
+    K = np.array([[2900.0, 0.0, 500.0], [0.0, 2900.0, 530.0], [0.0, 0.0, 1.0]])
+    text = "image size\n1000,1024\n\ncamera matrix\n"
+    text += "\n".join(",".join(repr(float(v)) for v in row) for row in K)
+    text += "\n\nrotation\n" + "\n".join(",".join(repr(float(v)) for v in row) for row in R)
+    text += "\n\ntranslation\n" + "\n".join(repr(float(v)) for v in t) + "\n"
+    path = tmp_path / "cam.txt"
+    path.write_text(text)
+    view = read_mayacam(path, pixel_pitch_mm=0.3)
+    assert (view.rows, view.cols) == (1000, 1024)
+    points = rng.uniform(-60, 60, size=(20, 3))
+    cam = points @ R.T + t
+    expected = np.column_stack(
+        (K[0, 0] * cam[:, 0] / cam[:, 2] + K[0, 2], K[1, 1] * cam[:, 1] / cam[:, 2] + K[1, 2])
+    )
+    np.testing.assert_allclose(view.project(points), expected, atol=1e-7)
+    path.write_text(text.replace("rotation", "turn"))
+    with pytest.raises(ValueError, match=r"line 9 of 'camera matrix' is not numbers: 'turn'"):
+        read_mayacam(path, 0.3)

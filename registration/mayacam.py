@@ -1,0 +1,90 @@
+"""XMALab's camera calibration (MayaCam 2.0, as Autoscoper reads it) as the fluoroscopy view.
+
+A MayaCam 2.0 file holds the image size (height, width), the intrinsic matrix ``K`` (pixels),
+and the rotation ``R`` and translation ``t`` of the calibration's world into the camera,
+OpenCV's convention as XMALab computes them: ``x_cam = R X + t``, ``u = fx x/z + cx``,
+``v = fy y/z + cy`` with ``(u, v)`` = (column, row) from the top-left pixel's centre. The
+world is the calibration object's frame (mm). The file does not give the panel's pixel pitch,
+which the registration's settings (mm at the panel) need: it is the caller's (the panel lies
+``fx`` pitches from the focal spot).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from recon.geometry import View
+
+SECTIONS = ("image size", "camera matrix", "rotation", "translation")
+
+
+def read_mayacam(path: str | Path, pixel_pitch_mm: float) -> View:
+    """The view of a MayaCam 2.0 file for a panel of ``pixel_pitch_mm`` pixels (along the
+    columns); ValueError naming the file and the section."""
+    if not pixel_pitch_mm > 0:
+        raise ValueError(
+            f"{path}: a MayaCam view needs the panel's pixel pitch (mm), got {pixel_pitch_mm}"
+        )
+    path = Path(path)
+    blocks: dict[str, list[list[float]]] = {}
+    name = None
+    for number, raw in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+        line = raw.strip()
+        if not line:
+            continue
+        if line.lower() in SECTIONS:
+            name = line.lower()
+            blocks[name] = []
+            continue
+        if name is None:
+            raise ValueError(f"{path}: line {number} {line!r} is in no section ({SECTIONS})")
+        try:
+            blocks[name].append([float(w) for w in line.replace(",", " ").split()])
+        except ValueError:
+            raise ValueError(
+                f"{path}: line {number} of {name!r} is not numbers: {line!r}"
+            ) from None
+    missing = [s for s in SECTIONS if s not in blocks]
+    if missing:
+        raise ValueError(f"{path}: not a MayaCam 2.0 file: no {missing[0]!r} section")
+    size = np.array(blocks["image size"], dtype=float).ravel()
+    K = np.array(blocks["camera matrix"], dtype=float)
+    R = np.array(blocks["rotation"], dtype=float)
+    t = np.array(blocks["translation"], dtype=float).ravel()
+    if size.shape != (2,) or K.shape != (3, 3) or R.shape != (3, 3) or t.shape != (3,):
+        raise ValueError(
+            f"{path}: image size (2), camera matrix (3 x 3), rotation (3 x 3) and translation "
+            f"(3) expected, got {size.shape}, {K.shape}, {R.shape}, {t.shape}"
+        )
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        raise ValueError(f"{path}: the rotation is not a rotation matrix")
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    if not (fx > 0 and fy > 0) or abs(K[0, 1]) > 1e-9 * fx:
+        raise ValueError(f"{path}: camera matrix needs fx, fy > 0 and no skew, got {K.tolist()}")
+    rows, cols = int(size[0]), int(size[1])
+    source = -R.T @ t
+    pitch_u = float(pixel_pitch_mm)
+    distance = fx * pitch_u
+    pitch_v = distance / fy
+    origin_camera = np.array([-cx * pitch_u, -cy * pitch_v, distance])
+    return View(
+        source_mm=source,
+        detector_origin_mm=source + R.T @ origin_camera,
+        e_u=R.T @ np.array([1.0, 0.0, 0.0]),
+        e_v=R.T @ np.array([0.0, 1.0, 0.0]),
+        pitch_u_mm=pitch_u,
+        pitch_v_mm=pitch_v,
+        rows=rows,
+        cols=cols,
+    )
+
+
+def is_mayacam(path: str | Path) -> bool:
+    """Whether a file starts as a MayaCam 2.0 calibration does (its first section)."""
+    with open(path, encoding="utf-8", errors="replace") as fh:
+        for line in fh:
+            if line.strip():
+                return line.strip().lower() == "image size"
+    return False
