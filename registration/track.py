@@ -328,6 +328,9 @@ def _write(
         "fluoroscopy": {"source": frames.header.source, "values": frames.stand_in},
         "settings": tracker.settings.model_dump(),
         "frame_blur_mm": tracker.frame_blur_mm,
+        "model_blur_mm": {
+            name: body.blur_mm for name, body in tracker.bones.items() if hasattr(body, "blur_mm")
+        },
         "dewarp": None if distortion is None else distortion.summary(),
         "frames": per_frame,
     }
