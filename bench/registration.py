@@ -57,6 +57,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numba
@@ -259,21 +260,32 @@ TKA_COMPONENTS = {
 """The JTML components: the tracker's body -> (mesh, JTML's short name)."""
 
 
-def real_tka(seeds: list[int], settings: Settings | None = None, supersample: int = 3) -> dict:
+def real_tka(
+    seeds: list[int],
+    settings: Settings | None = None,
+    supersample: int = 3,
+    frames: int | None = None,
+    start: tuple[float, float, float] = (5.0, 20.0, 5.0),
+    global_init: bool = True,
+) -> dict:
     """The ``real_tka`` regime's entry (see the module docstring); ``settings`` default to
     configs/registration_implants.yaml, ``supersample``: the components' rays per pixel per
-    axis (registration.implants.ImplantModel)."""
+    axis (registration.implants.ImplantModel); ``frames``: the first so many (all: None);
+    ``start``: the largest start offsets in-plane (mm), in depth (mm) and about each axis
+    (deg); ``global_init`` False: the first frame refined only (a start near the answer)."""
     if not TKA_DATA.is_dir():
         return {"regime": "real_tka", "skipped": f"no data at {TKA_DATA}"}
     import SimpleITK as sitk
 
-    files = sorted(TKA_DATA.glob("HL_V1_K1_*.tif"))
+    files = sorted(TKA_DATA.glob("HL_V1_K1_*.tif"))[:frames]
     calibration = TKA_DATA / "calibration.txt"
     pitch = read_calibration(calibration, 1, 1).pitch_u_mm
-    frames = read_frames(str(TKA_DATA / "HL_V1_K1_*.tif"), pitch)
-    view = read_calibration(calibration, *frames.data.shape[1:])
+    stack = read_frames(str(TKA_DATA / "HL_V1_K1_*.tif"), pitch)
+    stack = replace(stack, data=stack.data[: len(files)])
+    view = read_calibration(calibration, *stack.data.shape[1:])
     if settings is None:
         settings = load_config(ROOT / "configs" / "registration_implants.yaml", Settings)
+    settings = settings.model_copy(update={"global_init": global_init})
     models, reference, masks = {}, {}, {}
     for name, (stl, short) in TKA_COMPONENTS.items():
         mesh, _ = read_mesh(TKA_DATA / stl)
@@ -282,7 +294,7 @@ def real_tka(seeds: list[int], settings: Settings | None = None, supersample: in
         masks[name] = [
             sitk.GetArrayFromImage(
                 sitk.ReadImage(str(TKA_DATA / "Labels" / short / f"{f.stem}_label_{short}.tif"))
-            ).reshape(frames.data.shape[1:])
+            ).reshape(stack.data.shape[1:])
             > 0
             for f in files
         ]
@@ -302,16 +314,17 @@ def real_tka(seeds: list[int], settings: Settings | None = None, supersample: in
     seconds, first, failed = [], [], 0
     for seed in seeds:
         rng = np.random.default_rng(seed)
-        start = {}
+        starts = {}
         for name, model in models.items():
-            shift = rng.uniform([-5, -5, -20, -5, -5, -5], [5, 5, 20, 5, 5, 5])
+            mm, depth, deg = start
+            shift = rng.uniform(-1.0, 1.0, 6) * (mm, mm, depth, deg, deg, deg)
             T = np.eye(4)
             T[:3, :3] = Rotation.from_rotvec(np.radians(shift[3:])).as_matrix()
             c = reference[name][0][:3, :3] @ model.centroid_mm + reference[name][0][:3, 3]
             T[:3, 3] = c + shift[:3] - T[:3, :3] @ c  # turned about the centroid, then moved
-            start[name] = T @ reference[name][0]
+            starts[name] = T @ reference[name][0]
         log(f"real_tka seed {seed}: tracking {len(files)} frames")
-        results = Tracker(view, frames.data, models, settings, None, frames.field).track(start)
+        results = Tracker(view, stack.data, models, settings, None, stack.field).track(starts)
         first.append(sum(b.seconds for b in results[0].bones.values()))
         seconds += [sum(b.seconds for b in r.bones.values()) for r in results[1:]]
         for r in results:
@@ -325,7 +338,7 @@ def real_tka(seeds: list[int], settings: Settings | None = None, supersample: in
                 mask = masks[name][k]
                 dice = 2.0 * (ours & mask).sum() / (ours.sum() + mask.sum())
                 rows[name].append((*d, dice, edge_fit_px(images[k], ours), reference_fit[name][k]))
-    entry = {"regime": "real_tka", "seeds": seeds, "frames": len(files)}
+    entry = {"regime": "real_tka", "seeds": seeds, "frames": len(files), "start": list(start)}
     for name, data in rows.items():
         a = np.array(data)
         entry[name] = {
