@@ -238,7 +238,7 @@ class ImplantModel:
         cols) (``coarse`` and ``spans`` are a voxel model's; the whole view is rendered)."""
         uv, coef, A = _projected(view, self.vertices_mm, self.faces, T_world_body)
         out = np.zeros((view.rows, view.cols), dtype=np.float32)
-        _render(uv, coef, A, self.supersample, self.mu_per_mm, out)
+        _render(uv, coef, A, self.supersample, self.mu_per_mm, out, numba.get_num_threads())
         if self.blur_mm > 0.0:
             gaussian_filter(out, self.blur_mm / view.pitch_u_mm, output=out, mode="constant")
         return out
@@ -251,7 +251,7 @@ def ray_lengths(
     float64 (rows, cols): its silhouette is where it is > 0."""
     uv, coef, A = _projected(view, vertices_mm, faces, T_world_body)
     out = np.zeros((view.rows, view.cols))
-    _render(uv, coef, A, 1, 0.0, out)
+    _render(uv, coef, A, 1, 0.0, out, numba.get_num_threads())
     return out
 
 
@@ -309,62 +309,74 @@ def _project_faces(vertices, faces, M, P, A, source):  # pragma: no cover
     return uv, coef
 
 
-@numba.njit(cache=True)
-def _render(uv, coef, A, s, mu, out):  # pragma: no cover
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _render(uv, coef, A, s, mu, out, chunks):  # pragma: no cover
     """Into ``out`` (rows, cols): with ``mu`` > 0, the mean over each pixel's ``s x s`` rays of
     ``1 - exp(-mu L)``; with ``mu`` = 0, ``L`` of its centre's ray (``s`` = 1). ``L``, a ray's
     length through the closed mesh: over the faces it crosses, ``|d| t`` where it leaves minus
-    where it enters. Only the samples within the mesh's projected bounds are visited."""
+    where it enters. Only the samples within the mesh's projected bounds are visited; the
+    faces are shared out in ``chunks`` (one a thread), each summing into its own buffer."""
     rows, cols = out.shape
-    lo_u, hi_u = uv[:, :, 0].min(), uv[:, :, 0].max()
-    lo_v, hi_v = uv[:, :, 1].min(), uv[:, :, 1].max()
-    g0 = max(0, math.ceil((lo_u + 0.5) * s - 0.5))
-    g1 = min(cols * s - 1, math.floor((hi_u + 0.5) * s - 0.5))
-    h0 = max(0, math.ceil((lo_v + 0.5) * s - 0.5))
-    h1 = min(rows * s - 1, math.floor((hi_v + 0.5) * s - 0.5))
+    g0 = max(0, math.ceil((uv[:, :, 0].min() + 0.5) * s - 0.5))
+    g1 = min(cols * s - 1, math.floor((uv[:, :, 0].max() + 0.5) * s - 0.5))
+    h0 = max(0, math.ceil((uv[:, :, 1].min() + 0.5) * s - 0.5))
+    h1 = min(rows * s - 1, math.floor((uv[:, :, 1].max() + 0.5) * s - 0.5))
     if g1 < g0 or h1 < h0:
         return
-    sums = np.zeros((h1 - h0 + 1, g1 - g0 + 1))
-    for f in range(uv.shape[0]):
-        au, bu, cu = uv[f, 0, 0], uv[f, 1, 0], uv[f, 2, 0]
-        av, bv, cv = uv[f, 0, 1], uv[f, 1, 1], uv[f, 2, 1]
-        area = (bu - au) * (cv - av) - (cu - au) * (bv - av)
-        if area == 0.0:
-            continue
-        a0 = max(g0, math.ceil((min(au, bu, cu) + 0.5) * s - 0.5))
-        a1 = min(g1, math.floor((max(au, bu, cu) + 0.5) * s - 0.5))
-        b0 = max(h0, math.ceil((min(av, bv, cv) + 0.5) * s - 0.5))
-        b1 = min(h1, math.floor((max(av, bv, cv) + 0.5) * s - 0.5))
-        ku, kv, k1, num = coef[f, 0], coef[f, 1], coef[f, 2], coef[f, 3]
-        for h in range(b0, b1 + 1):
-            v = (h + 0.5) / s - 0.5
-            for g in range(a0, a1 + 1):
-                u = (g + 0.5) / s - 0.5
-                wa = ((bu - u) * (cv - v) - (cu - u) * (bv - v)) / area
-                wb = ((cu - u) * (av - v) - (au - u) * (cv - v)) / area
-                if wa < 0.0 or wb < 0.0 or wa + wb > 1.0:
-                    continue
-                denominator = ku * u + kv * v + k1
-                if denominator == 0.0:
-                    continue
-                t = num / denominator
-                sums[h - h0, g - g0] += t if denominator > 0.0 else -t
+    sums = np.zeros((chunks, h1 - h0 + 1, g1 - g0 + 1))
+    per = (uv.shape[0] + chunks - 1) // chunks
+    for c in numba.prange(chunks):
+        for f in range(c * per, min((c + 1) * per, uv.shape[0])):
+            _add_face(uv[f], coef[f], s, g0, g1, h0, h1, sums[c])
     share = 1.0 / (s * s)
-    for h in range(h0, h1 + 1):
+    for r in numba.prange(h1 // s - h0 // s + 1):
+        row = h0 // s + r
+        for h in range(max(h0, row * s), min(h1, row * s + s - 1) + 1):
+            v = (h + 0.5) / s - 0.5
+            for g in range(g0, g1 + 1):
+                total = 0.0
+                for c in range(chunks):
+                    total += sums[c, h - h0, g - g0]
+                if total == 0.0:
+                    continue
+                u = (g + 0.5) / s - 0.5
+                dx = A[0, 0] * u + A[0, 1] * v + A[0, 2]
+                dy = A[1, 0] * u + A[1, 1] * v + A[1, 2]
+                dz = A[2, 0] * u + A[2, 1] * v + A[2, 2]
+                length = max(total, 0.0) * math.sqrt(dx * dx + dy * dy + dz * dz)
+                if mu > 0.0:
+                    out[row, g // s] += share * (1.0 - math.exp(-mu * length))
+                else:
+                    out[row, g // s] += length
+
+
+@numba.njit(cache=True, inline="always")
+def _add_face(uv, coef, s, g0, g1, h0, h1, sums):  # pragma: no cover
+    """Add one face's crossing, ``t`` where rays leave minus where they enter (``t`` = 1 on
+    the panel), to the samples it covers."""
+    au, bu, cu = uv[0, 0], uv[1, 0], uv[2, 0]
+    av, bv, cv = uv[0, 1], uv[1, 1], uv[2, 1]
+    area = (bu - au) * (cv - av) - (cu - au) * (bv - av)
+    if area == 0.0:
+        return
+    a0 = max(g0, math.ceil((min(au, bu, cu) + 0.5) * s - 0.5))
+    a1 = min(g1, math.floor((max(au, bu, cu) + 0.5) * s - 0.5))
+    b0 = max(h0, math.ceil((min(av, bv, cv) + 0.5) * s - 0.5))
+    b1 = min(h1, math.floor((max(av, bv, cv) + 0.5) * s - 0.5))
+    ku, kv, k1, num = coef[0], coef[1], coef[2], coef[3]
+    for h in range(b0, b1 + 1):
         v = (h + 0.5) / s - 0.5
-        for g in range(g0, g1 + 1):
-            total = sums[h - h0, g - g0]
-            if total == 0.0:
-                continue
+        for g in range(a0, a1 + 1):
             u = (g + 0.5) / s - 0.5
-            dx = A[0, 0] * u + A[0, 1] * v + A[0, 2]
-            dy = A[1, 0] * u + A[1, 1] * v + A[1, 2]
-            dz = A[2, 0] * u + A[2, 1] * v + A[2, 2]
-            length = max(total, 0.0) * math.sqrt(dx * dx + dy * dy + dz * dz)
-            if mu > 0.0:
-                out[h // s, g // s] += share * (1.0 - math.exp(-mu * length))
-            else:
-                out[h // s, g // s] += length
+            wa = ((bu - u) * (cv - v) - (cu - u) * (bv - v)) / area
+            wb = ((cu - u) * (av - v) - (au - u) * (cv - v)) / area
+            if wa < 0.0 or wb < 0.0 or wa + wb > 1.0:
+                continue
+            denominator = ku * u + kv * v + k1
+            if denominator == 0.0:
+                continue
+            t = num / denominator
+            sums[h - h0, g - g0] += t if denominator > 0.0 else -t
 
 
 def implant_model(
