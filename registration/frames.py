@@ -86,10 +86,13 @@ def _dicom_files(path: Path) -> list[str]:
 
 
 def read_frames(
-    path: str | Path, pixel_pitch_mm: float | None = None, polarity: str = "dark"
+    path: str | Path | list[str | Path],
+    pixel_pitch_mm: float | None = None,
+    polarity: str = "dark",
 ) -> Frames:
     """Frames from an .mha/.mhd stack, a DICOM file or folder, or TIFF/PNG images (a file, a
-    folder of them or a glob pattern, in sorted order).
+    folder of them or a glob pattern, in sorted order; or a list of image files, in its
+    order).
 
     Images carry no pixel size a registration can trust (a TIFF's resolution tag is a print
     size): ``pixel_pitch_mm`` gives it (e.g. the calibration's). Their ``polarity`` says how
@@ -106,6 +109,18 @@ def read_frames(
     """
     if polarity not in POLARITIES:
         raise ValueError(f"frames polarity {polarity!r}: one of {', '.join(POLARITIES)}")
+    if isinstance(path, list | tuple):
+        if len(path) == 1:
+            path = path[0]
+        else:
+            files = [Path(p) for p in path]
+            for name in files:
+                if name.suffix.lower() not in IMAGE_SUFFIXES or not name.is_file():
+                    raise FileNotFoundError(
+                        f"{name}: a list of frames names TIFF or PNG files that exist"
+                    )
+            source = f"{files[0]} and {len(files) - 1} more"
+            return _read_images(files, source, pixel_pitch_mm, polarity)
     images = _image_files(path)
     if images is not None:
         return _read_images(images, str(path), pixel_pitch_mm, polarity)

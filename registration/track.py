@@ -188,7 +188,7 @@ def read_view(frames: Frames, geometry_path: Path | None, calibration_path: Path
 def register_files(
     volume_path: Path | None,
     labels_path: Path | None,
-    frames_path: Path,
+    frames_path: Path | list[str | Path],
     geometry_path: Path | None,
     out: Path,
     *,

@@ -443,10 +443,10 @@ def export(
 @app.command()
 def register(
     frames: Annotated[
-        Path,
+        list[str],
         typer.Option(
             help="fluoroscopy: .mha stack, DICOM file or folder, TIFF/PNG images "
-            "(a file, a folder or a quoted glob)"
+            "(a file, a folder, a quoted glob, or one --frames per image, in order)"
         ),
     ],
     out: Annotated[Path, typer.Option(help="new output folder")],

@@ -171,3 +171,16 @@ def test_images_by_glob_or_folder_with_their_polarity_and_shutters(tmp_path) -> 
         read_frames(tmp_path)
     with pytest.raises(FileNotFoundError, match="matches no file"):
         read_frames(tmp_path / "nothing_*.tif", pixel_pitch_mm=0.3)
+
+
+def test_images_as_a_list_keep_its_order(tmp_path) -> None:
+    values = (30, 90, 60)
+    names = []
+    for k, value in enumerate(values):
+        name = tmp_path / f"{'cab'[k]}.tif"
+        sitk.WriteImage(sitk.GetImageFromArray(np.full((8, 8), value, np.uint16)), str(name))
+        names.append(name)
+    frames = read_frames(names, pixel_pitch_mm=0.2, polarity="bright")
+    assert frames.data[:, 0, 0].argsort().tolist() == [0, 2, 1]  # 30, 60, 90: the list's order
+    with pytest.raises(FileNotFoundError, match="a list of frames names TIFF or PNG files"):
+        read_frames([names[0], tmp_path / "x.mha"], pixel_pitch_mm=0.2)
