@@ -671,6 +671,7 @@ YAML_CONFIGS: dict[str, Callable[[Path], object]] = {
     "backends/ur.yaml": lambda p: load_backend_spec("ur", p),
     "scanner.yaml": lambda p: load_config(p, ScannerConfig),
     "registration.yaml": lambda p: load_config(p, Settings),
+    "registration_implants.yaml": lambda p: load_config(p, Settings),
     "phantoms/knee.yaml": lambda p: load_config(p, KneePhantomSpec),
     "phantoms/bb_helix.yaml": lambda p: load_config(p, BBPhantomSpec),
     "phantoms/dewarp_grid.yaml": lambda p: load_config(p, DewarpGridSpec),
