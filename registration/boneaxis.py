@@ -599,11 +599,13 @@ class Tracker:
         poses: dict[str, np.ndarray],
         lone: bool = False,
         reach: tuple[np.ndarray, ...] = (),
+        beside: tuple[str, ...] = (),
     ):
-        """The objective of bone ``name``, the others at ``poses`` (``lone``: bone alone),
-        masked to its silhouettes at ``poses`` and ``reach``."""
+        """The objective of bone ``name``, the others at ``poses`` (``lone``: bone alone but
+        for those ``beside`` it, no prior, no soft tissue), masked to its silhouettes at
+        ``poses`` and ``reach``."""
         view = self._views[level]
-        others = {} if lone else {b: m for b, m in self.bones.items() if b != name}
+        others = {b: m for b, m in self.bones.items() if b != name and (not lone or b in beside)}
         stays = carried = None
         if not lone and self.soft_tissue is not None:
             stays, carried = self._soft_tissue(name, poses)
@@ -819,11 +821,12 @@ class Tracker:
         poses: dict[str, np.ndarray],
         scale: float = 1.0,
         lone: bool = False,
+        beside: tuple[str, ...] = (),
     ) -> tuple[np.ndarray, int]:
         """Differential evolution in a box aligned with the bone's principal axes."""
         s = self.settings
         level = self.levels[0]
-        objective = self._objective(frame, level, name, poses, lone)
+        objective = self._objective(frame, level, name, poses, lone, beside=beside)
         axes = principal_axes(self.bones[name].points_mm)
         R_pose = poses[name][:3, :3]
         axes = R_pose @ axes  # the principal axes at the current pose
@@ -852,6 +855,32 @@ class Tracker:
         )
         pose = compose(in_axes(result.x), poses[name], self.bones[name].centroid_mm)
         return pose, objective.evaluations
+
+    def best_start(
+        self, frame: int, name: str, candidates: list[np.ndarray], placed: dict[str, np.ndarray]
+    ) -> np.ndarray:
+        """Body ``name``'s best start in ``frame`` among its candidate poses: differential
+        evolution in twice the first frame's box about each, the bodies ``placed`` (their
+        poses) in the scene, scored by its NCC on the coarsest level (registration.autostart)."""
+        if not candidates:
+            raise ValueError(f"no candidate start for {name}: is it in the frame?")
+        beside = tuple(placed)
+        best, best_score = None, -math.inf
+        for T in candidates:
+            trial = {**{b: T for b in self.order}, **placed, name: T}
+            try:
+                pose, _ = self._global(frame, name, trial, 2.0, True, beside)
+                objective = self._objective(
+                    frame, self.levels[0], name, trial | {name: pose}, True, beside=beside
+                )
+                score = objective.scores(pose)[0]
+            except OutOfView:
+                continue
+            if score > best_score:
+                best, best_score = pose, score
+        if best is None:
+            raise ValueError(f"no candidate start of {name} stays in the view")
+        return best
 
     def _penalty(self, name: str, poses: dict[str, np.ndarray]) -> float:
         """The prior's cost of bone ``name`` at ``poses`` (0 without a prior)."""

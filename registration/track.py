@@ -32,6 +32,7 @@ from recon.io import read_volume
 from recon.rtk_xml import read_rtk_geometry
 from recon.static_volume import StaticSource, StaticUnit, read_attenuation
 from recon.volume import Volume
+from registration.autostart import candidate_poses
 from registration.boneaxis import TRACK_ORDER, FrameResult, Settings, Tracker
 from registration.drr import SoftTissue, bone_models
 from registration.frames import Frames, read_frames
@@ -78,6 +79,8 @@ BODY_NAMES = {
     "patella": "patella",
 }
 """A body's name as given (``--implant tibia=...``) -> the tracker's (registration.boneaxis)."""
+KNEE_REACH_MM = 120.0
+"""How far from a placed component the next one's centre is searched (automatic start), mm."""
 FILE_NAMES = {"femur": "femur", "tibia_fibula": "tibia", "patella": "patella"}
 """The tracker's name -> the body's name in file names (``tibia.jts``)."""
 
@@ -254,12 +257,30 @@ def register_files(
     T_world_camera = camera_frame(view)
     count = len(frames.data)
     truth = None if truth_path is None else _truth(truth_path, count, bodies, T_world_camera)
-    start = _initial(initial_path, bodies, T_world_camera)
-    _check_in_view(view, models, start, f"{frames.header.source} with the view")
     tracker = Tracker(view, frames.data, models, settings, soft, frames.field)
+    if initial_path is None and meshes and volume_path is None:  # implants alone: search
+        start = _automatic_start(tracker, models, view, frames)
+    else:
+        start = _initial(initial_path, bodies, T_world_camera)
+    _check_in_view(view, models, start, f"{frames.header.source} with the view")
     results = tracker.track(start, progress=progress)
     _write(out, results, models, view, tracker, truth, distortion, source, frames, meshes)
     return results
+
+
+def _automatic_start(tracker: Tracker, models: dict, view: View, frames: Frames) -> dict:
+    """Each component's start on the first frame (registration.autostart), the largest
+    first, each next one searched within :data:`KNEE_REACH_MM` of those placed."""
+    start: dict[str, np.ndarray] = {}
+    for name in sorted(models, key=lambda b: -len(models[b].points_mm)):
+        near = None
+        if start:
+            placed = [T[:3, :3] @ models[b].centroid_mm + T[:3, 3] for b, T in start.items()]
+            near = (np.mean(placed, axis=0), KNEE_REACH_MM)
+        placed = [(models[b], T) for b, T in start.items()]
+        found = candidate_poses(models[name], view, frames.data[0], frames.field, near, placed)
+        start[name] = tracker.best_start(0, name, found, start)
+    return start
 
 
 def _check_in_view(view: View, models: dict, start: dict, where: str) -> None:

@@ -472,7 +472,10 @@ def register(
     ] = None,
     calibration: Annotated[
         Path | None,
-        typer.Option(help="the fluoroscopy view as a JointTrack calibration (JT_INTCALIB)"),
+        typer.Option(
+            help="the fluoroscopy view as a JointTrack calibration (JT_INTCALIB) or an "
+            "XMALab/Autoscoper MayaCam 2.0 file (with --pixel-pitch-mm)"
+        ),
     ] = None,
     polarity: Annotated[
         str, typer.Option(help="images: attenuation dark (fluoroscopy's display) or bright")
@@ -497,8 +500,13 @@ def register(
     distortion: Annotated[
         Path | None, typer.Option(help="the panel's distortion (cbct calibrate-fluoro)")
     ] = None,
-    settings: Annotated[Path, typer.Option(help="registration settings YAML")] = CONFIGS
-    / "registration.yaml",
+    settings: Annotated[
+        Path | None,
+        typer.Option(
+            help="registration settings YAML [default: configs/registration.yaml, or "
+            "configs/registration_implants.yaml for implants without a static scan]"
+        ),
+    ] = None,
     unit: Annotated[
         str | None,
         typer.Option(help="the static scan's unit where its file does not say: hu or 1/mm"),
@@ -524,6 +532,9 @@ def register(
             ImplantSpec(body, path, implant_unit, materials.get(body, "CoCr"))
             for body, path in meshes.items()
         )
+        if settings is None:
+            alone = implants and volume is None
+            settings = CONFIGS / ("registration_implants.yaml" if alone else "registration.yaml")
         chosen = load_config(settings, Settings)
         warp = None if distortion is None else Distortion.read(distortion)
         bar = Progress(
