@@ -7,6 +7,8 @@ import importlib.util
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -18,21 +20,40 @@ def load_soak():
     return module
 
 
-def test_small_soak_meets_its_targets(tmp_path):
-    soak = load_soak()
-    result = soak.soak(
-        scans=2,
-        seed=4,
-        views=12,
-        # the device faults and the stop signals have their own tests (tests/scanner)
-        kinds=("sigkill", "disk_full"),
-        work=tmp_path / "soak",
-        backends=("sim",),  # the UR backend's stops: tests/scanner/test_stop_signals_scan.py
-    )
-    assert result["faults"] >= 2, result
-    assert result["scans_complete"] == 2, result
+def check(result: dict, scans: int) -> None:
+    """The soak's targets: every scan complete, nothing lost, no pulse after a fault."""
+    assert result["faults"] >= scans, result
+    assert result["scans_complete"] == scans, result
     assert result["views_lost"] == 0 and result["corrupt_files"] == 0, result
     assert result["x_ray_on_after_fault"] == 0 and result["hangs"] == 0, result
     assert result["exp_after_stop"] == 0, result
     assert result["faults_over_bound"] == 0 and result["faults_safe_unconfirmed"] == 0, result
     assert result["targets_met"], result
+
+
+def test_a_scan_killed_while_it_writes_is_resumed_whole(tmp_path):
+    """One scan, its process group SIGKILLed while a view's file is written (twice), resumed
+    to the end (about 12 s; the device faults and the stop signals have their own tests in
+    tests/scanner)."""
+    soak = load_soak()
+    kinds = ("sigkill",)
+    result = soak.soak(
+        scans=1, seed=2, views=12, kinds=kinds, work=tmp_path / "soak", backends=("sim",)
+    )
+    check(result, 1)
+    assert result["sigkill_mid_write"] >= 1, result
+
+
+@pytest.mark.slow
+def test_small_soak_meets_its_targets(tmp_path):
+    """Two scans, process kills and full disks (about 30 s)."""
+    soak = load_soak()
+    result = soak.soak(
+        scans=2,
+        seed=4,
+        views=12,
+        kinds=("sigkill", "disk_full"),
+        work=tmp_path / "soak",
+        backends=("sim",),  # the UR backend's stops: tests/scanner/test_stop_signals_scan.py
+    )
+    check(result, 2)

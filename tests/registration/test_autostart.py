@@ -12,15 +12,15 @@ from tests.registration.test_register_implants import component
 
 
 def test_each_component_is_found_where_it_lies(seed, measured):
-    """On a frame of two components (a C and a T, 8-bit, noisy, the exposed field a band with
-    dark shutters beside it) the candidates of each include one whose silhouette overlaps the
-    true one by a Dice of 0.7 or more: well inside the box the tracker's search then covers
-    (measured over seeds 0-5, 1 and 2 threads: best 0.91-0.97 for the C, 0.80-0.94 for the T,
-    whose mirror images cast near-equal shadows). The second component, searched with the
-    first placed, is not put on the first's shadow. Orientations are not compared: both
-    shapes have turns that cast the same silhouette."""
+    """On a frame of two components (a C and a T; 256 x 256 pixels of 0.746 mm, 8-bit, noisy,
+    the exposed field a band with dark shutters beside it) the candidates of each include one
+    whose silhouette overlaps the true one by a Dice of 0.7 or more: well inside the box the
+    tracker's search then covers (measured over seeds 0-5: best 0.90-0.95 for the C, 0.78-0.87
+    for the T, whose mirror images cast near-equal shadows; the same with 1 and 2 threads).
+    The second component, searched with the first placed, is not put on the first's shadow.
+    Orientations are not compared: both shapes have turns that cast the same silhouette."""
     rng = np.random.default_rng(seed)
-    view = camera_view(1198.0, 0.0, 0.0, 0.373, 512, 512)
+    view = camera_view(1198.0, 0.0, 0.0, 0.746, 256, 256)
     models = {b: implant_model(b, component(b), MATERIALS["CoCr"]) for b in ("femur", "tibia")}
     truth = {}
     for name, base in (("femur", (30.0, 15.0, -1080.0)), ("tibia", (-35.0, -20.0, -1085.0))):
@@ -30,8 +30,8 @@ def test_each_component_is_found_where_it_lies(seed, measured):
         truth[name] = T
     shadow = sum(models[b].render(view, truth[b]) for b in models)
     intensity = 200.0 * (1.0 - np.clip(shadow, 0.0, 1.0)) + 40.0
-    field = np.zeros((512, 512), dtype=bool)
-    field[:, 64:448] = True
+    field = np.zeros((256, 256), dtype=bool)
+    field[:, 32:224] = True
     counts = np.where(field, rng.poisson(intensity), 0).clip(0, 255)
     frame = 1.0 - counts / 255.0  # the attenuation stand-in: metal and shutters bright
 

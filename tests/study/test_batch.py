@@ -85,7 +85,10 @@ def stage_times(path: Path) -> dict[str, str]:
     return {s: Study.open(path).stage(s).get("updated", "") for s in DERIVED}
 
 
+@pytest.mark.slow
 def test_batch_all_makes_the_cohort_reports_the_fault_and_skips_finished_work(cohort, tmp_path):
+    """Every stage of both studies on 2 workers (about 30 s on 2 cores; the default suite's
+    small version: a worker killed mid-task, below, and the refusals of bad input)."""
     studies = copy_cohort(cohort, tmp_path / "studies")
     settings = str(cohort / "settings.yaml")
     args = ["batch", "all", str(tmp_path / "studies" / "knee-*"), "--workers", "2"]
