@@ -273,14 +273,14 @@ def _projected(
     return uv, coef, A
 
 
-@numba.njit(cache=True)
+@numba.njit(parallel=True, cache=True, nogil=True)
 def _project_faces(vertices, faces, M, P, A, source):  # pragma: no cover
     """The corners of each face moved by ``M`` (3 x 4) and projected by ``P``, and its
     crossing coefficients (:func:`_projected`)."""
     n = vertices.shape[0]
     X = np.empty((n, 3))
     uv_v = np.empty((n, 2))
-    for i in range(n):
+    for i in numba.prange(n):
         for r in range(3):
             X[i, r] = M[r, 0] * vertices[i, 0] + M[r, 1] * vertices[i, 1] + M[r, 2] * vertices[i, 2]
             X[i, r] += M[r, 3]
@@ -291,17 +291,17 @@ def _project_faces(vertices, faces, M, P, A, source):  # pragma: no cover
     m = faces.shape[0]
     uv = np.empty((m, 3, 2))
     coef = np.empty((m, 4))
-    for f in range(m):
+    for f in numba.prange(m):
         a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
         for k in range(3):
             corner = faces[f, k]
             uv[f, k, 0] = uv_v[corner, 0]
             uv[f, k, 1] = uv_v[corner, 1]
-        e1 = X[b] - X[a]
-        e2 = X[c] - X[a]
-        nx = e1[1] * e2[2] - e1[2] * e2[1]
-        ny = e1[2] * e2[0] - e1[0] * e2[2]
-        nz = e1[0] * e2[1] - e1[1] * e2[0]
+        e1x, e1y, e1z = X[b, 0] - X[a, 0], X[b, 1] - X[a, 1], X[b, 2] - X[a, 2]
+        e2x, e2y, e2z = X[c, 0] - X[a, 0], X[c, 1] - X[a, 1], X[c, 2] - X[a, 2]
+        nx = e1y * e2z - e1z * e2y
+        ny = e1z * e2x - e1x * e2z
+        nz = e1x * e2y - e1y * e2x
         for k in range(3):
             coef[f, k] = nx * A[0, k] + ny * A[1, k] + nz * A[2, k]
         coef[f, 3] = nx * (X[a, 0] - source[0]) + ny * (X[a, 1] - source[1])
