@@ -119,7 +119,8 @@ def test_components_are_tracked_and_handed_on_as_jointtrack_poses(case, measured
     its size resolves: a width W at distance Z from the source grows by W / Z on the image per
     mm of depth (x 1.1 magnification, over 0.373 mm pixels: 0.25 px/mm for the 56 mm C, 0.19
     px/mm for the 70 mm tray), so half a pixel of silhouette is 2 mm (C) and 2.6 mm (tray):
-    bounds of 2 and 5 mm (measured over seeds 0-2: in-plane 0.07 mm, depth 0.69 and 2.45 mm).
+    bounds of 2 and 5 mm (measured over seeds 0-2 with the implant settings, the default for
+    implants alone: in-plane 0.03 mm at most, depth 0.19 mm (C) and 0.93 mm (tray) at most).
     femur.jts and tibia.jts hold the poses in the calibration's camera frame; an overlay per
     frame."""
     folder, truth = case
