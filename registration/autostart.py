@@ -19,7 +19,8 @@ from scipy.fft import irfft2, next_fast_len, rfft2
 from scipy.spatial.transform import Rotation
 
 from recon.geometry import View
-from registration.implants import ImplantModel, ray_lengths
+from registration.frames import blocks
+from registration.implants import ImplantModel
 
 BIN = 8
 """Binning of the frame for the search."""
@@ -54,13 +55,10 @@ def binned_frame(
 ) -> tuple[np.ndarray, np.ndarray]:
     """A frame (its attenuation stand-in, registration.frames) binned, the pixels outside the
     exposed field set to the field's median; and the binned pixels wholly inside the field."""
-    rows, cols = frame.shape[0] // binning, frame.shape[1] // binning
-    image = frame[: rows * binning, : cols * binning].reshape(rows, binning, cols, binning)
-    image = image.mean(axis=(1, 3)).astype(np.float64)
+    image = blocks(frame, binning).mean(axis=(1, 3)).astype(np.float64)
     inside = np.ones(image.shape, dtype=bool)
     if field is not None:
-        cut = field[: rows * binning, : cols * binning].reshape(rows, binning, cols, binning)
-        inside = cut.all(axis=(1, 3))
+        inside = blocks(field, binning).all(axis=(1, 3))
         image[~inside] = np.median(image[inside])
     return image, inside
 
@@ -128,7 +126,7 @@ def candidate_poses(
     image, inside = binned_frame(frame, field)
     background = float(np.median(image))
     for other, T_other in placed:
-        image[ray_lengths(coarse, other.vertices_mm, other.faces, T_other) > 0.0] = background
+        image[other.silhouette(coarse, T_other)] = background
     matcher = Matcher(image, inside)
     allowed = np.ones_like(image, dtype=bool)
     if near is not None:
@@ -137,8 +135,9 @@ def candidate_poses(
         radius_px = radius_mm / (coarse.pitch_u_mm * float(coarse.depth(point)[0]))
         rows, cols = np.indices(image.shape)
         allowed = np.hypot(rows - v, cols - u) <= radius_px
-    axis = coarse.detector_center_mm - coarse.source_mm
-    centre = coarse.source_mm + DEPTH_FRACTION * axis
+    centre = coarse.source_mm + DEPTH_FRACTION * (coarse.detector_center_mm - coarse.source_mm)
+    depth = float(coarse.depth(centre)[0])  # every grid pose puts the body's centroid there
+    step_u, step_v = depth * coarse.pitch_u_mm * coarse.e_u, depth * coarse.pitch_v_mm * coarse.e_v
     body_centre = model.centroid_mm
     scored = []
     for direction in _sphere(DIRECTIONS):
@@ -148,7 +147,7 @@ def candidate_poses(
             T = np.eye(4)
             T[:3, :3] = R
             T[:3, 3] = centre - R @ body_centre
-            silhouette = ray_lengths(coarse, model.vertices_mm, model.faces, T) > 0.0
+            silhouette = model.silhouette(coarse, T)
             if silhouette.sum() < 4:
                 continue
             rows, cols = np.nonzero(silhouette)
@@ -169,12 +168,9 @@ def candidate_poses(
         turn = Rotation.from_matrix(T[:3, :3])
         if any((turn * r.inv()).magnitude() < np.radians(DISTINCT_DEG) for r in rotations):
             continue
-        placed = T.copy()  # moved sideways so that its silhouette lands where it fits
-        moved = T[:3, :3] @ body_centre + T[:3, 3]
-        depth = float(coarse.depth(moved)[0])
-        offset = depth * (du * coarse.pitch_u_mm * coarse.e_u + dv * coarse.pitch_v_mm * coarse.e_v)
-        placed[:3, 3] += offset
-        kept.append(placed)
+        start = T.copy()  # moved sideways so that its silhouette lands where it fits
+        start[:3, 3] += du * step_u + dv * step_v
+        kept.append(start)
         rotations.append(turn)
         if len(kept) == KEEP:
             break

@@ -59,6 +59,7 @@ from threadpoolctl import threadpool_limits
 from recon.geometry import View
 from recon.project import JosephProjector
 from registration.drr import BoneModel, SoftTissue, along_axis, scene
+from registration.frames import blocks
 from registration.similarity import gradient_ncc, highpass, ncc, turned_gaussian
 
 TRACK_ORDER = ("tibia_fibula", "femur", "patella")
@@ -532,8 +533,9 @@ class Tracker:
         for a blur given in the settings). The blur is the CBCT's, so it turns with the bone."""
         self._last_ncc: dict[str, float] = {}
         self._outside: dict[int, np.ndarray] = {}
-        self._extensions: dict[int, np.ndarray] = {}
         """Per pyramid level: the pixels outside the exposed field (:meth:`_outside_field`)."""
+        self._extensions: dict[int, np.ndarray] = {}
+        """The frame being registered, extended beyond the exposed field (:meth:`_extended`)."""
 
     def _sigma_px(self, level: int) -> float:
         return self.settings.highpass_mm / self._views[level].pitch_u_mm
@@ -565,12 +567,7 @@ class Tracker:
                 self._blurred[blurred] = image
             image = self._blurred[blurred]
             if level > 1:
-                rows, cols = self._views[level].rows, self._views[level].cols
-                image = (
-                    image[: rows * level, : cols * level]
-                    .reshape(rows, level, cols, level)
-                    .mean(axis=(1, 3))
-                )
+                image = blocks(image, level).mean(axis=(1, 3))
             self._targets[key] = highpass(image, self._sigma_px(level))
         return self._targets[key]
 
@@ -639,9 +636,7 @@ class Tracker:
         if self.field is None:
             return None
         if level not in self._outside:
-            rows, cols = self._views[level].rows, self._views[level].cols
-            outside = ~self.field[: rows * level, : cols * level]
-            outside = outside.reshape(rows, level, cols, level).any(axis=(1, 3))
+            outside = blocks(~self.field, level).any(axis=(1, 3))
             band = math.ceil(2 * self._sigma_px(level))
             self._outside[level] = binary_dilation(outside, iterations=band)
         return self._outside[level]

@@ -77,6 +77,13 @@ POLARITIES = ("dark", "bright")
 """How attenuation shows in images: dark (fluoroscopy's display) or bright (a radiograph's)."""
 
 
+def blocks(image: np.ndarray, factor: int) -> np.ndarray:
+    """``image`` (rows, cols) cut to whole ``factor`` x ``factor`` blocks, as a view (rows //
+    factor, factor, cols // factor, factor): reduce over axes (1, 3) to bin it."""
+    rows, cols = image.shape[0] // factor, image.shape[1] // factor
+    return image[: rows * factor, : cols * factor].reshape(rows, factor, cols, factor)
+
+
 def _tag(reader, key: str) -> str | None:
     return reader.GetMetaData(key).strip() if reader.HasMetaDataKey(key) else None
 

@@ -243,6 +243,11 @@ class ImplantModel:
             gaussian_filter(out, self.blur_mm / view.pitch_u_mm, output=out, mode="constant")
         return out
 
+    def silhouette(self, view: View, T_world_body: np.ndarray) -> np.ndarray:
+        """The pixels of ``view`` whose centre's ray meets the component at ``T_world_body``,
+        bool (rows, cols)."""
+        return ray_lengths(view, self.vertices_mm, self.faces, T_world_body) > 0.0
+
 
 def ray_lengths(
     view: View, vertices_mm: np.ndarray, faces: np.ndarray, T_world_body: np.ndarray

@@ -123,11 +123,13 @@ def camera_differences(
 def edge_fit_px(image: np.ndarray, silhouette: np.ndarray, sigma_px: float = 2.0) -> float:
     """How well a silhouette's outline sits on the image's edges: the mean distance (pixels)
     from its outline pixels to the nearest edge a Canny detector finds at ``sigma_px``."""
-    from scipy.ndimage import binary_erosion, distance_transform_edt
+    from scipy.ndimage import distance_transform_edt
     from skimage.feature import canny
 
+    from registration.overlays import outline
+
     edges = canny(np.asarray(image, dtype=np.float64), sigma=sigma_px)
-    outline = silhouette & ~binary_erosion(silhouette, border_value=0)
-    if not edges.any() or not outline.any():
+    line = outline(silhouette)
+    if not edges.any() or not line.any():
         return float("nan")
-    return float(distance_transform_edt(~edges)[outline].mean())
+    return float(distance_transform_edt(~edges)[line].mean())

@@ -16,7 +16,7 @@ import SimpleITK as sitk
 from scipy.ndimage import binary_erosion
 
 from recon.geometry import View
-from registration.implants import ImplantModel, ray_lengths
+from registration.implants import ImplantModel
 
 COLOURS = {
     "femur": (255, 150, 30),
@@ -31,7 +31,7 @@ BONE_SILHOUETTE = 0.02
 def silhouette(model, view: View, T_world_body: np.ndarray) -> np.ndarray:
     """The pixels of ``view`` the body at ``T_world_body`` covers, bool (rows, cols)."""
     if isinstance(model, ImplantModel):
-        return ray_lengths(view, model.vertices_mm, model.faces, T_world_body) > 0.0
+        return model.silhouette(view, T_world_body)
     return model.render(view, T_world_body) > BONE_SILHOUETTE
 
 

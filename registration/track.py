@@ -273,14 +273,16 @@ def _automatic_start(tracker: Tracker, models: dict, view: View, frames: Frames)
     first, each next one searched within :data:`KNEE_REACH_MM` of those placed."""
     start: dict[str, np.ndarray] = {}
     for name in sorted(models, key=lambda b: -len(models[b].points_mm)):
-        near = None
-        if start:
-            placed = [T[:3, :3] @ models[b].centroid_mm + T[:3, 3] for b, T in start.items()]
-            near = (np.mean(placed, axis=0), KNEE_REACH_MM)
+        near = (_knee_centre(models, start), KNEE_REACH_MM) if start else None
         placed = [(models[b], T) for b, T in start.items()]
         found = candidate_poses(models[name], view, frames.data[0], frames.field, near, placed)
         start[name] = tracker.best_start(0, name, found, start)
     return start
+
+
+def _knee_centre(models: dict, poses: dict[str, np.ndarray]) -> np.ndarray:
+    """The mean of the bodies' centroids at ``poses`` (those given), world mm (3,)."""
+    return np.mean([T[:3, :3] @ models[b].centroid_mm + T[:3, 3] for b, T in poses.items()], axis=0)
 
 
 def _check_in_view(view: View, models: dict, start: dict, where: str) -> None:
@@ -289,8 +291,7 @@ def _check_in_view(view: View, models: dict, start: dict, where: str) -> None:
     frames' header (origin, spacing, direction) and the geometry do not belong together, or
     the view does not look at the knee (frames at Origin (0, 0) under a view written for a
     centred panel put the knee on pixel (0, 0))."""
-    centroids = [T[:3, :3] @ models[b].centroid_mm + T[:3, 3] for b, T in start.items()]
-    u, v = view.project(np.mean(centroids, axis=0))[0]
+    u, v = view.project(_knee_centre(models, start))[0]
     on = -0.5 <= u <= view.cols - 0.5 and -0.5 <= v <= view.rows - 0.5
     near_u = min(u, view.cols - 1 - u) < CORNER_FRACTION * view.cols
     near_v = min(v, view.rows - 1 - v) < CORNER_FRACTION * view.rows
