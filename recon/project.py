@@ -60,7 +60,7 @@ def full_spans(rows: int, cols: int) -> np.ndarray:
 
 
 def _view_arrays(geometry: Geometry) -> tuple[np.ndarray, ...]:
-    sources = np.asarray(geometry.sources_mm, dtype=np.float64)
+    sources = np.array(geometry.sources_mm, dtype=np.float64)  # writable: one kernel signature
     origins = np.stack([v.detector_origin_mm for v in geometry])
     du = np.stack([v.pitch_u_mm * v.e_u for v in geometry])
     dv = np.stack([v.pitch_v_mm * v.e_v for v in geometry])
@@ -423,7 +423,7 @@ def pixel_quads(images: np.ndarray, factor: np.ndarray | None = None) -> np.ndar
 
     ``images`` and ``factor`` are (V or 1, rows or 1, cols), broadcast against each other.
     """
-    a = np.asarray(images, dtype=np.float32)
+    a = np.ascontiguousarray(images, dtype=np.float32)
     b = np.ones((1, 1, a.shape[-1]), np.float32) if factor is None else np.asarray(factor)
     b = b.astype(np.float32, copy=False)
     if a.ndim != 3 or b.ndim != 3 or a.shape[2] != b.shape[2]:
@@ -468,7 +468,7 @@ def backproject_weighted(
         np.ones(len(geometry), np.float32) if scale is None else np.asarray(scale, np.float32),
         np.asarray(geometry.matrices),
         np.asarray(geometry.sources_mm),
-        np.zeros(3) if axis is None else np.asarray(axis, dtype=np.float64),
+        np.zeros(3) if axis is None else np.ascontiguousarray(axis, dtype=np.float64),
         mode,
         np.array(grid.origin_mm),
         np.array(grid.spacing_mm),

@@ -253,9 +253,9 @@ def ray_lengths(
     view: View, vertices_mm: np.ndarray, faces: np.ndarray, T_world_body: np.ndarray
 ) -> np.ndarray:
     """Length (mm) of each pixel centre's ray through a closed mesh moved by ``T_world_body``,
-    float64 (rows, cols): its silhouette is where it is > 0."""
+    float32 (rows, cols): its silhouette is where it is > 0."""
     uv, coef, A = _projected(view, vertices_mm, faces, T_world_body)
-    out = np.zeros((view.rows, view.cols))
+    out = np.zeros((view.rows, view.cols), dtype=np.float32)
     _render(uv, coef, A, 1, 0.0, out, numba.get_num_threads())
     return out
 
