@@ -89,8 +89,9 @@ def _tool_extent_m(model: ScannerModel, role: str) -> float:
 def motion_clearance(model: ScannerModel, path: TimedPath, evaluate) -> Clearance:
     """Smallest clearance along ``path``, refining its samples to :data:`RESOLUTION_M`.
 
-    ``evaluate(t)`` returns the configuration at time ``t`` (the path's own trajectory); new
-    samples go into every interval whose travel bound exceeds the resolution until none does.
+    ``evaluate(t)`` returns the configurations at the times ``t`` (len(t), nq) (the path's own
+    trajectory); new samples go into every interval whose travel bound exceeds the resolution
+    until none does.
     """
     bounds = reach_bounds(model)
     amax = model.limits.acceleration
@@ -111,7 +112,7 @@ def motion_clearance(model: ScannerModel, path: TimedPath, evaluate) -> Clearanc
                 for i in split
             ]
         )
-        new_q = np.array([evaluate(t) for t in new_t])
+        new_q = np.atleast_2d(evaluate(new_t))
         order = np.argsort(np.concatenate((times, new_t)), kind="stable")
         times = np.concatenate((times, new_t))[order]
         qs = np.concatenate((qs, new_q))[order]

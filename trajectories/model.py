@@ -234,12 +234,11 @@ class ScannerModel:
 
     def clearance(self, q: np.ndarray) -> tuple[float, str, str]:
         """Smallest distance (m) over the checked pairs and the pair's names (negative: overlap)."""
-        pin.computeDistances(self.model, self.data, self.geometry, self.geometry_data, q)
-        distances = np.array([r.min_distance for r in self.geometry_data.distanceResults])
-        k = int(np.argmin(distances))
-        pair = self.geometry.collisionPairs[k]
+        k = pin.computeDistances(self.model, self.data, self.geometry, self.geometry_data, q)
+        pair = self.geometry.collisionPairs[k]  # Pinocchio returns the nearest pair's index
         objects = self.geometry.geometryObjects
-        return float(distances[k]), objects[pair.first].name, objects[pair.second].name
+        distance = self.geometry_data.distanceResults[k].min_distance
+        return float(distance), objects[pair.first].name, objects[pair.second].name
 
     def to_units(self, q: np.ndarray) -> np.ndarray:
         """``q`` (radians, metres) as the public joint vector in ``joint_names`` order:

@@ -47,23 +47,12 @@ DERIVED = ("recon", "segmentation", "registration", "assessment")
 
 @pytest.fixture(scope="module")
 def cohort(tmp_path_factory) -> Path:
-    """An acquired study (seed 1) and knee-3: a copy of it with its frames corrupted."""
+    """An acquired study (seed 1, simulated in this process: the cluster is under test below)
+    and knee-3: a copy of it with its frames corrupted."""
     root = tmp_path_factory.mktemp("cohort")
-    paths = [root / f"knee-{seed}" for seed in SEEDS]
-    cluster = batch.local_cluster(2)
-    try:
-        with Client(cluster) as client:
-            futures = client.map(
-                batch.simulate_study,
-                paths,
-                [CONFIGS] * len(SEEDS),
-                [TINY] * len(SEEDS),
-                SEEDS,
-                pure=False,
-            )
-            client.gather(futures)
-    finally:
-        cluster.close()
+    paths = [
+        Path(batch.simulate_study(root / f"knee-{seed}", CONFIGS, TINY, seed)) for seed in SEEDS
+    ]
     shutil.copytree(paths[0], root / FAULTY, copy_function=os.link)
     frames = root / FAULTY / "fluoro" / "frames.mha"
     damaged = frames.with_name("damaged.tmp")

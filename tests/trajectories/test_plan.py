@@ -125,7 +125,7 @@ def test_sampling_catches_an_obstacle_between_two_clear_samples():
     q1[model.index["rotary"]] = math.radians(40.0)
     assert min(model.clearance(q0)[0], model.clearance(q1)[0]) > 0.02  # both ends clear
     path = TimedPath(np.array([0.0, 4.0]), np.array([q0, q1]), np.zeros((2, 14)), np.zeros((2, 14)))
-    found = motion_clearance(model, path, lambda t: q0 + (q1 - q0) * t / 4.0)
+    found = motion_clearance(model, path, lambda t: q0 + np.outer(t / 4.0, q1 - q0))
     assert found.distance_m < 0
     assert "patient3" in found.pair
     assert found.samples > 2
