@@ -21,7 +21,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import gaussian_filter, maximum_filter
+import scipy.fft
+from scipy.ndimage import maximum_filter
+from scipy.spatial import cKDTree
 
 RING_PX = 1.5
 """Gap between a ball's disc and the background ring around it, px."""
@@ -56,9 +58,7 @@ def detect_balls(image: np.ndarray, ball_radius_px: float, threshold: float = 0.
 
     ``ball_radius_px`` bounds the largest ball's shadow radius (with blur margin), px.
     """
-    band = gaussian_filter(image, 0.4 * ball_radius_px) - gaussian_filter(
-        image, 2.5 * ball_radius_px
-    )
+    band = band_pass(image, 0.4 * ball_radius_px, 2.5 * ball_radius_px)
     peaks = (band == maximum_filter(band, size=int(2 * ball_radius_px) | 1)) & (band > threshold)
     rows, cols = np.nonzero(peaks)
     rows, cols = _suppress_neighbours(rows, cols, band[rows, cols], ball_radius_px)
@@ -75,15 +75,11 @@ def detect_balls(image: np.ndarray, ball_radius_px: float, threshold: float = 0.
         patch = image[row - r : row + r + 1, col - r : col + r + 1].astype(np.float64)
         # the background ring, minus the discs of neighbouring balls that reach into it
         background = ring.copy()
-        for n_row, n_col in zip(rows, cols, strict=True):
-            if (
-                (n_row, n_col) != (row, col)
-                and abs(n_row - row) <= 2 * r
-                and abs(n_col - col) <= 2 * r
-            ):
-                background &= (
-                    np.hypot(xx - (n_col - col), yy - (n_row - row)) > ball_radius_px + RING_PX
-                )
+        near = (np.abs(rows - row) <= 2 * r) & (np.abs(cols - col) <= 2 * r)
+        near &= (rows != row) | (cols != col)
+        for n_row, n_col in zip(rows[near], cols[near], strict=True):
+            disc = np.hypot(xx - (n_col - col), yy - (n_row - row))
+            background &= disc > ball_radius_px + RING_PX
         if background.sum() < 12:
             continue
         design = np.column_stack([t[background] for t in terms])
@@ -110,12 +106,36 @@ def detect_balls(image: np.ndarray, ball_radius_px: float, threshold: float = 0.
     return Detections(np.array(uv), np.array(mass), np.array(elongation))
 
 
+def band_pass(image: np.ndarray, sigma_fine_px: float, sigma_coarse_px: float) -> np.ndarray:
+    """The image blurred by a Gaussian of ``sigma_fine_px`` minus blurred by one of
+    ``sigma_coarse_px`` (a difference of Gaussians), float64: one FFT of the image mirrored
+    past its edges by 4 coarse sigmas (the edges as ``scipy.ndimage.gaussian_filter`` treats
+    them) instead of two wide convolutions."""
+    pad = math.ceil(4.0 * sigma_coarse_px)
+    padded = np.pad(np.asarray(image, dtype=np.float64), pad, mode="symmetric")
+    shape = [scipy.fft.next_fast_len(n, real=True) for n in padded.shape]
+    fy = scipy.fft.fftfreq(shape[0])[:, None]
+    fx = scipy.fft.rfftfreq(shape[1])[None, :]
+    f2 = fy * fy + fx * fx
+    response = np.exp(-2.0 * np.pi**2 * sigma_fine_px**2 * f2)
+    response -= np.exp(-2.0 * np.pi**2 * sigma_coarse_px**2 * f2)
+    spectrum = scipy.fft.rfft2(padded, s=shape) * response
+    out = scipy.fft.irfft2(spectrum, s=shape)
+    return out[pad : pad + image.shape[0], pad : pad + image.shape[1]]
+
+
 def _suppress_neighbours(rows, cols, strength, radius):
     """Keep the strongest of peaks closer than ``radius`` (one ball, several maxima)."""
-    order = np.argsort(-strength)
+    points = np.column_stack((rows, cols)).astype(np.float64)
+    neighbours = cKDTree(points).query_ball_point(points, radius * (1.0 + 1e-9))
+    dropped = np.zeros(len(points), dtype=bool)
     kept: list[int] = []
-    for i in order:
-        if all((rows[i] - rows[j]) ** 2 + (cols[i] - cols[j]) ** 2 > radius**2 for j in kept):
-            kept.append(i)
+    for i in np.argsort(-strength):
+        if dropped[i]:
+            continue
+        kept.append(i)
+        for j in neighbours[i]:  # those within the radius (the strict test below) go
+            if (rows[i] - rows[j]) ** 2 + (cols[i] - cols[j]) ** 2 <= radius**2:
+                dropped[j] = True
     kept_arr = np.array(kept, dtype=int)
     return rows[kept_arr], cols[kept_arr]
