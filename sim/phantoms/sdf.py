@@ -1,16 +1,19 @@
 """Signed distance functions (SDF) over point arrays, and their partial-volume rasterisation.
 
 Every primitive takes points ``p`` of shape (N, 3) in mm and returns signed distances (N,) in mm:
-negative inside, positive outside. Exact distances where the closed form exists (sphere,
-capsule, torus); the ellipsoid and the tapered capsule are first-order approximations
-that are accurate near the surface, which is where partial volume and shell thickness are
-decided. Smooth booleans use the polynomial smooth minimum (blend radius ``k`` mm).
+negative inside, positive outside (compiled loops: one pass over the points, no temporaries).
+Exact distances where the closed form exists (sphere, capsule, torus); the ellipsoid and the
+tapered capsule are first-order approximations that are accurate near the surface, which is
+where partial volume and shell thickness are decided. Smooth booleans use the polynomial
+smooth minimum (blend radius ``k`` mm).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 
+import numba
 import numpy as np
 
 from recon.volume import VolumeGrid
@@ -23,13 +26,18 @@ _BLOCK = 4  # voxels per block edge of the coarse pass
 _BAND_SAFETY = 1.5  # margin on half diagonals for the approximate SDFs
 
 
-def _norm(v: np.ndarray) -> np.ndarray:
-    return np.sqrt(np.einsum("ij,ij->i", v, v))
+def _points(p: np.ndarray) -> np.ndarray:
+    """``p`` as the kernels take it: C-contiguous float64 (one compiled signature)."""
+    return np.ascontiguousarray(p, dtype=np.float64)
+
+
+def _vector(v: Sequence[float] | np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(v, dtype=np.float64)
 
 
 def sphere(p: np.ndarray, center: Sequence[float], radius: float) -> np.ndarray:
     """Sphere of ``radius`` mm about ``center``."""
-    return _norm(p - np.asarray(center)) - radius
+    return _tapered_capsule(_points(p), _vector(center), np.zeros(3), float(radius), float(radius))
 
 
 def capsule(p: np.ndarray, a: Sequence[float], b: Sequence[float], radius: float) -> np.ndarray:
@@ -44,11 +52,23 @@ def tapered_capsule(
 
     Exact for equal radii; for unequal radii the error is of order the taper slope squared.
     """
-    a = np.asarray(a, dtype=np.float64)
-    ba = np.asarray(b, dtype=np.float64) - a
-    pa = p - a
-    t = np.clip(pa @ ba / float(ba @ ba), 0.0, 1.0)
-    return _norm(pa - t[:, None] * ba) - (radius_a + (radius_b - radius_a) * t)
+    a = _vector(a)
+    return _tapered_capsule(_points(p), a, _vector(b) - a, float(radius_a), float(radius_b))
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _tapered_capsule(p, a, ba, radius_a, radius_b):  # pragma: no cover
+    """:func:`tapered_capsule` with ``ba = b - a`` (a zero ``ba``: a sphere about ``a``)."""
+    bb = ba[0] * ba[0] + ba[1] * ba[1] + ba[2] * ba[2]
+    out = np.empty(p.shape[0])
+    for i in range(p.shape[0]):
+        x, y, z = p[i, 0] - a[0], p[i, 1] - a[1], p[i, 2] - a[2]
+        t = 0.0
+        if bb > 0.0:
+            t = min(max((x * ba[0] + y * ba[1] + z * ba[2]) / bb, 0.0), 1.0)
+        x, y, z = x - t * ba[0], y - t * ba[1], z - t * ba[2]
+        out[i] = math.sqrt(x * x + y * y + z * z) - (radius_a + (radius_b - radius_a) * t)
+    return out
 
 
 def ellipsoid(p: np.ndarray, center: Sequence[float], radii: Sequence[float]) -> np.ndarray:
@@ -56,28 +76,60 @@ def ellipsoid(p: np.ndarray, center: Sequence[float], radii: Sequence[float]) ->
 
     Works in any dimension: ``p`` (N, D) with D-element ``center`` and ``radii``.
     """
-    r = np.asarray(radii, dtype=np.float64)
-    q = p - np.asarray(center)
-    k0 = _norm(q / r)
-    k1 = _norm(q / (r * r))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        d = k0 * (k0 - 1.0) / k1
-    return np.where(k1 > 1e-12, d, -r.min())
+    return _ellipsoid(_points(p), _vector(center), _vector(radii))
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _ellipsoid(p, center, radii):  # pragma: no cover
+    """:func:`ellipsoid`."""
+    out = np.empty(p.shape[0])
+    r_min = radii.min()
+    for i in range(p.shape[0]):
+        s0 = 0.0
+        s1 = 0.0
+        for k in range(p.shape[1]):
+            q = (p[i, k] - center[k]) / radii[k]
+            s0 += q * q
+            q /= radii[k]
+            s1 += q * q
+        k0, k1 = math.sqrt(s0), math.sqrt(s1)
+        out[i] = k0 * (k0 - 1.0) / k1 if k1 > 1e-12 else -r_min
+    return out
 
 
 def torus_x(p: np.ndarray, center: Sequence[float], major: float, minor: float) -> np.ndarray:
     """Torus about the line through ``center`` along x: a tube of radius ``minor`` mm around
     the circle of radius ``major`` mm in the y-z plane (``major < minor`` gives a closed,
     wheel-like spindle torus)."""
-    q = p - np.asarray(center)
-    ring = np.hypot(q[:, 1], q[:, 2]) - major
-    return np.hypot(ring, q[:, 0]) - minor
+    return _torus_x(_points(p), _vector(center), float(major), float(minor))
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _torus_x(p, center, major, minor):  # pragma: no cover
+    """:func:`torus_x`."""
+    out = np.empty(p.shape[0])
+    for i in range(p.shape[0]):
+        y, z, x = p[i, 1] - center[1], p[i, 2] - center[2], p[i, 0] - center[0]
+        ring = math.sqrt(y * y + z * z) - major
+        out[i] = math.sqrt(ring * ring + x * x) - minor
+    return out
 
 
 def smooth_union(a: np.ndarray, b: np.ndarray, k: float) -> np.ndarray:
     """Union of two solids, blended over ``k`` mm (polynomial smooth minimum)."""
-    h = np.clip(0.5 + 0.5 * (b - a) / k, 0.0, 1.0)
-    return b + (a - b) * h - k * h * (1.0 - h)
+    a, b = np.broadcast_arrays(np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64))
+    flat = _smooth_union(np.ascontiguousarray(a).ravel(), np.ascontiguousarray(b).ravel(), float(k))
+    return flat.reshape(a.shape)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _smooth_union(a, b, k):  # pragma: no cover
+    """:func:`smooth_union` of two (N,) distances."""
+    out = np.empty(a.shape[0])
+    for i in range(a.shape[0]):
+        h = min(max(0.5 + 0.5 * (b[i] - a[i]) / k, 0.0), 1.0)
+        out[i] = b[i] + (a[i] - b[i]) * h - k * h * (1.0 - h)
+    return out
 
 
 def smooth_intersection(a: np.ndarray, b: np.ndarray, k: float) -> np.ndarray:
