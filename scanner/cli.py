@@ -4,7 +4,8 @@ Here: ``plan`` (checked, timed robot motion for a protocol) and ``simulate-scan`
 digital phantom with a protocol). The study pipeline's commands join this app in study.cli,
 which is the console's entry point (``cbct scan`` is there: it reconstructs while it
 acquires). Every command checks its inputs before long work starts, never
-overwrites an existing output, and shows progress on long work.
+overwrites an existing output, and shows progress on long work. Each command imports what it
+uses when it runs: ``cbct --help`` loads none of the science.
 """
 
 from __future__ import annotations
@@ -17,9 +18,6 @@ import typer
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
-
-from scanner import scan_files
-from sim.vibration import VibrationSpec
 
 app = typer.Typer(
     add_completion=False,
@@ -72,6 +70,8 @@ def plan(
     scanner: Annotated[Path, typer.Option(help="scanner hardware YAML")] = CONFIGS / "scanner.yaml",
 ) -> None:
     """Plan a protocol on the scanner: IK, collision and limit checks, timing, a recording."""
+    from scanner import scan_files
+
     try:
         with views_progress() as bar:
             result = scan_files.plan_to_study(
@@ -139,6 +139,9 @@ def simulate_scan(
 ) -> None:
     """Scan a digital phantom: projections .mha, the planned geometry .xml (and the acquired
     one, true_geometry.xml, on vibrating arms), phantom volumes for the knee."""
+    from scanner import scan_files
+    from sim.vibration import VibrationSpec
+
     if phantom_config is None:
         phantom_config = (
             CONFIGS / "phantoms" / ("knee.yaml" if phantom == "knee" else "bb_helix.yaml")

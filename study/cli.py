@@ -6,7 +6,8 @@ pipeline's: ``calibrate`` (per-view geometry from a steel-ball phantom scan),
 sequence), ``assess`` (knee kinematics report from bone poses), ``demo`` (the main job on the
 simulated scanner) and ``batch`` (the derived stages of many studies on dask.distributed, and a
 cohort summary). Every command checks its inputs before long work starts, never overwrites an
-existing output, and shows progress on long work.
+existing output, and shows progress on long work. Each command imports what it uses when it
+runs (``cbct --help`` and ``cbct scan`` load no registration, cohort or plotting code).
 """
 
 from __future__ import annotations
@@ -15,29 +16,17 @@ import json
 import os
 import time
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
-import numpy as np
 import typer
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
 from recon.attenuation import DEFAULT_EFFECTIVE_ENERGY_KEV
-from recon.config import load_config
-from recon.distortion import Distortion
-from registration.boneaxis import Settings
-from registration.track import ImplantSpec, body_name, register_files
-from scanner.backends import load_backend_spec
 from scanner.cli import CONFIGS, app, console, fail, views_done, views_progress
-from scanner.scan import Progress as ScanProgress
-from scanner.scan import ScanFault
-from scanner.session import move_session, read_inputs, run_session
-from scanner.study import StudyError
-from study import batch as batch_job
-from study import demo as demo_job
-from study import jobs
-from study.live_recon import LiveRecon
-from study.stages import recon_stage
+
+if TYPE_CHECKING:
+    from study.batch import BatchReport
 
 __all__ = ["app"]
 
@@ -54,6 +43,10 @@ def calibrate(
 ) -> None:
     """Per-view geometry from a steel-ball phantom scan: the vibration correction later scans of
     the same protocol and plan reconstruct with (cbct recon --calibration)."""
+    import numpy as np
+
+    from study import jobs
+
     try:
         with views_progress() as bar:
             result = jobs.calibrate_to_study(
@@ -101,6 +94,8 @@ def calibrate_fluoro(
 ) -> None:
     """The fluoroscopy panel's distortion from an image of the dewarp grid alone: the warp
     ``cbct register --distortion`` removes from every frame."""
+    from study import jobs
+
     if out.exists():
         fail(f"{out} exists: choose a new file (nothing is overwritten)")
     try:
@@ -148,6 +143,8 @@ def recon(
     ] = None,
 ) -> None:
     """Reconstruct RTK-format projections with weighted FDK."""
+    from study import jobs
+
     if out.exists():
         fail(f"{out} exists: choose a new output name (nothing is overwritten)")
     try:
@@ -221,6 +218,13 @@ def scan(
     the X-ray off, then stops the arms, and marks the study incomplete; --resume continues it.
     --move-to-start and --park move the scanner as cbct move does, in the same session.
     """
+    from scanner.backends import load_backend_spec
+    from scanner.scan import Progress as ScanProgress
+    from scanner.scan import ScanFault
+    from scanner.session import read_inputs, run_session
+    from study.live_recon import LiveRecon
+    from study.stages import recon_stage
+
     config = backend_config or CONFIGS / "backends" / f"{backend}.yaml"
     try:
         if resume:
@@ -335,6 +339,8 @@ def move(
     study's backend: planned from the measured joints, checked (joint limits, clearance along
     the whole motion; straight, else with the arms folded), shown and confirmed; X-ray stays
     off; any fault switches the X-ray off and stops the arms."""
+    from scanner.session import move_session
+
     if to not in ("start", "park"):
         fail(f"--to {to!r}: give start or park")
     try:
@@ -389,6 +395,8 @@ def assess(
 ) -> None:
     """Knee kinematics, TP-condyle distances and flags: report.html, metrics.csv, plots, 4D,
     and export/ (ITK transforms, Autoscoper .tra, a 3D Slicer scene)."""
+    from study import jobs
+
     try:
         result = jobs.assess_files(
             poses, labels, out, side, tka=tka, plateau_offset_mm=plateau_offset_mm, volume=volume
@@ -420,6 +428,8 @@ def export(
 ) -> None:
     """The tracked bones for other tools: per-frame ITK transforms (SimpleITK, ITK-SNAP, 3D
     Slicer), Autoscoper .tra files, and a 3D Slicer scene (scene.mrml) that plays the motion."""
+    from study import jobs
+
     if study is not None:
         if poses is not None or labels is not None:
             fail("--study names the poses and labels: drop --poses and --labels")
@@ -517,6 +527,11 @@ def register(
 ) -> None:
     """Track the knee's bones (from a static scan) or its implant components (from their
     meshes) through a fluoroscopy sequence (BoneAxis-Reg)."""
+    from recon.config import load_config
+    from recon.distortion import Distortion
+    from registration.boneaxis import Settings
+    from registration.track import ImplantSpec, register_files
+
     if out.exists():
         fail(f"{out} exists: choose a new output folder (nothing is overwritten)")
     units = {"hu": "HU", "1/mm": "1/mm"}
@@ -587,6 +602,8 @@ def register(
 def _body_words(option: str, given: list[str] | None) -> dict[str, str]:
     """``BODY=VALUE`` options as the tracker's body name -> value; ValueError naming the
     option and the value otherwise."""
+    from registration.track import body_name
+
     out: dict[str, str] = {}
     for item in given or ():
         body, sep, value = item.partition("=")
@@ -627,6 +644,9 @@ def demo(
 ) -> None:
     """Run the main job on the simulated scanner, into one study folder: plan, calibrate,
     scan, reconstruct, segment, simulate fluoroscopy, track the bones, assess, record."""
+    from scanner.scan import ScanFault
+    from study import demo as demo_job
+
     try:
         with views_progress() as bar:
             summary = demo_job.run(
@@ -672,8 +692,13 @@ def batch(
         float | None, typer.Option(help="recon voxel, mm (default: the study's own, else 1.0)")
     ] = None,
     timeout_s: Annotated[
-        float, typer.Option("--timeout", help="seconds to reach --scheduler and a worker on it")
-    ] = batch_job.CONNECT_TIMEOUT_S,
+        float | None,
+        typer.Option(
+            "--timeout",
+            help="seconds to reach --scheduler and a worker on it (default: study.batch's "
+            "CONNECT_TIMEOUT_S, 10 s)",
+        ),
+    ] = None,
 ) -> None:
     """Run ACTION on many studies as dask.distributed tasks, then write the cohort summary.
 
@@ -683,6 +708,9 @@ def batch(
     rerun the same command to finish what is missing. Writes OUT/cohort.csv, cohort.parquet
     and cohort.html (one row per study and bone). Exit status 1 when a study failed.
     """
+    from scanner.study import StudyError
+    from study import batch as batch_job
+
     if action not in batch_job.ACTIONS:
         fail(f"unknown action {action!r}: choose one of {', '.join(batch_job.ACTIONS)}")
     if scheduler is not None and workers is not None:
@@ -694,7 +722,8 @@ def batch(
         n = workers if workers is not None else os.cpu_count() or 1
         if scheduler is None:
             console.print(f"starting a local cluster of {n} worker process(es)", highlight=False)
-        client, cluster = batch_job.open_client(scheduler, n, timeout_s)
+        wait_s = batch_job.CONNECT_TIMEOUT_S if timeout_s is None else timeout_s
+        client, cluster = batch_job.open_client(scheduler, n, wait_s)
     except (StudyError, ValueError, OSError) as err:
         fail(str(err))
     tasks = batch_job.ACTIONS[action]
@@ -758,7 +787,7 @@ def batch(
         raise typer.Exit(1)
 
 
-def _batch_table(report: batch_job.BatchReport, studies: int) -> Table:
+def _batch_table(report: BatchReport, studies: int) -> Table:
     table = Table(title=f"batch: {studies} studies in {report.seconds:.1f} s")
     tasks = list(dict.fromkeys(o.task for o in report.outcomes))
     for column in ("study", *tasks):

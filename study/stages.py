@@ -5,6 +5,8 @@ Each stage reads what it needs from the study folder and its config snapshot, wr
 ``<stage>.partial/`` and renames it when done, records every file's sha256 and marks itself
 complete in ``study.json`` (:func:`run_stage`); a failure marks it incomplete with the reason
 and leaves the stages before it untouched, so running again redoes only what is missing.
+Segmentation, registration and assessment import their code when they run (a scan's process
+reconstructs, and needs none of it).
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import shutil
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -27,15 +30,13 @@ from recon.io import read_projections, read_volume, write_volume
 from recon.preview import save_orthogonal_slices
 from recon.rtk_xml import read_rtk_geometry
 from recon.volume import VolumeGrid
-from registration.boneaxis import Settings
 from registration.labels import BONE_UNITS, LABELS
-from registration.poses import read_poses
-from registration.segment import bone_surfaces, segment_bones
-from registration.track import register_files
 from scanner.study import Study, StudyError
 from sim.phantoms.knee import KneePhantomSpec, attenuation_per_mm, rasterize_knee
-from study.jobs import fit_fluoro_distortion, write_assessment
 from study.recording import record_volume
+
+if TYPE_CHECKING:
+    from registration.boneaxis import Settings
 
 Say = Callable[[str], None]
 
@@ -198,6 +199,7 @@ def recon_stage(
 def segmentation_stage(study: Study, say: Say = print) -> bool:
     """Bones of ``recon/`` -> ``segmentation/`` (labels, one mesh per bone; Dice against the
     phantom when simulated)."""
+    from registration.segment import bone_surfaces, segment_bones
 
     def fill(folder: Path) -> dict:
         volume = read_volume(study.path / "recon" / "volume.nii.gz", unit="1/mm")
@@ -230,6 +232,8 @@ def registration_stage(
     (metrics.json when the sequence has ground truth); the frames are dewarped first when
     ``fluoro/`` holds an exposure of the dewarp grid (``dewarp_grid.mha`` and its
     ``dewarp_grid.yaml``). ``progress(done, total)`` counts frames (else ``say`` does)."""
+    from registration.track import register_files
+    from study.jobs import fit_fluoro_distortion
 
     def work() -> dict:
         target = study.path / "registration"
@@ -280,6 +284,8 @@ def registration_stage(
 def assessment_stage(study: Study, title: str = "Knee kinematics", say: Say = print) -> bool:
     """Knee kinematics of the registered poses -> ``assessment/`` (report, plots, metrics,
     4D series)."""
+    from registration.poses import read_poses
+    from study.jobs import write_assessment
 
     def fill(folder: Path) -> dict:
         labels = read_volume(study.path / "segmentation" / "labels.nii.gz", unit="label")
