@@ -24,10 +24,11 @@ from trajectories.plan import plan_scan
 
 
 def tiny_protocol() -> ScanProtocol:
-    """The demo protocol read out 8x8 binned, two 90-degree passes of 30 views in all."""
+    """The demo protocol read out 8x8 binned, two 40-degree passes of 16 views in all (10 s of
+    real-time motion on the UR backend)."""
     data = yaml.safe_load((CONFIGS / "protocols" / "demo_knee.yaml").read_text(encoding="utf-8"))
     data["detector"] = {"rows": 64, "cols": 64, "pixel_pitch_mm": 9.6}
-    data["orbit"].update(views=30, arc_deg=90, z_travel_mm=20)
+    data["orbit"].update(views=16, arc_deg=40, z_travel_mm=10)
     return ScanProtocol.model_validate(data)
 
 
@@ -65,7 +66,7 @@ def test_ur_backend_scans_like_the_simulated_one(tmp_path):
                 "generator_port": generator.port,
             },
         )
-        assert generator.exposures == 30
+        assert generator.exposures == 16
     sim = scan(tmp_path, "sim", {})
     for study in (ur, sim):
         done = Study.open(study)
