@@ -1,6 +1,6 @@
 """Medial-lateral difference (MLD) flags: runs of flagged frames and the sentences a surgeon reads.
 
-A frame is flagged when |MLD| exceeds ``KneeKinematics.flag_mm`` (2 mm, SYSTEM.md). A flag is a
+A frame is flagged when |MLD| exceeds ``KneeKinematics.flag_mm`` (2 mm, docs/system.md). A flag is a
 cue for review of alignment and ligament balance, not a diagnosis; the wording says so.
 """
 

@@ -80,7 +80,7 @@ def assess_knee(
         poses: per-frame ``T_world_bone`` of at least the femur and the tibia.
         side: which knee.
         tka: fit the TP plane to the polyethylene insert (label :data:`INSERT_LABEL`).
-        plateau_offset_mm: shift of the TP plane along its normal (SYSTEM.md's configurable
+        plateau_offset_mm: shift of the TP plane along its normal (docs/system.md's configurable
             offset; negative is below the fitted plateau).
         flag_mm: MLD flag threshold.
     """

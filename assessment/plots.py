@@ -1,6 +1,6 @@
 """The knee-assessment plots as PNG bytes (matplotlib Agg, no pyplot global state).
 
-Each ``*_png(kin)`` function draws one figure of SYSTEM.md's "Clinical assessment (knee)" at
+Each ``*_png(kin)`` function draws one figure of docs/system.md's "Clinical assessment (knee)" at
 ``DPI`` and returns the encoded PNG; ``PLOTS`` lists them by file stem and ``save_all`` writes
 them all to a folder.
 """

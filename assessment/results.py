@@ -8,7 +8,7 @@ from typing import Literal
 import numpy as np
 
 MLD_FLAG_MM = 2.0
-"""Medial-lateral distance difference above which a frame is flagged (SYSTEM.md)."""
+"""Medial-lateral distance difference above which a frame is flagged (docs/system.md)."""
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,7 @@ still run and the exit status is 1.
 
 Usage: ``python bench/all.py [--quick] [--only NAME ...] [--out PATH]`` (``--only`` runs the
 named benchmarks in the order given, e.g. the longest first); then
-``python bench/table.py --write-readme`` puts the tables into README.md.
+``python bench/table.py --write-readme`` puts the tables into docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ ROOT = BENCH.parent
 OUT = BENCH / "out" / "all.json"
 NOT_BENCHMARKS = {"all", "table"}
 FULL: dict[str, list[str]] = {"registration": ["--ablation-sequences", "1"]}
-"""Arguments of the full runs (the ones the README publishes); others run without any."""
+"""Arguments of the full runs (the ones docs/benchmarks.md publishes); others run without any."""
 QUICK: dict[str, list[str]] = {
     "calibration": ["--views", "90"],
     "recon": ["--small"],

@@ -1,6 +1,6 @@
 """Benchmark: 2D-3D registration of simulated knee fluoroscopy (BoneAxis-Reg and ablations).
 
-Two regimes (SYSTEM.md, issue "4D virtual imaging"):
+Two regimes (docs/system.md, issue "4D virtual imaging"):
 
 - ``matched``: the paper's setting. Bone models come from the phantom itself (its attenuation
   and labels); targets are our own scene DRRs of those models at the true poses (the same

@@ -1,10 +1,10 @@
-"""Markdown tables for README.md's "Benchmarks" section from ``bench/out/all.json``.
+"""Markdown tables for the docs' benchmarks page (docs/benchmarks.md) from ``bench/out/all.json``.
 
-One table per benchmark in the file (the columns of the README's tables), followed by a line
+One table per benchmark in the file (the columns of the page's tables), followed by a line
 with the date, commit, machine and command measured. Without ``--write-readme`` the blocks are
 printed between their markers; with it, each replaces the text between
-``<!-- bench:begin NAME -->`` and ``<!-- bench:end NAME -->`` in README.md. Benchmarks absent
-from the file (or failed there) keep their current README text.
+``<!-- bench:begin NAME -->`` and ``<!-- bench:end NAME -->`` in the page (``--readme PATH``:
+another file). Benchmarks absent from the file (or failed there) keep their current text.
 
 Usage: ``python bench/table.py [ALL_JSON] [--write-readme] [--readme PATH]``.
 """
@@ -23,7 +23,7 @@ from pathlib import Path
 BENCH = Path(__file__).resolve().parent
 ROOT = BENCH.parent
 ALL_JSON = BENCH / "out" / "all.json"
-README = ROOT / "README.md"
+README = ROOT / "docs" / "benchmarks.md"
 
 # -- number formats -----------------------------------------------------------------------------
 

@@ -12,7 +12,7 @@ The classic FDK steps on per-view projection matrices:
 
 Uneven sampling (short scans, helices whose ends see fewer views, reverse-spiral passes) is
 handled by normalising every voxel with the weighted count of the views that saw it
-(SYSTEM.md's "projection-weight normalisation"): each view contributes its angular step
+(docs/system.md's "projection-weight normalisation"): each view contributes its angular step
 ``dbeta`` times the Jacobian ``SOD * U / L_perp^2`` (``U`` depth, ``L_perp`` the source distance
 across the rotation axis), which integrates to ``2*pi`` for a voxel seen over a full turn and
 ``pi`` over a Parker-weighted short scan. The volume is ``pi * sum(views) / count``; where

@@ -1,4 +1,4 @@
-"""BoneAxis-Reg: per-bone 6-DoF 2D-3D registration of a fluoroscopy sequence (SYSTEM.md).
+"""BoneAxis-Reg: per-bone 6-DoF 2D-3D registration of a fluoroscopy sequence (docs/system.md).
 
 Each bone is scored against a scene DRR: the soft tissue and the other bones at their current
 estimates stay fixed while one bone moves, and the similarity is NCC of high-pass filtered

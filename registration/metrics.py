@@ -1,7 +1,7 @@
-"""Registration accuracy against ground truth (SYSTEM.md, "Metrics").
+"""Registration accuracy against ground truth (docs/system.md, "Metrics").
 
-Per bone and frame: the six DoF of DESIGN.md (the centroid's translation, mm, and extrinsic x-y-z
-rotation angles, deg) estimated minus true; the translation error split into out-of-plane
+Per bone and frame: the six DoF of docs/design.md (the centroid's translation, mm, and extrinsic
+x-y-z rotation angles, deg) estimated minus true; the translation error split into out-of-plane
 (along the ray from the source through the bone's true centroid: single-plane depth) and
 in-plane (the rest); and the target registration error (TRE), the mean distance between the
 bone's voxels moved by the estimated and by the true pose. Over a run: mean and median TRE,
@@ -35,7 +35,7 @@ class PoseError:
 
 
 def six_dof(T: np.ndarray, centroid_mm: np.ndarray) -> np.ndarray:
-    """DESIGN.md's 6-DoF vector of a pose: moved centroid (mm), extrinsic xyz angles (deg)."""
+    """docs/design.md's 6-DoF vector of a pose: moved centroid (mm), extrinsic xyz angles (deg)."""
     moved = T[:3, :3] @ centroid_mm + T[:3, 3]
     return np.concatenate((moved, Rotation.from_matrix(T[:3, :3]).as_euler("xyz", degrees=True)))
 

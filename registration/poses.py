@@ -1,8 +1,8 @@
-"""Bone poses per frame and their file, ``poses.csv`` (DESIGN.md).
+"""Bone poses per frame and their file, ``poses.csv`` (docs/design.md).
 
 A pose ``T_world_bone`` (4x4) moves a bone from where the static CBCT scan saw it (the bone's
 reference frame: world coordinates at the time of the scan) to where it is in a frame. The
-6-DoF row of the file repeats it as DESIGN.md parameterises poses: the world position of the
+6-DoF row of the file repeats it as docs/design.md parameterises poses: the world position of the
 bone's centroid (tx, ty, tz) mm and the rotation as extrinsic x-y-z angles (scipy "xyz") in
 degrees about that centroid. The 16 matrix entries are authoritative when reading.
 """

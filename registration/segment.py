@@ -1,4 +1,4 @@
-"""Bone segmentation of a knee CBCT volume without model weights (SYSTEM.md, 4D imaging step 1).
+"""Bone segmentation of a knee CBCT volume without model weights (docs/system.md, step 1).
 
 Classical 3D segmentation of a reconstruction in linear attenuation (1/mm), in five steps:
 

@@ -3,7 +3,7 @@
 A backend is a set of devices that satisfy these protocols: the simulated one (``sim.backend``:
 mock arms on a virtual clock, the mock generator over a pty, a rendering detector) and the UR one
 (``scanner.ur``: ur-rtde arms, the serial generator and stage drivers). ``sim`` implements them
-structurally and imports nothing from ``scanner`` (DESIGN.md).
+structurally and imports nothing from ``scanner`` (docs/design.md).
 
 Units: joint positions in the plan's joint units (degrees for revolute joints, millimetres for
 the lift), times in seconds on the backend's clock, technique in kVp / mA / ms. Every call that

@@ -1,4 +1,4 @@
-"""The study folder (DESIGN.md): one scan session, written stage by stage, never rewritten.
+"""The study folder (docs/design.md): one scan session, written stage by stage, never rewritten.
 
 ``study.json`` is the manifest: software version, the config snapshot the study was made with,
 each stage's status (``complete`` or ``incomplete`` with the reason), and the sha256 of every

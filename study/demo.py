@@ -1,4 +1,4 @@
-"""``cbct demo``: the main job on the simulated scanner, in one study folder (DESIGN.md).
+"""``cbct demo``: the main job on the simulated scanner, in one study folder (docs/design.md).
 
 1. plan the knee reverse spiral on the scanner (IK, clearance, timing), then scan the
    steel-ball phantom on the vibrating mock arms;

@@ -1,4 +1,4 @@
-"""The derived stages of a study (DESIGN.md): reconstruction, segmentation, registration,
+"""The derived stages of a study (docs/design.md): reconstruction, segmentation, registration,
 assessment. ``cbct demo`` and ``cbct batch`` run the same functions.
 
 Each stage reads what it needs from the study folder and its config snapshot, writes into

@@ -1,4 +1,4 @@
-"""The house (README "Where things are"): every import of every module of the packages points to
+"""The house (docs/design.md): every import of every module of the packages points to
 a lower floor, so no package sees one beside or above it and no package-level cycle can form.
 Imports inside functions and under TYPE_CHECKING count too."""
 

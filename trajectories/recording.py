@@ -1,6 +1,6 @@
 """A rerun recording (.rrd) of a plan: the scanner moving through its scan, in millimetres.
 
-Written headless to a file (no viewer, no network). Entity layout, world frame of DESIGN.md
+Written headless to a file (no viewer, no network). Entity layout, world frame of docs/design.md
 (+z up, LPS), lengths in mm:
 
 - ``world``: view coordinates (right-handed, z up).

@@ -1,6 +1,6 @@
 """Digital phantoms: additive ellipsoids (Shepp–Logan) and a standing knee.
 
-Both give ground truth in world mm (DESIGN.md frame): ellipsoid phantoms have exact analytic
+Both give ground truth in world mm (docs/design.md frame): ellipsoid phantoms have exact analytic
 projections; the knee phantom has labels, attenuation, bone poses and landmarks.
 """
 

@@ -15,7 +15,7 @@ the controller's state (:mod:`~sim.ur_controller.controller`) and a UR5e's joint
 (:mod:`~sim.ur_controller.arm`); :mod:`~sim.ur_controller.server` is the process and its entry
 point, :mod:`~sim.ur_controller.launcher` starts it.
 
-This package imports nothing from ``scanner`` (DESIGN.md: ``sim`` implements the hardware
+This package imports nothing from ``scanner`` (docs/design.md: ``sim`` implements the hardware
 protocols on its own).
 """
 
