@@ -1,0 +1,37 @@
+"""The packages' public names: each resolves to the object its module defines, loaded on first
+use (a bare ``import recon`` loads none of the science)."""
+
+from __future__ import annotations
+
+import importlib
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+PACKAGES = ("recon", "registration", "trajectories", "assessment", "sim.phantoms")
+
+
+@pytest.mark.parametrize("package", PACKAGES)
+def test_every_public_name_resolves_to_its_module_object(package):
+    module = importlib.import_module(package)
+    assert module.__all__ and sorted(module.__all__) == sorted(set(module.__all__))
+    for name in module.__all__:
+        obj = getattr(module, name)
+        home = importlib.import_module(getattr(obj, "__module__", package) or package)
+        assert getattr(home, name, obj) is obj, (package, name)
+    with pytest.raises(AttributeError, match="no attribute 'nothing_here'"):
+        module.nothing_here  # noqa: B018
+
+
+def test_importing_the_packages_loads_no_module_until_a_name_is_used():
+    code = (
+        "import sys, recon, registration, trajectories, assessment; "
+        "print(' '.join(m for m in ('recon.fdk', 'registration.boneaxis', 'pinocchio', "
+        "'matplotlib') if m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == []
