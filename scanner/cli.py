@@ -11,6 +11,7 @@ uses when it runs: ``cbct --help`` loads none of the science.
 from __future__ import annotations
 
 from collections.abc import Callable
+from importlib.resources import files
 from pathlib import Path
 from typing import Annotated
 
@@ -22,12 +23,30 @@ from rich.table import Table
 app = typer.Typer(
     add_completion=False,
     no_args_is_help=True,
-    help="dualarm-cbct operator console: simulate, reconstruct, demo.",
     pretty_exceptions_enable=False,
 )
 console = Console(stderr=True)
 
-CONFIGS = Path(__file__).resolve().parent.parent / "configs"
+CONFIGS = Path(str(files("configs")))
+"""The shipped configs (package data): the defaults of every command's config options."""
+
+
+def _version(show: bool) -> None:
+    if show:
+        from scanner.study import software_version
+
+        print(f"dualarm-cbct {software_version()}")
+        raise typer.Exit()
+
+
+@app.callback()
+def main(
+    version: Annotated[
+        bool,
+        typer.Option("--version", callback=_version, is_eager=True, help="print the version"),
+    ] = False,
+) -> None:
+    """dualarm-cbct operator console: plan, scan, calibrate, reconstruct, register, assess."""
 
 
 def views_progress() -> Progress:
