@@ -452,3 +452,15 @@ def test_the_console_loads_only_what_the_command_runs():
         )
         loaded = out.stdout.split()
         assert not set(loaded) & set(absent), (command or "--help", loaded)
+
+
+def test_every_command_has_clean_help_and_the_console_a_version():
+    """Help as a user reads it: no reStructuredText markup, paragraphs reflowed to the terminal."""
+    names = [c.name or c.callback.__name__.replace("_", "-") for c in app.registered_commands]
+    assert {"plan", "scan", "recon", "register", "assess", "demo", "batch"} <= set(names)
+    for name in names:
+        result = runner.invoke(app, [name, "--help"], terminal_width=100)
+        assert result.exit_code == 0 and "Usage:" in result.output, name
+        assert "``" not in result.output, name
+    version = runner.invoke(app, ["--version"])
+    assert version.exit_code == 0 and version.output.startswith("dualarm-cbct ")
