@@ -31,3 +31,9 @@ def test_example_runs(script: Path):
     with contextlib.redirect_stdout(out):
         runpy.run_path(str(script), run_name="__main__")
     assert out.getvalue().strip(), f"{script.name} printed nothing"
+
+
+def test_examples_are_short():
+    """Each example is a page a newcomer reads in one go."""
+    for script in (ROOT / "examples").glob("*.py"):
+        assert len(script.read_text(encoding="utf-8").splitlines()) <= 40, script.name

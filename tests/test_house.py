@@ -10,6 +10,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 
 FLOORS = {
+    "configs": 0,  # the shipped YAML files as package data: imports nothing
     "recon": 1,
     "trajectories": 2,
     "calibration": 2,
