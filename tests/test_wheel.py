@@ -1,6 +1,7 @@
-"""The project as a wheel, installed into a fresh virtual environment outside the checkout:
-``cbct --version``, ``cbct --help`` and the quick demo run from another folder, with the
-configs found as package data (slow: .ci/run runs it after the default suite)."""
+"""The project built as an sdist and a wheel (``python -m build``), the wheel installed into a
+fresh virtual environment outside the checkout: ``cbct --version`` and the quick demo run from
+another folder, with the configs found as package data (slow: .ci/run runs it after the
+default suite)."""
 
 from __future__ import annotations
 
@@ -25,7 +26,8 @@ def run(*cmd: str | Path, cwd: Path, timeout: float = 900) -> str:
 @pytest.mark.slow
 def test_the_wheel_installs_and_runs_outside_the_checkout(tmp_path):
     dist = tmp_path / "dist"
-    run(sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", dist, ROOT, cwd=tmp_path)
+    run(sys.executable, "-m", "build", "--outdir", dist, ROOT, cwd=tmp_path)  # sdist, then wheel
+    assert len(list(dist.glob("dualarm_cbct-*.tar.gz"))) == 1
     wheel = next(dist.glob("dualarm_cbct-*.whl"))
     fresh = tmp_path / "fresh"
     run(sys.executable, "-m", "venv", fresh, cwd=tmp_path)
