@@ -10,8 +10,8 @@ from recon.volume import VolumeGrid
 from sim.phantoms.ellipsoids import project_ellipsoids, shepp_logan_3d
 
 phantom = shepp_logan_3d(scale_mm=60.0)  # 10 ellipsoids, values per mm
-panel = DetectorSpec(rows=128, cols=128, pixel_pitch_mm=1.5)
-views = circular_orbit(180, 600.0, 1000.0, panel)  # 180 views, source 600 mm from the axis
-grid = VolumeGrid.centered((96, 96, 96), 1.0, (0.0, 0.0, 0.0))
+panel = DetectorSpec(rows=96, cols=96, pixel_pitch_mm=2.0)
+views = circular_orbit(120, 600.0, 1000.0, panel)  # 120 views, source 600 mm from the axis
+grid = VolumeGrid.centered((64, 64, 64), 1.5, (0.0, 0.0, 0.0))
 volume = fdk_reconstruct(project_ellipsoids(phantom, views), views, grid).volume
-print(volume.data.shape, f"brain {volume.data[48, 40:56, 40:56].mean():.3f} (0.2)")
+print(volume.data.shape, f"brain {volume.data[32, 26:38, 26:38].mean():.3f} (0.2)")
