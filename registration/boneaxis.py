@@ -146,8 +146,7 @@ class Settings(BaseModel):
     powell_xtol: PositiveFloat = Field(
         0.05,
         description="Powell's tolerance on the coarsest level, mm and deg (Nelder-Mead on the "
-        "finer levels refines further; 0.01 cost a fifth more time per warm frame for the same "
-        "accuracy)",
+        "finer levels refines further)",
     )
     nelder_mead_maxfev: PositiveInt = 120
     refinement: Literal["least_squares", "powell_nelder_mead"] = Field(
@@ -157,8 +156,8 @@ class Settings(BaseModel):
         "is 1 - NCC (Jacobian by central differences of ls_step), the coarse levels in a "
         "first pass over the bones and the finest in a second, whatever passes says; or "
         "powell_nelder_mead, the derivative-free passes of the first frame (where the DE's "
-        "pose may be a few mm off, which Powell's box search recovers and least squares did "
-        "not: a tibia 3.3 mm off in the demo) and of the tracker without the KPM",
+        "pose may be a few mm off, which Powell's box search recovers) and of the tracker "
+        "without the KPM",
     )
     ls_step: tuple[PositiveFloat, PositiveFloat] = Field(
         (0.25, 0.25), description="least squares: central-difference steps, (mm, deg)"
