@@ -482,7 +482,15 @@ def _check_distances(sid_mm: float, sdd_mm: float) -> None:
 
 
 def short_scan_arc_deg(sdd_mm: float, detector: DetectorSpec) -> float:
-    """Minimal short-scan arc of a centred panel: 180 degrees plus the full fan angle."""
+    """Minimal short-scan arc of a centred panel: 180 degrees plus the full fan angle.
+
+    Examples:
+        A 307.2 mm wide panel 1000 mm from the source:
+
+        >>> panel = DetectorSpec(rows=64, cols=512, pixel_pitch_mm=0.6)
+        >>> round(short_scan_arc_deg(1000.0, panel), 2)
+        197.46
+    """
     return 180.0 + 2.0 * math.degrees(math.atan(0.5 * detector.width_mm / sdd_mm))
 
 
@@ -499,6 +507,14 @@ def circular_orbit(
 
     A 360-degree arc spaces views by 360/n (no repeated end view); shorter arcs (short scans,
     see :func:`short_scan_arc_deg`) include both end angles.
+
+    Examples:
+        >>> panel = DetectorSpec(rows=96, cols=96, pixel_pitch_mm=2.0)
+        >>> views = circular_orbit(180, 600.0, 1000.0, panel)
+        >>> len(views), views.rows, views.cols
+        (180, 96, 96)
+        >>> [round(float(x), 6) + 0.0 for x in views[0].source_mm]  # angle 0: the source anterior
+        [0.0, -600.0, 0.0]
     """
     return helical_orbit(
         n_views,

@@ -56,7 +56,13 @@ class VolumeGrid:
         spacing_mm: float | Sequence[float],
         center_mm: Sequence[float] = (0.0, 0.0, 0.0),
     ) -> VolumeGrid:
-        """Grid of ``size_xyz`` = (nx, ny, nz) voxels whose centre lies at ``center_mm``."""
+        """Grid of ``size_xyz`` = (nx, ny, nz) voxels whose centre lies at ``center_mm``.
+
+        Examples:
+            >>> grid = VolumeGrid.centered((4, 3, 2), 0.5, (0.0, 0.0, 480.0))
+            >>> grid.shape, grid.origin_mm  # arrays are [z, y, x]; the first voxel's centre
+            ((2, 3, 4), (-0.75, -0.5, 479.75))
+        """
         nx, ny, nz = (int(n) for n in size_xyz)
         spacing = _triple(
             "spacing_mm",
