@@ -50,6 +50,7 @@ def _normalise_3d(x: np.ndarray) -> np.ndarray:
 
 
 def project(P: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Pixel (u, v) of world ``points`` (N, 3) mm through the 3x4 matrix ``P``, (N, 2)."""
     h = points @ P[:, :3].T + P[:, 3]
     return h[:, :2] / h[:, 2:3]
 

@@ -52,6 +52,7 @@ class StudyError(RuntimeError):
 
 
 def sha256(path: Path) -> str:
+    """The file's SHA-256, hex (read in 1 MiB blocks)."""
     digest = hashlib.sha256()
     with open(path, "rb") as fh:
         for block in iter(lambda: fh.read(1 << 20), b""):
@@ -60,6 +61,7 @@ def sha256(path: Path) -> str:
 
 
 def software_version() -> str:
+    """This package's version (pyproject.toml), "unknown" when it is not installed."""
     try:
         return version("dualarm-cbct")
     except PackageNotFoundError:  # pragma: no cover - running from a bare checkout

@@ -66,6 +66,8 @@ def _calls(interfaces: dict[str, Any], request: tuple) -> tuple:
 
 
 def main() -> int:
+    """Serve one arm's ur-rtde calls for the scanner process over the inherited pipes;
+    returns the exit status."""
     answers = Connection(os.dup(1), readable=False)
     os.dup2(2, 1)  # ur-rtde prints to stdout: keep it off the answer channel
     requests = Connection(os.dup(0), writable=False)

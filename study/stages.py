@@ -94,6 +94,7 @@ def _require(study: Study, *stages: str) -> None:
 
 
 def scan_protocol(study: Study) -> ScanProtocol:
+    """The protocol the study's scan ran (its config snapshot)."""
     return ScanProtocol.model_validate(study.manifest["config"]["scan"]["protocol"])
 
 
@@ -107,6 +108,8 @@ def simulated_knee(study: Study) -> KneePhantomSpec | None:
 
 
 def recon_grid(protocol: ScanProtocol, voxel_mm: float) -> VolumeGrid:
+    """The recon stage's box (:data:`RECON_EXTENT_MM` about the orbit's isocentre, shifted by
+    :data:`RECON_OFFSET_MM`) in cubic voxels of ``voxel_mm``."""
     size = tuple(round(e / voxel_mm) for e in RECON_EXTENT_MM)
     center = np.asarray(protocol.orbit.isocenter_mm) + np.asarray(RECON_OFFSET_MM)
     return VolumeGrid.centered(size, voxel_mm, tuple(center))

@@ -109,6 +109,8 @@ class FakeServer:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run one fake controller until it is terminated (``python -m sim.ur_controller``);
+    returns the exit status."""
     parser = argparse.ArgumentParser(
         prog="python -m sim.ur_controller", description=__doc__.split("\n\n")[0]
     )
