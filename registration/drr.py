@@ -210,10 +210,21 @@ def bone_models(
     margin_mm: float = CROP_MARGIN_MM,
     edge_mm: float = BONE_EDGE_MM,
 ) -> dict[str, BoneModel]:
-    """The tracked bones of a segmented CBCT volume (attenuation 1/mm, labels on its grid):
-    each the attenuation above the soft tissue's over its labels, plus the part above it in
-    its :func:`bone_regions` rim (the blurred edge; a darker rim, e.g. fat, stays behind with
-    the soft tissue); its points and centroid from its labels alone."""
+    """The tracked bones of a segmented CBCT volume, ready to render.
+
+    Each bone is the attenuation above the soft tissue's over its labels, plus the part above
+    it in its :func:`bone_regions` rim (the blurred edge; a darker rim, e.g. fat, stays behind
+    with the soft tissue); its points and centroid come from its labels alone.
+
+    Args:
+        volume: the static scan, attenuation in 1/mm.
+        labels: its bone labels on the same grid (registration.labels.LABELS).
+        margin_mm: margin kept around each bone's labels when its volume is cropped, mm.
+        edge_mm: width of the rim beyond the labels that keeps the bone's blurred edge, mm.
+
+    Returns:
+        The models by tracked name (femur, tibia_fibula, patella), those the labels hold.
+    """
     if volume.grid != labels.grid:
         raise ValueError(
             f"the label volume's grid {labels.grid} does not match the volume's {volume.grid}"
