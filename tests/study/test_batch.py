@@ -1,9 +1,10 @@
-"""``cbct batch`` on loopback: LocalClusters of 2 worker processes over tiny simulated studies.
+"""``cbct batch`` on loopback: LocalClusters of 2 worker processes over simulated studies.
 
-The cohort (knee-1, made once per module on a LocalCluster, and knee-3: a copy of it whose
-fluoroscopy frames a failing disk truncated after acquisition); each test works on a
-hard-linked copy of it (study files are never rewritten in place, only replaced by rename, so
-the copies stay independent).
+The slow test's cohort (knee-1, a tiny simulated study, and knee-3: a copy of it whose
+fluoroscopy frames a failing disk truncated after acquisition); the default suite's worker
+kill works on a copy of the quick demo's study (tests/study/conftest.py). Each test works on
+hard-linked copies (study files are never rewritten in place, only replaced by rename, so the
+copies stay independent).
 """
 
 from __future__ import annotations
@@ -133,8 +134,14 @@ def test_batch_all_makes_the_cohort_reports_the_fault_and_skips_finished_work(co
     assert taken.exit_code == 2 and "exists and is not empty" in taken.output
 
 
-def test_a_worker_killed_mid_task_loses_nothing(cohort, tmp_path):
-    studies = copy_cohort(cohort, tmp_path / "studies", ("knee-1",))
+def test_a_worker_killed_mid_task_loses_nothing(demo, tmp_path):
+    """On a copy of the quick demo's study whose reconstruction and segmentation are to be
+    made again: a worker SIGKILLed while it reconstructs; the task runs again elsewhere."""
+    studies = [tmp_path / "studies" / "knee"]
+    shutil.copytree(demo, studies[0], copy_function=os.link)
+    copy = Study.open(studies[0])
+    for stage in ("recon", "segmentation"):
+        copy.mark(stage, "incomplete", reason="made again by the test")
     killed: dict[str, object] = {}
 
     def kill_a_worker_in_recon(client: Client) -> None:
@@ -150,7 +157,7 @@ def test_a_worker_killed_mid_task_loses_nothing(cohort, tmp_path):
                         return
             time.sleep(0.05)
 
-    options = batch.TaskOptions(settings=batch.load_settings(cohort / "settings.yaml"))
+    options = batch.TaskOptions()
     cluster = batch.local_cluster(2)
     try:
         with Client(cluster) as client:

@@ -1,4 +1,5 @@
-"""``cbct demo --quick`` end to end: every stage in one study folder, checked."""
+"""``cbct demo --quick`` end to end: every stage in one study folder, checked (the ``demo``
+fixture: tests/study/conftest.py)."""
 
 from __future__ import annotations
 
@@ -25,15 +26,6 @@ from study.cli import app
 from study.demo import STAGES
 
 runner = CliRunner()
-
-
-@pytest.fixture(scope="module")
-def demo(tmp_path_factory, seed) -> Path:
-    out = tmp_path_factory.mktemp("demo") / "study"
-    result = runner.invoke(app, ["demo", "--out", str(out), "--quick", "--seed", str(seed)])
-    assert result.exit_code == 0, result.output
-    assert "demo finished" in result.output and f"rerun {out}/recording.rrd" in result.output
-    return out
 
 
 def test_every_stage_is_complete_and_every_file_checked(demo: Path):
