@@ -119,7 +119,15 @@ def fit_view(
 ) -> tuple[View, np.ndarray]:
     """The physical view that best reprojects the balls, regularised toward the plan.
 
-    Returns the view and the reprojection residuals (K, 2) px.
+    Args:
+        planned: the view the plan expected.
+        points_mm: the identified balls' world centres (K, 3), mm.
+        uv: their detected centroids (K, 2), pixels (column u, row v).
+        prior: the planned pose's standard deviations (mm, degrees).
+        noise_px: the centroids' noise, px: weighs the prior against the reprojection.
+
+    Returns:
+        The view and the reprojection residuals (K, 2) px.
     """
     weights = np.concatenate(
         (

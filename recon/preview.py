@@ -141,6 +141,15 @@ def save_orthogonal_slices(
 ) -> Path:
     """Write :func:`render_orthogonal_slices` to a PNG of 1300 x 460 pixels.
 
+    Args:
+        volume: the volume (its unit labels the colour bar).
+        path_png: the PNG to write.
+        title: the figure's title (default: none).
+        window: display range (low, high) in the volume's unit (default: as
+            :func:`render_orthogonal_slices` chooses it).
+        point_mm: world point (x, y, z) mm the three slices pass through (default: the grid
+            centre).
+
     Raises:
         FileNotFoundError: the output folder does not exist.
         ValueError: a bad window or a point outside the grid.

@@ -52,7 +52,15 @@ _ORTHONORMAL_ATOL = 1e-6
 
 
 def centered_origin_uv_mm(rows: int, cols: int, pitch_u_mm: float, pitch_v_mm: float):
-    """Projection-image origin (mm) that centres the panel on RTK's detector origin."""
+    """Projection-image origin (mm) that centres the panel on RTK's detector origin.
+
+    Args:
+        rows, cols: panel size, pixels.
+        pitch_u_mm, pitch_v_mm: pixel pitch along columns (u) and rows (v), mm.
+
+    Returns:
+        (u, v) of the centre of pixel (row 0, column 0), mm.
+    """
     return (-0.5 * (cols - 1) * pitch_u_mm, -0.5 * (rows - 1) * pitch_v_mm)
 
 

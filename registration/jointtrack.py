@@ -56,7 +56,15 @@ def read_calibration(path: str | Path, rows: int, cols: int) -> View:
 def camera_view(
     distance_mm: float, x_off_mm: float, y_off_mm: float, pixel_mm: float, rows: int, cols: int
 ) -> View:
-    """JointTrack's camera as a view in its own frame (see the module docstring)."""
+    """JointTrack's camera as a view in its own frame (see the module docstring).
+
+    Args:
+        distance_mm: principal distance, source to image plane, mm.
+        x_off_mm, y_off_mm: principal point's offset from the image centre, mm (JointTrack's
+            x right, y up).
+        pixel_mm: square pixel size, mm.
+        rows, cols: image size, pixels.
+    """
     cu = 0.5 * (cols - 1) + x_off_mm / pixel_mm
     cv = 0.5 * (rows - 1) - y_off_mm / pixel_mm
     return View(

@@ -35,7 +35,13 @@ ELECTRONIC_NOISE_PHOTONS = 5.0
 
 
 def photons_per_pixel(exposure: ExposureSpec, detector: DetectorSpec, sdd_mm: float) -> float:
-    """Mean unattenuated photons reaching one pixel per view."""
+    """Mean unattenuated photons reaching one pixel per view.
+
+    Args:
+        exposure: tube voltage (kV) and current-time product (mAs) of one view.
+        detector: the panel (its pixel pitch, mm).
+        sdd_mm: source to detector distance, mm (inverse-square from 1 m).
+    """
     fluence = FLUENCE_PER_MM2_MAS_AT_1M * (exposure.tube_kv / 100.0) ** 2 * exposure.mas
     return fluence * detector.pixel_pitch_mm**2 * (1000.0 / sdd_mm) ** 2
 
@@ -62,6 +68,14 @@ def add_noise(
 
     Counts are Poisson(photons * exp(-p)) plus Gaussian readout noise; counts below one
     photon are clipped to one before the logarithm (a saturated-dark pixel).
+
+    Args:
+        line_integrals: noiseless line integrals ``p`` (any shape).
+        photons: unattenuated photons per pixel (:func:`photons_per_pixel`).
+        rng: the noise's generator.
+
+    Returns:
+        The counts and ``-ln(counts / photons)``, both float32 of the input's shape.
     """
     counts = _counts(line_integrals, photons, rng)
     noisy = -np.log(counts / photons)

@@ -109,7 +109,14 @@ def time_pass(
 def point_to_point(
     start: np.ndarray, goal: np.ndarray, vmax: np.ndarray, amax: np.ndarray, label: str
 ) -> _SegmentTrajectory:
-    """Jerk-limited, time-synchronised rest-to-rest move (ruckig, offline)."""
+    """Jerk-limited, time-synchronised rest-to-rest move (ruckig, offline).
+
+    Args:
+        start, goal: joint positions (n,), in the joints' units (rad, m).
+        vmax, amax: per-joint velocity and acceleration limits (n,), per s and per s^2; the
+            move uses :data:`LIMIT_SHARE` of them, and jerk reaches amax in :data:`JERK_TIME_S`.
+        label: names the move in a TimingError.
+    """
     n = len(start)
     otg = Ruckig(n)
     inp = InputParameter(n)
@@ -148,7 +155,12 @@ def sample(segment: _SegmentTrajectory, dt_s: float) -> TimedPath:
 def rest_to_rest_lower_bound(q_path: np.ndarray, vmax: np.ndarray, amax: np.ndarray) -> float:
     """Shortest possible duration: each joint's path split into monotonic runs, each run
     covered from rest to rest at the joint's limits (trapezoid or triangle profile); the
-    slowest joint sets the bound (seconds)."""
+    slowest joint sets the bound (seconds).
+
+    Args:
+        q_path: joint positions along the path (K, n).
+        vmax, amax: per-joint velocity and acceleration limits (n,), per s and per s^2.
+    """
     worst = 0.0
     for j in range(q_path.shape[1]):
         x = q_path[:, j]

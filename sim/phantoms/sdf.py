@@ -153,7 +153,15 @@ def supersample_offsets(spacing_mm: Sequence[float], supersample: int) -> np.nda
 
 
 def box_slices(grid: VolumeGrid, lo_mm: np.ndarray, hi_mm: np.ndarray) -> tuple[slice, ...] | None:
-    """Index slices [z, y, x] of the voxels whose centres lie in the world box [lo, hi] mm."""
+    """Index slices [z, y, x] of the voxels whose centres lie in the world box [lo, hi] mm.
+
+    Args:
+        grid: the voxel grid.
+        lo_mm, hi_mm: the box's lower and upper world corners (x, y, z), mm.
+
+    Returns:
+        The slices, or None when no voxel centre lies in the box.
+    """
     lo = np.ceil(grid.world_to_index(lo_mm) - 1e-9).astype(int)
     hi = np.floor(grid.world_to_index(hi_mm) + 1e-9).astype(int) + 1
     lo = np.maximum(lo, 0)
