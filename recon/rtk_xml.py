@@ -51,12 +51,16 @@ _MATRIX_RTOL = 1e-6
 _ORTHONORMAL_ATOL = 1e-6
 
 
-def centered_origin_uv_mm(rows: int, cols: int, pitch_u_mm: float, pitch_v_mm: float):
+def centered_origin_uv_mm(
+    rows: int, cols: int, pitch_u_mm: float, pitch_v_mm: float
+) -> tuple[float, float]:
     """Projection-image origin (mm) that centres the panel on RTK's detector origin.
 
     Args:
-        rows, cols: panel size, pixels.
-        pitch_u_mm, pitch_v_mm: pixel pitch along columns (u) and rows (v), mm.
+        rows: panel rows, pixels.
+        cols: panel columns, pixels.
+        pitch_u_mm: pixel pitch along a row (u), mm.
+        pitch_v_mm: pixel pitch along a column (v), mm.
 
     Returns:
         (u, v) of the centre of pixel (row 0, column 0), mm.

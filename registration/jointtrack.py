@@ -60,10 +60,11 @@ def camera_view(
 
     Args:
         distance_mm: principal distance, source to image plane, mm.
-        x_off_mm, y_off_mm: principal point's offset from the image centre, mm (JointTrack's
-            x right, y up).
+        x_off_mm: principal point's offset from the image centre to the right, mm.
+        y_off_mm: principal point's offset from the image centre upward, mm.
         pixel_mm: square pixel size, mm.
-        rows, cols: image size, pixels.
+        rows: image rows, pixels.
+        cols: image columns, pixels.
     """
     cu = 0.5 * (cols - 1) + x_off_mm / pixel_mm
     cv = 0.5 * (rows - 1) - y_off_mm / pixel_mm

@@ -112,9 +112,11 @@ def point_to_point(
     """Jerk-limited, time-synchronised rest-to-rest move (ruckig, offline).
 
     Args:
-        start, goal: joint positions (n,), in the joints' units (rad, m).
-        vmax, amax: per-joint velocity and acceleration limits (n,), per s and per s^2; the
-            move uses :data:`LIMIT_SHARE` of them, and jerk reaches amax in :data:`JERK_TIME_S`.
+        start: joint positions (n,) at rest, in the joints' units (rad, m).
+        goal: joint positions (n,) to come to rest at.
+        vmax: per-joint velocity limits (n,), per s; the move uses :data:`LIMIT_SHARE` of them.
+        amax: per-joint acceleration limits (n,), per s^2; the same share, reached by the jerk
+            in :data:`JERK_TIME_S`.
         label: names the move in a TimingError.
     """
     n = len(start)
@@ -159,7 +161,8 @@ def rest_to_rest_lower_bound(q_path: np.ndarray, vmax: np.ndarray, amax: np.ndar
 
     Args:
         q_path: joint positions along the path (K, n).
-        vmax, amax: per-joint velocity and acceleration limits (n,), per s and per s^2.
+        vmax: per-joint velocity limits (n,), per s.
+        amax: per-joint acceleration limits (n,), per s^2.
     """
     worst = 0.0
     for j in range(q_path.shape[1]):

@@ -157,7 +157,8 @@ def box_slices(grid: VolumeGrid, lo_mm: np.ndarray, hi_mm: np.ndarray) -> tuple[
 
     Args:
         grid: the voxel grid.
-        lo_mm, hi_mm: the box's lower and upper world corners (x, y, z), mm.
+        lo_mm: the box's lower world corner (x, y, z), mm.
+        hi_mm: its upper world corner (x, y, z), mm.
 
     Returns:
         The slices, or None when no voxel centre lies in the box.
