@@ -134,7 +134,7 @@ def _suppress_neighbours(rows, cols, strength, radius):
         if dropped[i]:
             continue
         kept.append(i)
-        for j in neighbours[i]:  # those within the radius (the strict test below) go
+        for j in neighbours[i]:  # the tree's candidates: exactly those within the radius go
             if (rows[i] - rows[j]) ** 2 + (cols[i] - cols[j]) ** 2 <= radius**2:
                 dropped[j] = True
     kept_arr = np.array(kept, dtype=int)
