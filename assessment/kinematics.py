@@ -51,12 +51,14 @@ def knee_kinematics(
     """Angles, translations and TP-condyle distances per frame.
 
     Args:
-        femur, tibia: reference anatomy, already mirrored for a left knee.
+        femur: reference anatomy of the femur, already mirrored for a left knee.
+        tibia: reference anatomy of the tibia, already mirrored for a left knee.
         frames: frame numbers (F,).
-        femur_poses, tibia_poses: ``T_world_bone`` per frame (F, 4, 4), as registered (the
-            function mirrors left-knee poses itself).
+        femur_poses: the femur's ``T_world_bone`` per frame (F, 4, 4), mm, as registered
+            (the function mirrors left-knee poses itself).
+        tibia_poses: the tibia's, likewise.
         side: which knee the poses belong to.
-        flag_mm: MLD flag threshold.
+        flag_mm: MLD flag threshold (mm).
     """
     if side == "left":
         femur_poses, tibia_poses = mirror_poses(femur_poses), mirror_poses(tibia_poses)

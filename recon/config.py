@@ -36,8 +36,14 @@ def _describe(path: Path, err: ValidationError) -> str:
 
 
 def load_config(path: str | Path, model: type[Model]) -> Model:
-    """Read ``path`` (YAML, UTF-8) into ``model``, raising :class:`ConfigError` on any problem,
-    NaN or infinite numbers included."""
+    """Read a YAML file into a pydantic model, raising :class:`ConfigError` on any problem.
+
+    NaN or infinite numbers are refused too.
+
+    Args:
+        path: YAML file, UTF-8.
+        model: The pydantic model class to validate against.
+    """
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
@@ -114,5 +120,9 @@ class ScanProtocol(BaseModel):
 
 
 def load_protocol(path: str | Path) -> ScanProtocol:
-    """Load a scan protocol YAML file (see configs/protocols/)."""
+    """Load a scan protocol YAML file (see configs/protocols/).
+
+    Args:
+        path: Protocol YAML file.
+    """
     return load_config(path, ScanProtocol)

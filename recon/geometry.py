@@ -246,18 +246,48 @@ class View:
         return T
 
     def project(self, points_mm: np.ndarray) -> np.ndarray:
-        """Pixel coordinates (u, v) of world points, shape (N, 2) for input (N, 3) or (3,)."""
+        """Pixel coordinates (u, v) of world points.
+
+        Args:
+            points_mm: World points (mm), shape (N, 3) or (3,).
+
+        Returns:
+            Detector coordinates (u, v) in pixels, shape (N, 2).
+
+        Examples:
+            The isocentre of a centred 96 x 96 panel falls between its two middle pixels:
+
+            >>> panel = DetectorSpec(rows=96, cols=96, pixel_pitch_mm=2.0)
+            >>> view = circular_orbit(4, 600.0, 1000.0, panel)[0]
+            >>> view.project([0.0, 0.0, 0.0]).round(6).tolist()
+            [[47.5, 47.5]]
+        """
         pts = np.atleast_2d(np.asarray(points_mm, dtype=np.float64))
         h = pts @ self.matrix[:, :3].T + self.matrix[:, 3]
         return h[:, :2] / h[:, 2:3]
 
     def depth(self, points_mm: np.ndarray) -> np.ndarray:
-        """``w`` of world points: 0 at the source, 1 on the detector plane, shape (N,)."""
+        """``w`` of world points: 0 at the source, 1 on the detector plane.
+
+        Args:
+            points_mm: World points (mm), shape (N, 3) or (3,).
+
+        Returns:
+            The homogeneous depth ``w`` (unitless), shape (N,).
+        """
         pts = np.atleast_2d(np.asarray(points_mm, dtype=np.float64))
         return pts @ self.matrix[2, :3] + self.matrix[2, 3]
 
     def pixel_to_world(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """World position (mm) of detector coordinates (u, v), shape broadcast + (3,)."""
+        """World position of detector coordinates (u, v).
+
+        Args:
+            u: Column coordinate (pixels), any shape.
+            v: Row coordinate (pixels), broadcastable with ``u``.
+
+        Returns:
+            World points (mm), shape broadcast(u, v) + (3,).
+        """
         u = np.asarray(u, dtype=np.float64)[..., None]
         v = np.asarray(v, dtype=np.float64)[..., None]
         return (
@@ -271,6 +301,9 @@ class View:
 
         Projecting a volume moved by ``T`` through this view equals projecting the unmoved
         volume through ``view.transformed(inv(T))``.
+
+        Args:
+            T: Rigid transform, 4x4, translation in mm.
         """
         T = np.asarray(T, dtype=np.float64)
         R, t = T[:3, :3], T[:3, 3]
@@ -286,7 +319,12 @@ class View:
         )
 
     def binned(self, factor: int) -> View:
-        """The view read out with ``factor x factor`` pixels binned (pitch x factor)."""
+        """The view read out with ``factor x factor`` pixels binned (pitch x factor).
+
+        Args:
+            factor: Binning factor, a positive integer; the panel keeps ``rows // factor``
+                rows and ``cols // factor`` columns.
+        """
         if int(factor) != factor or factor < 1:
             raise ValueError(f"binning factor must be a positive integer, got {factor!r}")
         if factor == 1:
@@ -305,7 +343,14 @@ class View:
         )
 
     def cropped(self, row0: int, col0: int, rows: int, cols: int) -> View:
-        """The sub-panel of ``rows x cols`` pixels starting at pixel (row0, col0)."""
+        """The sub-panel of ``rows x cols`` pixels starting at pixel (row0, col0).
+
+        Args:
+            row0: First row kept (pixels).
+            col0: First column kept (pixels).
+            rows: Number of rows kept.
+            cols: Number of columns kept.
+        """
         if not (
             0 <= row0
             and 0 <= col0
@@ -326,7 +371,13 @@ class View:
     # -- value semantics ----------------------------------------------------------------
 
     def isclose(self, other: View, atol_mm: float = ATOL_MM) -> bool:
-        """Same panel size and every vector and pitch within ``atol_mm``."""
+        """Same panel size and every vector and pitch within ``atol_mm``.
+
+        Args:
+            other: The view compared with this one.
+            atol_mm: Absolute tolerance (mm) on positions and pitches; unit vectors use the
+                same number.
+        """
         return (
             self.rows == other.rows
             and self.cols == other.cols
@@ -417,7 +468,11 @@ class Geometry(Sequence[View]):
         return out
 
     def transformed(self, T: np.ndarray) -> Geometry:
-        """Every view carried by the rigid motion ``T`` (see :meth:`View.transformed`)."""
+        """Every view carried by the rigid motion ``T`` (see :meth:`View.transformed`).
+
+        Args:
+            T: Rigid transform, 4x4, translation in mm.
+        """
         return Geometry([v.transformed(T) for v in self._views])
 
     def __len__(self) -> int:
@@ -484,6 +539,13 @@ def _check_distances(sid_mm: float, sdd_mm: float) -> None:
 def short_scan_arc_deg(sdd_mm: float, detector: DetectorSpec) -> float:
     """Minimal short-scan arc of a centred panel: 180 degrees plus the full fan angle.
 
+    Args:
+        sdd_mm: Source-to-detector distance (mm).
+        detector: The panel; its width sets the fan angle.
+
+    Returns:
+        The arc (degrees).
+
     Examples:
         A 307.2 mm wide panel 1000 mm from the source:
 
@@ -507,6 +569,15 @@ def circular_orbit(
 
     A 360-degree arc spaces views by 360/n (no repeated end view); shorter arcs (short scans,
     see :func:`short_scan_arc_deg`) include both end angles.
+
+    Args:
+        n_views: Number of views.
+        sid_mm: Source-to-isocentre distance (mm).
+        sdd_mm: Source-to-detector distance (mm), larger than ``sid_mm``.
+        detector: Panel size and pixel pitch.
+        arc_deg: Angle swept (degrees), in (0, 3600].
+        start_deg: Angle of the first view (degrees); 0 puts the source on -y (anterior).
+        isocenter_mm: Centre of rotation in the world (mm).
 
     Examples:
         >>> panel = DetectorSpec(rows=96, cols=96, pixel_pitch_mm=2.0)
@@ -550,6 +621,20 @@ def helical_orbit(
     z advances by ``z_step_mm`` per view, or evenly from ``z_start_mm`` to ``z_end_mm``
     (give exactly one of the two). A single pass of a whole number of turns spaces views
     without repeating the start angle; other arcs include both end angles.
+
+    Args:
+        n_views: Number of views, a multiple of ``passes``.
+        sid_mm: Source-to-isocentre distance (mm).
+        sdd_mm: Source-to-detector distance (mm), larger than ``sid_mm``.
+        detector: Panel size and pixel pitch.
+        arc_deg: Angle swept by each pass (degrees), in (0, 3600].
+        z_start_mm: Height of the first view's isocentre above ``isocenter_mm`` (mm).
+        z_end_mm: Height of the last view (mm); or give ``z_step_mm``.
+        z_step_mm: Height change per view (mm); or give ``z_end_mm``.
+        passes: Number of passes.
+        alternate: Sweep every second pass backwards (a reverse spiral).
+        start_deg: Angle of the first view (degrees); 0 puts the source on -y (anterior).
+        isocenter_mm: Centre of rotation at z = 0 (mm).
     """
     _check_distances(sid_mm, sdd_mm)
     if int(n_views) != n_views or n_views < 1:

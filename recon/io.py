@@ -471,6 +471,9 @@ def read_stack_header(path: str | Path) -> PanelHeader:
     """The panel of a projection stack's header (origin, spacing, direction), without reading
     its pixels: what :func:`recon.rtk_xml.read_rtk_geometry` needs to place them.
 
+    Args:
+        path: Projection stack (.mha or .mhd).
+
     Raises:
         FileNotFoundError: ``path`` does not exist.
         ImageFileError: not an image, truncated, or unreadable.
@@ -505,6 +508,9 @@ def _stack_header(reader: sitk.ImageFileReader, path: Path) -> PanelHeader:
 def read_projections(path: str | Path) -> ProjectionStack:
     """Read a projection stack written by :func:`write_projections` or by RTK (any origin,
     spacing and in-plane direction; see :func:`read_stack_header`).
+
+    Args:
+        path: Projection stack (.mha or .mhd), line integrals.
 
     Raises:
         FileNotFoundError: ``path`` does not exist.

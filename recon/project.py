@@ -163,7 +163,15 @@ class JosephProjector:
         self._corners = grid.corners_mm()
 
     def project(self, geometry: Geometry, out: np.ndarray | None = None) -> np.ndarray:
-        """Line integrals through every pixel of every view, float32 (views, rows, cols)."""
+        """Line integrals through every pixel of every view.
+
+        Args:
+            geometry: The views; every one must see the grid in front of its source.
+            out: Array to fill, float32 (views, rows, cols); a new one when ``None``.
+
+        Returns:
+            Line integrals (the volume's unit times mm), float32 (views, rows, cols).
+        """
         check_in_front(geometry, self.grid)
         sources, origins, du, dv = _view_arrays(geometry)
         if out is None:
@@ -186,11 +194,20 @@ class JosephProjector:
     def project_moved(
         self, view: View, T: np.ndarray, spans: np.ndarray | None = None
     ) -> np.ndarray:
-        """Line integrals through ``view`` of the volume moved by the rigid motion ``T`` (4x4,
-        mm), float32 (rows, cols): ``project(Geometry([view.transformed(inv(T))]))[0]`` without
-        building views (the registration's inner loop renders thousands of poses). ``spans``
-        (rows, 2): trace row r only over columns ``spans[r, 0] <= c < spans[r, 1]`` (zero
-        elsewhere; default all)."""
+        """Line integrals through ``view`` of the volume moved by the rigid motion ``T``.
+
+        The same as ``project(Geometry([view.transformed(inv(T))]))[0]`` without building
+        views (the registration's inner loop renders thousands of poses).
+
+        Args:
+            view: The view rendered.
+            T: Rigid motion of the volume, 4x4, translation in mm.
+            spans: Columns traced per row, int (rows, 2): row r over
+                ``spans[r, 0] <= c < spans[r, 1]``, zero elsewhere; ``None`` traces all.
+
+        Returns:
+            Line integrals (the volume's unit times mm), float32 (rows, cols).
+        """
         R, t = T[:3, :3], T[:3, 3]
         w = self._corners @ (view.matrix[2, :3] @ R) + (view.matrix[2, :3] @ t + view.matrix[2, 3])
         if w.min() <= 1e-3:

@@ -141,7 +141,12 @@ class PanelHeader:
         return out
 
     def check_views(self, geometry: Geometry, where: str) -> None:
-        """ValueError unless ``geometry`` is a stack of this panel (size and pitch)."""
+        """ValueError unless ``geometry`` is a stack of this panel (size and pitch).
+
+        Args:
+            geometry: The views checked.
+            where: Name of the file or field the message starts with.
+        """
         if (geometry.rows, geometry.cols) != (self.rows, self.cols):
             raise ValueError(
                 f"{where}: the geometry's panel has {geometry.rows} x {geometry.cols} pixels, "
@@ -231,6 +236,14 @@ def write_rtk_geometry(
     spacing and direction); ``None`` means a centred panel with the views' pitch. Raises
     ValueError for views RTK cannot express (skewed axes) and for a header that contradicts
     the views (panel size, pitch).
+
+    Args:
+        path: XML file written.
+        geometry: The views.
+        header: The projection stack's header, or ``None`` for a centred panel.
+
+    Returns:
+        ``path``.
     """
     path = Path(path)
     pu, pv = geometry[0].pitch_u_mm, geometry[0].pitch_v_mm
@@ -341,11 +354,17 @@ def read_rtk_matrices(path: str | Path) -> tuple[list[dict[str, float]], np.ndar
 
 
 def read_rtk_geometry(path: str | Path, header: PanelHeader) -> Geometry:
-    """Read RTK XML as the :class:`Geometry` of the projection stack whose header is
-    ``header`` (recon.io.read_projections, read_stack_header; PanelHeader.centered for images
-    without one): RTK's matrices (projection mm) through the header's origin, spacing and
-    direction to pixel indices, each view's sign chosen so that ``w > 0`` in front of its
-    source. ValueError names the file and projection of a view that has no source."""
+    """Read RTK XML as the :class:`Geometry` of the projection stack whose header is ``header``.
+
+    RTK's matrices (projection mm) go through the header's origin, spacing and direction to
+    pixel indices, each view's sign chosen so that ``w > 0`` in front of its source.
+    ValueError names the file and projection of a view that has no source.
+
+    Args:
+        path: RTK geometry XML file.
+        header: The stack's panel (:func:`recon.io.read_stack_header`, or
+            ``PanelHeader.centered`` for images without one).
+    """
     params, matrices = read_rtk_matrices(path)
     views = []
     for i, (p, m) in enumerate(zip(params, matrices, strict=True)):

@@ -110,11 +110,30 @@ class VolumeGrid:
         )
 
     def world_to_index(self, points_mm: np.ndarray) -> np.ndarray:
-        """Continuous voxel indices (i_x, i_y, i_z) of world points, shape (..., 3)."""
+        """Continuous voxel indices (i_x, i_y, i_z) of world points.
+
+        Args:
+            points_mm: World points (mm), shape (..., 3).
+
+        Returns:
+            Voxel indices (voxels; 0 at the first voxel's centre), shape (..., 3).
+
+        Examples:
+            >>> grid = VolumeGrid.centered((4, 3, 2), 0.5)
+            >>> grid.world_to_index([0.0, 0.0, 0.0]).tolist()  # the centre, between voxels
+            [1.5, 1.0, 0.5]
+        """
         return (np.asarray(points_mm, dtype=np.float64) - self.origin_mm) / self.spacing_mm
 
     def index_to_world(self, index_xyz: np.ndarray) -> np.ndarray:
-        """World points (mm) of continuous voxel indices (i_x, i_y, i_z), shape (..., 3)."""
+        """World points of continuous voxel indices (i_x, i_y, i_z).
+
+        Args:
+            index_xyz: Voxel indices (voxels; 0 at the first voxel's centre), shape (..., 3).
+
+        Returns:
+            World points (mm), shape (..., 3).
+        """
         return np.asarray(index_xyz, dtype=np.float64) * self.spacing_mm + self.origin_mm
 
 

@@ -212,7 +212,13 @@ class BoneResult:
     """Why the bone failed (empty when it did not)."""
 
     def scored(self, ncc: float, gradient_ncc: float, fail_ncc: float) -> None:
-        """Set the similarity, and the failure flag against ``fail_ncc``."""
+        """Set the similarity, and the failure flag against ``fail_ncc``.
+
+        Args:
+            ncc: Normalised cross-correlation of the frame and the DRR, in [-1, 1].
+            gradient_ncc: The same of their gradients, in [-1, 1].
+            fail_ncc: The NCC below which the body counts as failed.
+        """
         self.ncc, self.gradient_ncc, self.failed = ncc, gradient_ncc, ncc < fail_ncc
         self.reason = f"NCC {ncc:.3f} below {fail_ncc}" if self.failed else ""
 
@@ -853,9 +859,21 @@ class Tracker:
     def best_start(
         self, frame: int, name: str, candidates: list[np.ndarray], placed: dict[str, np.ndarray]
     ) -> np.ndarray:
-        """Body ``name``'s best start in ``frame`` among its candidate poses: differential
-        evolution in twice the first frame's box about each, the bodies ``placed`` (their
-        poses) in the scene, scored by its NCC on the coarsest level (registration.autostart)."""
+        """Body ``name``'s best start in ``frame`` among its candidate poses.
+
+        Differential evolution in twice the first frame's box about each candidate, the
+        bodies already placed in the scene, scored by its NCC on the coarsest level
+        (registration.autostart).
+
+        Args:
+            frame: Index of the frame.
+            name: The body.
+            candidates: Candidate poses, each 4x4 (mm).
+            placed: Poses (4x4, mm) of the bodies already placed, by name.
+
+        Returns:
+            The best pose, 4x4 (mm).
+        """
         if not candidates:
             raise ValueError(f"no candidate start for {name}: is it in the frame?")
         beside = tuple(placed)
@@ -934,6 +952,11 @@ class Tracker:
         BLAS runs single-threaded meanwhile: the similarity's dot products over ~10^4 pixels
         woke OpenBLAS's threads, which then fought numba's renderer threads for the two cores
         (a femur evaluation at 256^2 took 8 ms instead of 1.5).
+
+        Args:
+            frame: Index of the frame.
+            poses: Starting poses (4x4, mm) by body: the previous frame's estimates.
+            history: The poses of the frames registered so far, oldest first.
         """
         with threadpool_limits(limits=1, user_api="blas"):
             return self._register(frame, poses, history)
@@ -1145,7 +1168,12 @@ class Tracker:
         return result
 
     def track(self, initial: dict[str, np.ndarray], progress=None) -> list[FrameResult]:
-        """Register every frame in order; ``initial`` are the first frame's starting poses."""
+        """Register every frame in order.
+
+        Args:
+            initial: The first frame's starting poses (4x4, mm) by body.
+            progress: Called with (frames done, frames in all) after each frame.
+        """
         results, history = [], []
         poses = dict(initial)
         for frame in range(len(self.frames)):

@@ -234,8 +234,17 @@ class ImplantModel:
         coarse: bool = False,
         spans: np.ndarray | None = None,
     ) -> np.ndarray:
-        """The share of the beam the component at ``T_world_body`` stops, float32 (rows,
-        cols) (``coarse`` and ``spans`` are a voxel model's; the whole view is rendered)."""
+        """The share of the beam the component at ``T_world_body`` stops.
+
+        Args:
+            view: The view rendered.
+            T_world_body: Pose of the component, 4x4, mesh mm to world mm.
+            coarse: Ignored: a voxel model's option (a mesh is never rendered coarse).
+            spans: Ignored: a voxel model's option (the whole view is rendered).
+
+        Returns:
+            The stopped share of the beam, in [0, 1], float32 (rows, cols).
+        """
         uv, coef, A = _projected(view, self.vertices_mm, self.faces, T_world_body)
         out = np.zeros((view.rows, view.cols), dtype=np.float32)
         _render(uv, coef, A, self.supersample, self.mu_per_mm, out, numba.get_num_threads())
@@ -244,8 +253,15 @@ class ImplantModel:
         return out
 
     def silhouette(self, view: View, T_world_body: np.ndarray) -> np.ndarray:
-        """The pixels of ``view`` whose centre's ray meets the component at ``T_world_body``,
-        bool (rows, cols)."""
+        """The pixels of ``view`` whose centre's ray meets the component at ``T_world_body``.
+
+        Args:
+            view: The view.
+            T_world_body: Pose of the component, 4x4, mesh mm to world mm.
+
+        Returns:
+            The silhouette, bool (rows, cols).
+        """
         return ray_lengths(view, self.vertices_mm, self.faces, T_world_body) > 0.0
 
 
@@ -391,8 +407,18 @@ def implant_model(
     energy_kev: float = 70.0,
     supersample: int = 3,
 ) -> ImplantModel:
-    """A component as a tracked body in the mesh's own frame (``T_world_body`` maps mesh mm
-    to world mm); its points are the centres of its 1 mm voxels at least half inside."""
+    """A component as a tracked body in the mesh's own frame.
+
+    ``T_world_body`` maps mesh mm to world mm; the body's points are the centres of its 1 mm
+    voxels at least half inside. ValueError for a radiolucent material.
+
+    Args:
+        name: The body's name (the bone it stands for).
+        mesh: The closed component mesh (mm).
+        material: Its material; must be radiopaque.
+        energy_kev: Effective energy (keV) of the attenuation coefficient.
+        supersample: Rays per pixel along each axis when rendering.
+    """
     if not material.radiopaque:
         raise ValueError(
             f"{name}: {material.name} is radiolucent: it does not show in a frame by itself "

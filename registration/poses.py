@@ -54,7 +54,23 @@ class BonePose:
     seconds: float = math.nan
 
     def six_dof(self, centroid_mm: np.ndarray) -> np.ndarray:
-        """(tx, ty, tz) mm of the moved centroid and (rx, ry, rz) deg, extrinsic xyz."""
+        """(tx, ty, tz) mm of the moved centroid and (rx, ry, rz) deg, extrinsic xyz.
+
+        Args:
+            centroid_mm: The bone's reference centroid in its own frame (mm), shape (3,).
+
+        Returns:
+            Six numbers: translation (mm) then rotation (degrees), shape (6,).
+
+        Examples:
+            A femur turned 90 degrees about z: its centroid (10, 0, 0) moves to (0, 10, 0).
+
+            >>> T = np.eye(4)
+            >>> T[:3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]
+            >>> pose = BonePose(frame=0, bone="femur", T_world_bone=T)
+            >>> pose.six_dof(np.array([10.0, 0.0, 0.0])).round(6).tolist()
+            [0.0, 10.0, 0.0, 0.0, 0.0, 90.0]
+        """
         T = self.T_world_bone
         moved = T[:3, :3] @ np.asarray(centroid_mm, dtype=np.float64) + T[:3, 3]
         angles = Rotation.from_matrix(T[:3, :3]).as_euler("xyz", degrees=True)
@@ -84,7 +100,16 @@ def check_rigid(T: np.ndarray, where: str) -> np.ndarray:
 def write_poses(
     path: str | Path, poses: list[BonePose], centroids_mm: dict[str, np.ndarray]
 ) -> Path:
-    """Write ``poses.csv``; ``centroids_mm`` gives each bone's reference centroid (mm)."""
+    """Write ``poses.csv`` (never over an existing file; rigid poses only).
+
+    Args:
+        path: The CSV file written.
+        poses: One pose per frame and bone.
+        centroids_mm: Each bone's reference centroid (mm), for the six-number columns.
+
+    Returns:
+        ``path``.
+    """
     path = Path(path)
     if path.exists():
         raise FileExistsError(f"{path} exists: poses are never written over")
@@ -107,8 +132,14 @@ def write_poses(
 
 
 def read_poses(path: str | Path) -> list[BonePose]:
-    """Read ``poses.csv``; every matrix is checked to be rigid. Raises ValueError naming the
-    file (and the line, or the frame and bone) for anything malformed."""
+    """Read ``poses.csv``; every matrix is checked to be rigid.
+
+    Raises ValueError naming the file (and the line, or the frame and bone) for anything
+    malformed.
+
+    Args:
+        path: A ``poses.csv`` written by :func:`write_poses` (or in its columns).
+    """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such poses file")

@@ -219,6 +219,27 @@ def register_files(
     in HU or 1/mm: ``unit`` where the file does not say, HU converted at
     ``effective_energy_kev`` (recon.static_volume). ``initial_path`` and ``truth_path``: one
     poses.csv, or per body a poses.csv or a JointTrack .jts.
+
+    Args:
+        volume_path: The static volume (a file or a DICOM CT series), or ``None``.
+        labels_path: Its bone labels, or ``None`` (with ``volume_path``).
+        frames_path: The frames: a stack, DICOM, images, a glob, or a list of image files.
+        geometry_path: RTK geometry of the frames, or ``None`` with ``calibration_path``.
+        out: Output folder; must not exist.
+        implants: Implant components to track.
+        calibration_path: JointTrack or MayaCam calibration, or ``None``.
+        polarity: How attenuation shows in the frames: "dark" or "bright".
+        truth_path: Reference poses, for the metrics; or ``None``.
+        initial_path: Starting poses of the first frame; or ``None`` (automatic start).
+        pixel_pitch_mm: Pixel size (mm) of frames whose files do not give one.
+        distortion: The panel's warp, or ``None``.
+        settings: Registration settings; the defaults when ``None``.
+        progress: Called with (frames done, frames in all).
+        unit: Unit of the static volume where its file does not say.
+        effective_energy_kev: Effective energy (keV) converting HU to 1/mm.
+
+    Returns:
+        One result per frame.
     """
     if out.exists():
         raise FileExistsError(f"{out} exists: choose a new output folder")

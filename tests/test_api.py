@@ -4,6 +4,7 @@ use (a bare ``import recon`` loads none of the science)."""
 from __future__ import annotations
 
 import importlib
+import inspect
 import subprocess
 import sys
 from pathlib import Path
@@ -35,3 +36,31 @@ def test_importing_the_packages_loads_no_module_until_a_name_is_used():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == []
+
+
+def _public_callables(module):
+    for name in module.__all__:
+        obj = getattr(module, name)
+        if inspect.isclass(obj):
+            for key, member in vars(obj).items():
+                if inspect.isfunction(member) and not key.startswith("_"):
+                    yield f"{name}.{key}", member
+        elif callable(obj):
+            yield name, obj
+
+
+@pytest.mark.parametrize("package", PACKAGES)
+def test_every_public_function_documents_its_arguments(package):
+    """An exported function or method that takes arguments has an Args section naming each."""
+    missing = []
+    for name, func in _public_callables(importlib.import_module(package)):
+        try:
+            parameters = [p for p in inspect.signature(func).parameters if p not in ("self", "cls")]
+        except (TypeError, ValueError):
+            continue
+        doc = inspect.getdoc(func) or ""
+        args = doc.partition("Args:")[2]
+        undocumented = [p for p in parameters if f"\n    {p}:" not in "\n" + args]
+        if parameters and undocumented:
+            missing.append(f"{name}: {undocumented}")
+    assert not missing, missing

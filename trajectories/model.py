@@ -228,12 +228,20 @@ class ScannerModel:
         return q
 
     def tool_poses(self, q: np.ndarray) -> tuple[pin.SE3, pin.SE3]:
-        """World poses (metres) of the focal spot frame and the panel-centre frame."""
+        """World poses (metres) of the focal spot frame and the panel-centre frame.
+
+        Args:
+            q: Configuration (Pinocchio's: radians, metres), shape (nq,).
+        """
         pin.framesForwardKinematics(self.model, self.data, q)
         return self.data.oMf[self.source_frame].copy(), self.data.oMf[self.detector_frame].copy()
 
     def clearance(self, q: np.ndarray) -> tuple[float, str, str]:
-        """Smallest distance (m) over the checked pairs and the pair's names (negative: overlap)."""
+        """Smallest distance (m) over the checked pairs and the pair's names (negative: overlap).
+
+        Args:
+            q: Configuration (Pinocchio's: radians, metres), shape (nq,).
+        """
         k = pin.computeDistances(self.model, self.data, self.geometry, self.geometry_data, q)
         pair = self.geometry.collisionPairs[k]  # Pinocchio returns the nearest pair's index
         objects = self.geometry.geometryObjects
@@ -241,14 +249,27 @@ class ScannerModel:
         return float(distance), objects[pair.first].name, objects[pair.second].name
 
     def to_units(self, q: np.ndarray) -> np.ndarray:
-        """``q`` (radians, metres) as the public joint vector in ``joint_names`` order:
-        rotary deg, lift mm, arm joints deg."""
+        """``q`` as the public joint vector in ``joint_names`` order.
+
+        Args:
+            q: Configurations (radians, metres), shape (..., nq).
+
+        Returns:
+            Rotary (deg), lift (mm), arm joints (deg), shape (..., 14).
+        """
         out = np.degrees(np.asarray(q)[..., self._order])
         out[..., 1] = np.asarray(q)[..., self.index["lift"]] * 1000.0
         return out
 
     def from_units(self, values: np.ndarray) -> np.ndarray:
-        """Inverse of :meth:`to_units`."""
+        """Inverse of :meth:`to_units`.
+
+        Args:
+            values: Rotary (deg), lift (mm), arm joints (deg), shape (..., 14).
+
+        Returns:
+            Configurations (radians, metres), shape (..., nq).
+        """
         values = np.asarray(values, dtype=np.float64)
         q = np.empty((*values.shape[:-1], self.model.nq))
         q[..., self._order] = np.radians(values)

@@ -111,16 +111,28 @@ class JointMove:
 
 def park_pose(model: ScannerModel) -> np.ndarray:
     """The park configuration (plan units): rotary 0, lift at its lowest, arms at their home
-    postures (``ScannerModel.neutral``; the configuration every plan approaches from)."""
+    postures (``ScannerModel.neutral``; the configuration every plan approaches from).
+
+    Args:
+        model: The scanner.
+    """
     return model.to_units(model.neutral())
 
 
 def plan_move(
     model: ScannerModel, start_q: np.ndarray, goal_q: np.ndarray, target: str
 ) -> JointMove:
-    """Plan the move from ``start_q`` to ``goal_q`` (plan units, (14,)); raises a
-    :class:`~trajectories.errors.PlanningError` naming the joint or link pair, the value and
-    the limit when an end is beyond a limit or no route keeps the clearance margin."""
+    """Plan the move from ``start_q`` to ``goal_q``: direct, or by folding the arms.
+
+    Raises a :class:`~trajectories.errors.PlanningError` naming the joint or link pair, the
+    value and the limit when an end is beyond a limit or no route keeps the clearance margin.
+
+    Args:
+        model: The scanner.
+        start_q: Where the scanner stands (plan units: deg, mm), shape (14,).
+        goal_q: Where it goes (plan units), shape (14,).
+        target: Name of the goal in messages (for example "start" or "park").
+    """
     start = _checked_end(model, start_q, f"move to {target} refused: the scanner stands", "start_q")
     goal = _checked_end(model, goal_q, f"move to {target} refused: the goal", "goal_q")
     margin_m = model.config.obstacles.clearance_margin_mm / 1000.0

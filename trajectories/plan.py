@@ -130,8 +130,14 @@ class Plan:
         }
 
     def save(self, folder: str | Path) -> list[Path]:
-        """Write the plan into ``folder`` (must not exist): trajectory, views, geometry,
-        collision report and summary."""
+        """Write the plan into ``folder``: trajectory, views, geometry, collision report, summary.
+
+        Args:
+            folder: Output folder; must not exist.
+
+        Returns:
+            The files written.
+        """
         folder = Path(folder)
         if folder.exists():
             raise FileExistsError(f"{folder} exists: a plan is never written over another")
@@ -330,8 +336,16 @@ def plan_scan(
     protocol: ScanProtocol,
     progress: Callable[[int, int], None] | None = None,
 ) -> Plan:
-    """Plan ``protocol`` on ``model``; raises a :class:`~trajectories.errors.PlanningError`
-    naming the view, joint or link pair and the limit when it cannot be done safely."""
+    """Plan ``protocol`` on ``model``: IK per view, collision check, timed trajectory.
+
+    Raises a :class:`~trajectories.errors.PlanningError` naming the view, joint or link pair
+    and the limit when it cannot be done safely.
+
+    Args:
+        model: The scanner.
+        protocol: The scan protocol (orbit, panel, timing).
+        progress: Called with (views solved, views in all) during inverse kinematics.
+    """
     started = time.perf_counter()
     _check_panel(model, protocol)
     desired = protocol.orbit.geometry(protocol.detector)

@@ -70,7 +70,14 @@ class Ellipsoid:
         return np.sqrt(np.sum((self.rotation * self.semi_axes_mm) ** 2, axis=1))
 
     def normalized(self, points_mm: np.ndarray) -> np.ndarray:
-        """Points (N, 3) world mm in the frame where the ellipsoid is the unit ball."""
+        """Points in the frame where the ellipsoid is the unit ball.
+
+        Args:
+            points_mm: World points (mm), shape (N, 3).
+
+        Returns:
+            The points scaled to the unit ball's frame (unitless), shape (N, 3).
+        """
         return ((np.asarray(points_mm, dtype=np.float64) - self.center_mm) @ self.rotation) / (
             self.semi_axes_mm
         )

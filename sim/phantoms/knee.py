@@ -426,6 +426,9 @@ def knee_bone_poses(spec: KneePhantomSpec) -> dict[str, np.ndarray]:
 
     See the module docstring for the bone-local frames. The femur's rotation relative to the
     tibia is ``flexion_deg`` about the TEA (its local x axis).
+
+    Args:
+        spec: The knee phantom.
     """
     return {k: v.copy() for k, v in _Knee(spec).poses.items()}
 
@@ -440,6 +443,9 @@ def knee_landmarks(spec: KneePhantomSpec) -> dict[str, np.ndarray]:
     ``lateral_plateau_lowest``, ``femoral_head_center``, ``femoral_mechanical_axis`` (knee
     centre to femoral head), ``femoral_anatomical_axis`` (shaft, proximal), ``ankle_center``,
     ``tibial_mechanical_axis`` (ankle centre to plateau centre), ``patella_center``.
+
+    Args:
+        spec: The knee phantom.
     """
     k = _Knee(spec)
     s = k.s
@@ -505,7 +511,15 @@ def knee_sdf(spec: KneePhantomSpec, part: str, points_mm: np.ndarray) -> np.ndar
 
 
 def label_points(spec: KneePhantomSpec, points_mm: np.ndarray) -> np.ndarray:
-    """:data:`registration.labels.LABELS` value of world points (N, 3) mm, uint8 (N,)."""
+    """:data:`registration.labels.LABELS` value of world points.
+
+    Args:
+        spec: The knee phantom.
+        points_mm: World points (mm), shape (N, 3).
+
+    Returns:
+        The label of each point, uint8 (N,).
+    """
     pts = np.atleast_2d(np.asarray(points_mm, dtype=np.float64))
     labels = np.where(knee_sdf(spec, "skin", pts) < 0.0, LABELS["soft_tissue"], 0)
     for name in BONES:
@@ -525,6 +539,14 @@ def knee_grid(
     joint line.
 
     At scale 1 with the default spec this is 140 x 140 x 160 mm.
+
+    Args:
+        spec: The knee phantom.
+        spacing_mm: Voxel size (mm).
+        margin_mm: Margin around the leg's cross-section (mm).
+        height_mm: Height of the grid (mm); 160 mm x the phantom's scale when ``None``.
+        below_mm: How far the grid reaches below the joint line (mm); 70 mm x scale when
+            ``None``.
     """
     if not (spacing_mm > 0 and margin_mm >= 0):
         raise ValueError(f"need spacing_mm > 0 and margin_mm >= 0, got {spacing_mm}, {margin_mm}")
