@@ -253,11 +253,102 @@ def recon_table(result: dict) -> str:
     return table(header, rows)
 
 
+def scan_table(r: dict) -> str:
+    """One row: the simulated scan with live reconstruction, and the UR fake scan's time."""
+    row = (
+        r["views"],
+        r["panel"],
+        fixed(r["sim_wall_s"], 1),
+        fixed(r["render_s"], 1),
+        fixed(r["per_view_overhead_ms"], 1),
+        fixed(r["projections_per_s"], 1),
+        f"{r['recon_backlog_max_views']} / {r['recon_backlog_at_last_view']} views",
+        fixed(r["recon_ready_after_last_view_s"], 2),
+        fixed(r["offline_recon_s"], 2),
+        f"{sci1(r['streaming_max_abs_diff'])} /mm ({sci1(r['streaming_max_abs_diff_rel'])})",
+        fixed(r["ur_fake_wall_s"], 1) if "ur_fake_wall_s" in r else "",
+    )
+    header = (
+        "views",
+        "panel",
+        "sim wall s",
+        "panel rendering s",
+        "per-view overhead ms",
+        "projections/s",
+        "recon backlog max / at last view",
+        "volume on disk after the last view s",
+        "offline recon s",
+        "live vs offline max abs (rel.)",
+        "UR fake scan s",
+    )
+    return table(header, [row])
+
+
+KIND_NAMES = {"controller_silent": "silent controller", "disk_full": "disk full"}
+"""Fault kinds as the docs write them (others: underscores to spaces, signals upper case)."""
+
+
+def kind_name(kind: str) -> str:
+    """A fault kind as the docs write it: SIGINT, protective stop, silent controller."""
+    if kind.startswith("sig"):
+        return kind.upper()
+    return KIND_NAMES.get(kind, kind.replace("_", " "))
+
+
+DEADLINE_BOUNDS = {
+    "generator_timeout": "generator_timeout",
+    "controller_silent": "controller_silent",
+    "disk_full": "disk_full_ur_backend",
+}
+"""Faults found by a deadline, and the key of their bound in ``time_to_safe_bound_ms``."""
+
+
+def soak_table(r: dict) -> str:
+    """One row: faults, pulses after them, time to SAFE (signalled, and each deadline fault
+    against its bound), views lost and corrupt files."""
+    by_kind = sorted(r["faults_by_kind"].items(), key=lambda kv: (-kv[1], kv[0]))
+    faults = f"{r['faults']}: " + ", ".join(f"{kind_name(k)} {n}" for k, n in by_kind)
+    bounds = r["time_to_safe_bound_ms"]
+    deadline = ", ".join(
+        f"{kind_name(k)} {fixed(ms, 1)} ({fixed(bounds[DEADLINE_BOUNDS[k]], 0)})"
+        for k, ms in r["max_time_to_safe_ms_by_kind"].items()
+        if DEADLINE_BOUNDS.get(k) in bounds
+    )
+    signalled = r["max_time_to_safe_ms"]
+    row = (
+        r["scans_complete"],
+        r["seed"],
+        fixed(r["wall_s"], 0),
+        faults,
+        r["x_ray_on_after_fault"],
+        r["exp_after_stop"],
+        r["faults_over_bound"],
+        "" if signalled is None else fixed(signalled, 1),
+        deadline,
+        f"{r['views_lost']}, {r['corrupt_files']}",
+    )
+    header = (
+        "scans",
+        "seed",
+        "wall s",
+        "faults (by kind)",
+        "pulses after a fault",
+        "`EXP` after a stop",
+        "faults over their bound",
+        f"time to SAFE ms, signalled (target {fixed(bounds['signalled'], 0)})",
+        "deadline faults ms (bound)",
+        "views lost, corrupt",
+    )
+    return table(header, [row])
+
+
 TABLES: dict[str, Callable[[dict], str]] = {
     "calibration": calibration_table,
     "plan": plan_table,
     "recon": recon_table,
     "registration": registration_table,
+    "scan": scan_table,
+    "soak": soak_table,
 }
 
 
