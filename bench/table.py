@@ -306,7 +306,7 @@ DEADLINE_BOUNDS = {
 def soak_table(r: dict) -> str:
     """One row: faults, pulses after them, time to SAFE (signalled, and each deadline fault
     against its bound), views lost and corrupt files."""
-    by_kind = sorted(r["faults_by_kind"].items(), key=lambda kv: (-kv[1], kv[0]))
+    by_kind = sorted(r["faults_by_kind"].items(), key=lambda kv: (-kv[1], kind_name(kv[0]).lower()))
     faults = f"{r['faults']}: " + ", ".join(f"{kind_name(k)} {n}" for k, n in by_kind)
     bounds = r["time_to_safe_bound_ms"]
     deadline = ", ".join(

@@ -157,6 +157,49 @@ REGISTRATION = {
         ),
     ],
 }
+SCAN = {
+    "views": 360,
+    "panel": "512x512",
+    "recon_grid": [194, 194, 444],
+    "sim_wall_s": 36.14,
+    "render_s": 17.71,
+    "per_view_overhead_ms": 15.24,
+    "projections_per_s": 15.7,
+    "recon_backlog_max_views": 31,
+    "recon_backlog_at_last_view": 24,
+    "recon_ready_after_last_view_s": 0.95,
+    "offline_recon_s": 6.93,
+    "streaming_max_abs_diff": 1.1e-08,
+    "streaming_max_abs_diff_rel": 2.04e-07,
+    "ur_fake_wall_s": 17.2,
+}
+SOAK = {
+    "benchmark": "soak",
+    "scans": 20,
+    "scans_complete": 20,
+    "seed": 0,
+    "faults": 14,
+    "faults_by_kind": {"controller_silent": 3, "disk_full": 2, "interlock": 3, "sigint": 6},
+    "views_lost": 0,
+    "corrupt_files": 0,
+    "x_ray_on_after_fault": 0,
+    "exp_after_stop": 0,
+    "max_time_to_safe_ms": 12.8,
+    "max_time_to_safe_ms_by_kind": {
+        "controller_silent": 102.34,
+        "disk_full": 318.2,
+        "interlock": 3.1,
+        "sigint": 12.8,
+    },
+    "time_to_safe_bound_ms": {
+        "signalled": 100.0,
+        "generator_timeout": 2100.0,
+        "controller_silent": 220.0,
+        "disk_full_ur_backend": 842.3,
+    },
+    "faults_over_bound": 0,
+    "wall_s": 693.4,
+}
 META = {
     "date": "2026-11-23T10:00:00+00:00",
     "commit": "abc1234",
@@ -209,6 +252,20 @@ def test_tables_carry_the_readme_columns_and_formats():
         " | 1.08 / 0.34 | 7.1 | 7.4 | 3.43 |"
     )
     assert rows[3].startswith("| independent | boneaxis_kpm | 3 |")
+
+
+def test_scan_and_soak_tables():
+    blocks = table.blocks(_all(scan=SCAN, soak=SOAK))
+    assert blocks["scan"].splitlines()[2] == (
+        "| 360 | 512x512 | 36.1 | 17.7 | 15.2 | 15.7 | 31 / 24 views | 0.95 | 6.93"
+        " | 1e-8 /mm (2e-7) | 17.2 |"
+    )
+    soak = blocks["soak"].splitlines()
+    assert "| time to SAFE ms, signalled (target 100) |" in soak[0]
+    assert soak[2] == (  # kinds by count, then name; deadline faults with their bounds
+        "| 20 | 0 | 693 | 14: SIGINT 6, interlock 3, silent controller 3, disk full 2 | 0 | 0 | 0"
+        " | 12.8 | silent controller 102.3 (220), disk full 318.2 (842) | 0, 0 |"
+    )
 
 
 def test_failed_and_unknown_benchmarks_are_skipped():

@@ -464,3 +464,11 @@ def test_every_command_has_clean_help_and_the_console_a_version():
         assert "``" not in result.output, name
     version = runner.invoke(app, ["--version"])
     assert version.exit_code == 0 and version.output.startswith("dualarm-cbct ")
+
+
+def test_batch_help_states_the_connect_timeout_batch_uses():
+    """The console keeps study.batch unloaded for --help, so its help repeats the default."""
+    from study import batch
+
+    result = runner.invoke(app, ["batch", "--help"], terminal_width=200)
+    assert f"CONNECT_TIMEOUT_S, {batch.CONNECT_TIMEOUT_S:g} s" in " ".join(result.output.split())
