@@ -16,7 +16,6 @@ frame is DICOM/ITK's LPS patient frame (docs/design.md). What each format adds:
 
 from __future__ import annotations
 
-import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +25,7 @@ import SimpleITK as sitk
 import trimesh
 
 from assessment.slicer_scene import add_stl_header, write_scene, write_sequence
+from recon.io import check_image_file
 from registration.poses import BonePose, check_rigid, poses_by_frame
 
 
@@ -80,15 +80,6 @@ def write_itk(folder: Path, motion: Motion) -> list[Path]:
     return written
 
 
-def link_or_copy(source: Path, target: Path) -> Path:
-    """``target`` as a hard link to ``source`` where the filesystem allows, else a copy."""
-    try:
-        os.link(source, target)
-    except OSError:
-        shutil.copyfile(source, target)
-    return target
-
-
 def write_models(folder: Path, meshes: dict[str, trimesh.Trimesh]) -> dict[str, Path]:
     """Each bone's surface in the static scan's pose, binary STL in LPS mm."""
     folder.mkdir(parents=True)
@@ -135,13 +126,13 @@ def write_handoff(
     volume: Path | None = None,
 ) -> list[Path]:
     """Write the hand-off into the new folder ``folder``: ``itk/``, ``autoscoper/``,
-    ``models/``, ``motion/``, the static volume (linked or copied; a DICOM folder becomes
+    ``models/``, ``motion/``, the static volume (copied; a DICOM folder becomes
     ``static.nii.gz``) and ``scene.mrml``. Returns every file written."""
     missing = sorted(set(motion.poses) - set(meshes))
     if missing:
         raise ValueError(f"{folder}: no bone model for the tracked bone(s) {missing}")
     if volume is not None:
-        _check_volume(volume)
+        check_static_volume(volume)
     folder.mkdir(parents=True, exist_ok=False)
     written = write_itk(folder / "itk", motion)
     (folder / "autoscoper").mkdir()
@@ -168,31 +159,50 @@ def write_handoff(
 
 
 def _static_volume(volume: Path, folder: Path) -> Path:
-    """The static scan beside the scene: a volume file linked or copied as it is, a DICOM
-    series folder written as NIfTI (its HU and LPS placement kept by SimpleITK)."""
-    if _check_volume(volume) == "dicom":
-        reader = sitk.ImageSeriesReader()
-        ids = reader.GetGDCMSeriesIDs(str(volume))
-        if len(ids) != 1:
-            raise ValueError(f"{volume}: {len(ids)} DICOM series in the folder; give one")
-        reader.SetFileNames(reader.GetGDCMSeriesFileNames(str(volume), ids[0]))
-        target = folder / "static.nii.gz"
-        sitk.WriteImage(reader.Execute(), str(target))
+    """The static scan beside the scene: a copy of a volume file (a MetaImage header and its
+    data as one .mha), a DICOM series folder written as NIfTI (its HU and LPS placement kept by
+    SimpleITK). A copy, not a link: the scene's volume cannot change the study's."""
+    suffix = check_static_volume(volume)
+    if suffix in ("dicom", ".mhd"):
+        if suffix == "dicom":
+            reader = sitk.ImageSeriesReader()
+            ids = reader.GetGDCMSeriesIDs(str(volume))
+            reader.SetFileNames(reader.GetGDCMSeriesFileNames(str(volume), ids[0]))
+            image, target = reader.Execute(), folder / "static.nii.gz"
+        else:
+            image, target = sitk.ReadImage(str(volume)), folder / "static.mha"
+        sitk.WriteImage(image, str(target), True)
         return target
-    return link_or_copy(volume, folder / f"static{_check_volume(volume)}")
+    return Path(shutil.copyfile(volume, folder / f"static{suffix}"))
 
 
-def _check_volume(volume: Path) -> str:
-    """The static volume's suffix, or "dicom" for a folder; errors name the path."""
+STATIC_SUFFIXES = (".nii.gz", ".nii", ".mha", ".mhd", ".nrrd")
+"""File name endings of a static volume for the hand-off (or a DICOM series folder)."""
+
+
+def check_static_volume(volume: Path) -> str:
+    """Check the static volume for the hand-off by reading its header (a DICOM folder: that it
+    holds one series); return its suffix, or "dicom" for a folder. Errors name the path.
+
+    Args:
+        volume: A volume file or a DICOM series folder.
+    """
     if volume.is_dir():
+        ids = sitk.ImageSeriesReader.GetGDCMSeriesIDs(str(volume))
+        if len(ids) != 1:
+            raise ValueError(
+                f"{volume}: the static volume's folder holds {len(ids)} DICOM series; give a "
+                "folder with one"
+            )
         return "dicom"
     if not volume.is_file():
         raise FileNotFoundError(f"{volume}: no such volume file or DICOM folder")
     name = volume.name.lower()
-    suffix = ".nii.gz" if name.endswith(".nii.gz") else volume.suffix.lower()
-    if suffix not in (".nii", ".nii.gz", ".mha", ".nrrd"):
+    suffix = next((s for s in STATIC_SUFFIXES if name.endswith(s)), None)
+    if suffix is None:
         raise ValueError(
-            f"{volume}: the static volume must be one file (.nii, .nii.gz, .mha, .nrrd) or a "
-            "DICOM series folder"
+            f"{volume}: the static volume must be one file ({', '.join(STATIC_SUFFIXES)}) or "
+            "a DICOM series folder"
         )
+    check_image_file(volume)
     return suffix

@@ -33,15 +33,23 @@ DEFAULT_EFFECTIVE_ENERGY_KEV = 70.0
 kVp behind the leg's filtration (and the phantom's, sim.phantoms.knee)."""
 
 
+ENERGY_RANGE_KEV = (
+    float(min(WATER_MASS_ATTENUATION_CM2_G)),
+    float(max(WATER_MASS_ATTENUATION_CM2_G)),
+)
+"""The effective energies the water table covers, keV (lowest, highest)."""
+
+
 def mu_water_per_mm(effective_energy_kev: float) -> float:
     """Linear attenuation of water (density 1 g/cm^3) at an effective energy, 1/mm: the NIST
     table interpolated log-log, 20-150 keV."""
     energies = np.array(list(WATER_MASS_ATTENUATION_CM2_G))
     energy = float(effective_energy_kev)
-    if not (math.isfinite(energy) and energies[0] <= energy <= energies[-1]):
+    low, high = ENERGY_RANGE_KEV
+    if not (math.isfinite(energy) and low <= energy <= high):
         raise ValueError(
-            f"effective_energy_kev = {effective_energy_kev!r} keV is outside the water table's "
-            f"{energies[0]:g}-{energies[-1]:g} keV"
+            f"effective energy {effective_energy_kev!r} keV is outside the water table's "
+            f"{low:g}-{high:g} keV"
         )
     values = np.log(list(WATER_MASS_ATTENUATION_CM2_G.values()))
     mass = math.exp(float(np.interp(math.log(energy), np.log(energies), values)))

@@ -57,14 +57,13 @@ def load_config(path: str | Path, model: type[Model]) -> Model:
         raise ConfigError(f"{path}: not valid YAML ({err})") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping of fields, got {type(data).__name__}")
+    for field, value in _numbers(data):
+        if not math.isfinite(value):
+            raise ConfigError(f"{path}: {field} is {value!r}: give a finite number")
     try:
-        config = model.model_validate(data)
+        return model.model_validate(data)
     except ValidationError as err:
         raise ConfigError(_describe(path, err)) from None
-    for field, value in _numbers(config.model_dump()):
-        if not math.isfinite(value):
-            raise ConfigError(f"{path}: 1 invalid field(s)\n  {field}: value {value!r}: not finite")
-    return config
 
 
 def _numbers(tree: object, where: str = "") -> Iterator[tuple[str, float]]:

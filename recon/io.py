@@ -170,6 +170,21 @@ def read_volume(path: str | Path, unit: Unit | None = None) -> Volume:
     return Volume(data=data, grid=grid, unit=resolved)
 
 
+def check_image_file(path: str | Path) -> None:
+    """Raise unless ``path`` is a readable 3-D scalar image holding the pixels its header
+    claims; its pixels are not read.
+
+    Args:
+        path: The image file (any format SimpleITK reads).
+
+    Raises:
+        FileNotFoundError: ``path`` is not a file.
+        ImageFileError: not an image, truncated, or unreadable.
+        ValueError: not 3-D, or more than one value per voxel.
+    """
+    _open_image(Path(path))
+
+
 def volume_unit_note(path: str | Path) -> Unit | None:
     """The unit a volume file states (its ``ITK_FileNotes``), None when it states none; reads
     the header only."""
@@ -831,6 +846,8 @@ def _itk_reason(err: RuntimeError) -> str:
     for line in lines:
         for marker in ("sitk::ERROR:", "ITK ERROR:"):
             if marker in line:
-                reason = line.split(marker, 1)[1]
-                return _ITK_CLASS_PREFIX.sub("", reason).strip()
+                reason = _ITK_CLASS_PREFIX.sub("", line.split(marker, 1)[1]).strip()
+                if reason.startswith("Unable to determine ImageIO reader"):
+                    return "no image reader recognises its content"
+                return reason
     return lines[-1] if lines else type(err).__name__

@@ -80,6 +80,13 @@ class VolumeGrid:
         """Voxels along (x, y, z)."""
         return self.shape[2], self.shape[1], self.shape[0]
 
+    def __str__(self) -> str:
+        """The grid in a user's words, x y z order: voxels, their size, the first's centre."""
+        size = " x ".join(str(n) for n in self.size_xyz)
+        spacing = " x ".join(f"{s:g}" for s in self.spacing_mm)
+        origin = ", ".join(f"{o:g}" for o in self.origin_mm)
+        return f"{size} voxels (x y z) of {spacing} mm, the first centred at ({origin}) mm"
+
     @property
     def center_mm(self) -> np.ndarray:
         """World position of the grid centre, (x, y, z) mm."""

@@ -1167,7 +1167,11 @@ class Tracker:
         result.scored(score, grad, s.fail_ncc)
         return result
 
-    def track(self, initial: dict[str, np.ndarray], progress=None) -> list[FrameResult]:
+    def track(
+        self,
+        initial: dict[str, np.ndarray],
+        progress: Callable[[int, int], None] | None = None,
+    ) -> list[FrameResult]:
         """Register every frame in order.
 
         Args:

@@ -55,15 +55,16 @@ def overlay(frame: np.ndarray, outlines: dict[str, tuple[np.ndarray, bool]]) -> 
 def write_overlays(
     folder: Path, frames: np.ndarray, view: View, models: dict, results: Sequence
 ) -> list[Path]:
-    """One PNG per frame into the new ``folder`` (registration.boneaxis.FrameResult each)."""
+    """One PNG per frame into the new ``folder``: ``frames[k]`` with ``results[k]``
+    (registration.boneaxis.FrameResult; named by its frame number)."""
     folder.mkdir(parents=True)
     written = []
-    for result in results:
+    for image, result in zip(frames, results, strict=True):
         outlines = {
             name: (outline(silhouette(models[name], view, bone.pose)), bone.failed)
             for name, bone in result.bones.items()
         }
         path = folder / f"frame_{result.frame:04d}.png"
-        sitk.WriteImage(sitk.GetImageFromArray(overlay(frames[result.frame], outlines), True), path)
+        sitk.WriteImage(sitk.GetImageFromArray(overlay(image, outlines), True), path)
         written.append(path)
     return written

@@ -129,13 +129,23 @@ def _poses_by_body(
 
 
 def _initial(
-    given: Path | dict[str, Path] | None, bodies: tuple[str, ...], T_world_camera: np.ndarray
+    given: Path | dict[str, Path] | None,
+    bodies: tuple[str, ...],
+    T_world_camera: np.ndarray,
+    first: int = 0,
 ) -> dict[str, np.ndarray]:
-    """Frame-0 starting poses: the reference (CBCT or mesh) pose, or frame 0 of ``given``."""
+    """Starting poses of frame ``first``: the reference (CBCT or mesh) pose, or that frame's
+    row of ``given``."""
     if given is None:
         return {name: np.eye(4) for name in bodies}
     stacks = _poses_by_body(given, bodies, T_world_camera, "initial")
-    return {name: stack[0] for name, stack in stacks.items()}
+    for name, stack in stacks.items():
+        if len(stack) <= first:
+            raise ValueError(
+                f"initial poses of {name} for {len(stack)} frames: none for frame {first}, "
+                "the first one tracked"
+            )
+    return {name: stack[first] for name, stack in stacks.items()}
 
 
 def _truth(
@@ -188,6 +198,25 @@ def read_view(frames: Frames, geometry_path: Path | None, calibration_path: Path
     return view
 
 
+def frame_numbers(count: int, frame_range: tuple[int, int, int] | None) -> np.ndarray:
+    """The numbers of the frames tracked out of ``count``, or ValueError naming --frames-range.
+
+    Args:
+        count: Frames in the sequence.
+        frame_range: (first, last, step), ``last`` included; every frame when ``None``.
+    """
+    if frame_range is None:
+        return np.arange(count)
+    first, last, step = frame_range
+    if not (0 <= first <= last < count and step >= 1):
+        raise ValueError(
+            f"--frames-range {first}:{last}:{step}: the sequence has frames 0 to {count - 1}; "
+            "give FIRST:LAST[:STEP] with 0 <= FIRST <= LAST <= "
+            f"{count - 1} and STEP >= 1"
+        )
+    return np.arange(first, last + 1, step)
+
+
 def register_files(
     volume_path: Path | None,
     labels_path: Path | None,
@@ -206,6 +235,7 @@ def register_files(
     progress: Callable[[int, int], None] | None = None,
     unit: StaticUnit | None = None,
     effective_energy_kev: float = DEFAULT_EFFECTIVE_ENERGY_KEV,
+    frame_range: tuple[int, int, int] | None = None,
 ) -> list[FrameResult]:
     """``cbct register``: track every body through every frame and write the results.
 
@@ -237,6 +267,8 @@ def register_files(
         progress: Called with (frames done, frames in all).
         unit: Unit of the static volume where its file does not say.
         effective_energy_kev: Effective energy (keV) converting HU to 1/mm.
+        frame_range: (first, last, step) of the frames tracked, numbered from 0, ``last``
+            included; every frame when ``None``. Poses keep the sequence's frame numbers.
 
     Returns:
         One result per frame.
@@ -255,7 +287,10 @@ def register_files(
             )
         pixel_pitch_mm = read_calibration(calibration_path, 1, 1).pitch_u_mm
     frames = read_frames(frames_path, pixel_pitch_mm, polarity)
+    numbers = frame_numbers(len(frames.data), frame_range)
     view = read_view(frames, geometry_path, calibration_path)
+    if frame_range is not None:
+        frames = replace(frames, data=frames.data[numbers])
     if distortion is not None:
         field = frames.field
         if field is not None:  # pixels the dewarped field fully covers
@@ -276,15 +311,17 @@ def register_files(
         meshes[name] = {**asdict(report), "material": spec.material}
     bodies = tuple(b for b in TRACK_ORDER if b in models)
     T_world_camera = camera_frame(view)
-    count = len(frames.data)
+    count = int(numbers[-1]) + 1
     truth = None if truth_path is None else _truth(truth_path, count, bodies, T_world_camera)
     tracker = Tracker(view, frames.data, models, settings, soft, frames.field)
     if initial_path is None and meshes and volume_path is None:  # implants alone: search
         start = _automatic_start(tracker, models, view, frames)
     else:
-        start = _initial(initial_path, bodies, T_world_camera)
+        start = _initial(initial_path, bodies, T_world_camera, int(numbers[0]))
     _check_in_view(view, models, start, f"{frames.header.source} with the view")
     results = tracker.track(start, progress=progress)
+    for result in results:  # the sequence's own frame numbers
+        result.frame = int(numbers[result.frame])
     _write(out, results, models, view, tracker, truth, distortion, source, frames, meshes)
     return results
 

@@ -77,10 +77,25 @@ def views_done(bar: Progress, description: str, unit: str = "views") -> Callable
     return update
 
 
-def fail(message: str) -> None:
-    """Print an error in words and exit with status 2 (nothing written beyond what is said)."""
+REFUSED = 2
+"""Exit status of a command that refused its input (nothing done, nothing written)."""
+FAILED = 1
+"""Exit status of a command whose work failed or was interrupted (what is kept is said)."""
+
+
+def fail(message: str, code: int = REFUSED) -> None:
+    """Print an error in words and exit with ``code``: :data:`REFUSED` (the default) or
+    :data:`FAILED`."""
     console.print(f"[bold red]error:[/] {message}", soft_wrap=True, highlight=False)
-    raise typer.Exit(2)
+    raise typer.Exit(code)
+
+
+def check_range(option: str, value: float, low: float, high: float | None, unit: str) -> None:
+    """:func:`fail` unless ``low <= value <= high`` (``high`` None: no upper limit; NaN is
+    refused), naming the option, the value and the limits."""
+    if not (low <= value and (high is None or value <= high)):
+        limits = f"{low:g} or more" if high is None else f"{low:g} to {high:g}"
+        fail(f"{option} {value:g}: give {limits} {unit}".rstrip())
 
 
 @app.command()
@@ -89,20 +104,25 @@ def plan(
     out: Annotated[Path, typer.Option(help="study folder; the plan goes to OUT/plan")],
     scanner: Annotated[Path, typer.Option(help="scanner hardware YAML")] = CONFIGS / "scanner.yaml",
 ) -> None:
-    """Plan a protocol on the scanner: IK, collision and limit checks, timing, a recording."""
-    from scanner import scan_files
+    """Plan a protocol on the scanner: IK, collision and limit checks, timing, a recording.
+
+    OUT becomes a study folder holding the plan: cbct scan --study OUT scans it."""
+    from scanner.outputs import Output, new_outputs
+    from scanner.session import plan_study
 
     try:
-        with views_progress() as bar:
-            result = scan_files.plan_to_study(
-                protocol, out, scanner, progress=views_done(bar, "inverse kinematics")
-            )
+        with new_outputs(Output(out, "--out", folder=True, empty_ok=True)) as (staged,):
+            with views_progress() as bar:
+                result = plan_study(
+                    protocol, staged, scanner, progress=views_done(bar, "inverse kinematics")
+                )
     except (ValueError, OSError) as err:
         fail(str(err))
     console.print(_plan_table(result), soft_wrap=True)
     console.print(
         f"[green]wrote[/] {out / 'plan'} and {out / 'plan' / 'recording.rrd'} "
-        f"(open with: rerun {out / 'plan' / 'recording.rrd'})",
+        f"(open with: rerun {out / 'plan' / 'recording.rrd'}); scan it with: cbct scan "
+        f"--study {out} --protocol {protocol}",
         soft_wrap=True,
         highlight=False,
     )
@@ -160,12 +180,16 @@ def simulate_scan(
     """Scan a digital phantom: projections .mha, the planned geometry .xml (and the acquired
     one, true_geometry.xml, on vibrating arms), phantom volumes for the knee."""
     from scanner import scan_files
+    from scanner.outputs import Output, new_outputs
     from sim.vibration import VibrationSpec
 
     if phantom_config is None:
         phantom_config = (
             CONFIGS / "phantoms" / ("knee.yaml" if phantom == "knee" else "bb_helix.yaml")
         )
+    check_range("--voxel-mm", voxel_mm, 0.05, 10.0, "mm")
+    check_range("--vibration-mm", vibration_mm, 0.0, None, "mm (0: no vibration)")
+    check_range("--vibration-deg", vibration_deg, 0.0, None, "degrees (0: no vibration)")
     vibration = None
     if vibration_mm > 0 or vibration_deg > 0:
         try:
@@ -178,10 +202,11 @@ def simulate_scan(
         except ValueError as err:
             fail(str(err))
     try:
-        with views_progress() as bar:
+        staging = new_outputs(Output(out, "--out", folder=True, empty_ok=True))
+        with staging as (staged,), views_progress() as bar:
             written = scan_files.simulate_to_folder(
                 protocol,
-                out,
+                staged,
                 phantom,
                 phantom_config,
                 voxel_mm=voxel_mm,

@@ -1,5 +1,4 @@
-"""File-level acquisition jobs of the console: plan a protocol into a study folder, scan a
-digital phantom into a new folder.
+"""File-level acquisition jobs of the console: scan a digital phantom into a new folder.
 
 Each job validates everything it reads before the long work starts and refuses to overwrite:
 outputs go to new files or to a folder that does not exist yet (or is empty).
@@ -25,10 +24,6 @@ from sim.phantoms.bb import project_bb
 from sim.phantoms.knee import KneePhantomSpec
 from sim.scan import add_noise, photons_per_pixel, simulate_knee_scan
 from sim.vibration import VibrationSpec, vibrate
-from trajectories.config import ScannerConfig
-from trajectories.model import ScannerModel
-from trajectories.plan import Plan, plan_scan
-from trajectories.recording import record_plan
 
 Status = Callable[[str], None]
 
@@ -124,22 +119,3 @@ def simulate_to_folder(
         counts, line_integrals = add_noise(line_integrals, photons, np.random.default_rng(seed))
         manifest["photons_per_pixel"] = photons
     return write_scan(out, line_integrals, counts, planned, manifest, acquired)
-
-
-def plan_to_study(
-    protocol_path: Path,
-    study: Path,
-    scanner_path: Path,
-    progress: Progress | None = None,
-) -> Plan:
-    """Plan a protocol and write ``study/plan`` (trajectory, views, RTK geometry, collision
-    report, summary, rerun recording). Nothing is written unless the plan is valid."""
-    protocol = load_protocol(protocol_path)
-    scanner = ScannerModel(load_config(scanner_path, ScannerConfig))
-    folder = study / "plan"
-    if folder.exists():
-        raise FileExistsError(f"{folder} exists: a plan is never written over another")
-    plan = plan_scan(scanner, protocol, progress=progress)
-    plan.save(folder)
-    record_plan(plan, scanner, folder / "recording.rrd")
-    return plan

@@ -32,8 +32,8 @@ from scanner.scan import ScanFault, ScanRun, ScanSettings
 from scanner.scan_recording import ScanRecorder
 from scanner.stop import StopRequest, stop_signals
 from scanner.storage import ScanStore, ViewRecord
-from scanner.study import Study, StudyError
-from sim.backend import volume_subject
+from scanner.study import MANIFEST, Study, StudyError
+from sim.backend import SimBackendSpec, SimFaults, volume_subject
 from sim.phantoms.bb import project_bb
 from sim.phantoms.knee import KneePhantomSpec, knee_grid, rasterize_knee
 from trajectories.config import ScannerConfig
@@ -147,12 +147,39 @@ def plan_stage(study: Study, model: ScannerModel, protocol: ScanProtocol, say: S
                 "config changed since): refusing to continue on a different motion"
             )
         return plan
+    _save_plan(study, plan, model)
+    return plan
+
+
+def _save_plan(study: Study, plan: Plan, model: ScannerModel) -> None:
+    folder = study.path / "plan"
     if folder.exists():  # an interrupted earlier attempt: derived data, made again
         shutil.rmtree(folder)
     plan.save(folder)
     record_plan(plan, model, folder / "recording.rrd")
     study.adopt("plan")
     study.mark("plan", "complete", **plan.summary())
+
+
+def plan_study(
+    protocol_path: Path,
+    study_path: Path,
+    scanner_path: Path,
+    progress: Callable[[int, int], None] | None = None,
+) -> Plan:
+    """``cbct plan``: plan a protocol into a new study folder, which ``cbct scan --study``
+    then scans (the scan plans again and refuses a plan that differs).
+
+    Args:
+        protocol_path: Scan protocol YAML.
+        study_path: The new study folder (or an empty one).
+        scanner_path: Scanner hardware YAML.
+        progress: Called with (views solved, views in all) during inverse kinematics.
+    """
+    protocol = load_protocol(protocol_path)
+    model = ScannerModel(load_config(scanner_path, ScannerConfig))
+    plan = plan_scan(model, protocol, progress=progress)  # nothing is written unless it holds
+    _save_plan(Study.create(study_path, {}), plan, model)
     return plan
 
 
@@ -194,7 +221,15 @@ def run_session(
     else:
         if inputs is None:
             raise ValueError("a new study needs its inputs")
-        study = Study.create(study_path, {})
+        study = None
+        if (Path(study_path) / MANIFEST).is_file():  # a study made by cbct plan: scan it
+            study = Study.open(study_path)
+            if study.manifest["config"] or set(study.manifest["stages"]) != {"plan"}:
+                raise StudyError(
+                    f"{study_path} is a study already scanned (or started): continue it with "
+                    "--resume, or choose a new folder"
+                )
+        study = study or Study.create(study_path, {})
     scan_stage(
         study,
         None if resume else inputs,
@@ -253,6 +288,16 @@ def scan_stage(
                     f"config is a {type(backend_override).__name__}"
                 )
             inputs = replace(inputs, backend=backend_override)
+        elif isinstance(inputs.backend, SimBackendSpec) and inputs.backend.faults != SimFaults():
+            injected = ", ".join(
+                f"{k}={v}" for k, v in inputs.backend.faults.model_dump(exclude_none=True).items()
+            )
+            say(
+                f"the simulated faults of the study's backend config ({injected}) are not "
+                "injected again; give --backend-config to inject faults in this session"
+            )
+            quiet = inputs.backend.model_copy(update={"faults": SimFaults()})
+            inputs = replace(inputs, backend=quiet)
     elif stage in configs:
         raise StudyError(f"{study.path}: {stage} was started already; continue it with --resume")
     else:

@@ -115,6 +115,8 @@ def make_folder(folder: Path) -> None:
     """Create ``folder`` and its missing parents, each new name flushed to disk."""
     if folder.is_dir():
         return
+    if folder.exists():
+        raise NotADirectoryError(f"{folder} is a file, not a folder")
     make_folder(folder.parent)
     folder.mkdir(exist_ok=True)
     fsync_folder(folder.parent)

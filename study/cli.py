@@ -2,12 +2,14 @@
 ``scan`` and ``move`` (the scanner to a study plan's start or to park), and the study
 pipeline's: ``calibrate`` (per-view geometry from a steel-ball phantom scan),
 ``calibrate-fluoro`` (the fluoroscopy panel's distortion from a dewarp grid's image), ``recon``
-(weighted FDK of RTK-format inputs), ``register`` (track the bones through a fluoroscopy
-sequence), ``assess`` (knee kinematics report from bone poses), ``demo`` (the main job on the
-simulated scanner) and ``batch`` (the derived stages of many studies on dask.distributed, and a
-cohort summary). Every command checks its inputs before long work starts, never overwrites an
-existing output, and shows progress on long work. Each command imports what it uses when it
-runs (``cbct --help`` and ``cbct scan`` load no registration, cohort or plotting code).
+(weighted FDK of RTK-format inputs), ``segment`` (bone labels of a static scan), ``register``
+(track the bones through a fluoroscopy sequence), ``assess`` (knee kinematics report from bone
+poses), ``demo`` (the main job on the simulated scanner) and ``batch`` (the derived stages of
+many studies on dask.distributed, and a cohort summary). Every command checks its inputs
+before long work starts, never overwrites an existing output, writes its outputs through
+scanner.outputs (nothing at ``--out`` after a failure), and shows progress on long work. Each
+command imports what it uses when it runs (``cbct --help`` and ``cbct scan`` load no
+registration, cohort or plotting code).
 """
 
 from __future__ import annotations
@@ -22,8 +24,17 @@ import typer
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
-from recon.attenuation import DEFAULT_EFFECTIVE_ENERGY_KEV
-from scanner.cli import CONFIGS, app, console, fail, views_done, views_progress
+from recon.attenuation import DEFAULT_EFFECTIVE_ENERGY_KEV, ENERGY_RANGE_KEV
+from scanner.cli import (
+    CONFIGS,
+    FAILED,
+    app,
+    check_range,
+    console,
+    fail,
+    views_done,
+    views_progress,
+)
 
 if TYPE_CHECKING:
     from study.batch import BatchReport
@@ -94,13 +105,15 @@ def calibrate_fluoro(
 ) -> None:
     """The fluoroscopy panel's distortion from an image of the dewarp grid alone: the warp
     ``cbct register --distortion`` removes from every frame."""
+    from scanner.outputs import Output, new_outputs
     from study import jobs
 
-    if out.exists():
-        fail(f"{out} exists: choose a new file (nothing is overwritten)")
     try:
-        distortion = jobs.fit_fluoro_distortion(grid, geometry, grid_config, degree, pixel_pitch_mm)
-        distortion.write(out)
+        with new_outputs(Output(out, "--out", suffixes=(".json",))) as (written,):
+            distortion = jobs.fit_fluoro_distortion(
+                grid, geometry, grid_config, degree, pixel_pitch_mm
+            )
+            distortion.write(written)
     except (ValueError, OSError) as err:
         fail(str(err))
     console.print(
@@ -143,24 +156,32 @@ def recon(
     ] = None,
 ) -> None:
     """Reconstruct RTK-format projections with weighted FDK."""
+    from recon.io import VOLUME_SUFFIXES
+    from scanner.outputs import Output, new_outputs
     from study import jobs
 
-    if out.exists():
-        fail(f"{out} exists: choose a new output name (nothing is overwritten)")
+    check_range("--min-coverage-deg", min_coverage_deg, 0.0, 360.0, "degrees")
+    if spacing_mm is not None:
+        check_range("--spacing-mm", spacing_mm, 0.01, 100.0, "mm")
+    if size is not None and min(size) < 1:
+        fail(f"--size {' '.join(map(str, size))}: give three voxel counts of 1 or more (x y z)")
+    outputs = [Output(out, "--out", suffixes=VOLUME_SUFFIXES)]
+    if preview is not None:
+        outputs.append(Output(preview, "--preview", suffixes=(".png",)))
     try:
-        with views_progress() as bar:
+        with new_outputs(*outputs) as written, views_progress() as bar:
             start = time.perf_counter()
             result = jobs.reconstruct_files(
                 projections,
                 geometry,
-                out,
+                written[0],
                 size_xyz=size,
                 spacing_mm=spacing_mm,
                 origin_mm=origin_mm,
                 window=filter,
                 min_coverage_deg=min_coverage_deg,
                 progress=views_done(bar, "weighted FDK"),
-                preview=preview,
+                preview=written[1] if preview is not None else None,
                 calibration=calibration,
                 protocol_path=protocol,
                 orbit_path=orbit,
@@ -219,17 +240,29 @@ def scan(
     --move-to-start and --park move the scanner as cbct move does, in the same session.
     """
     from scanner.backends import load_backend_spec
+    from scanner.scan import OperatorDeclined, ScanFault
     from scanner.scan import Progress as ScanProgress
-    from scanner.scan import ScanFault
     from scanner.session import read_inputs, run_session
+    from scanner.study import Study, StudyError
     from study.live_recon import LiveRecon
     from study.stages import recon_stage
 
     config = backend_config or CONFIGS / "backends" / f"{backend}.yaml"
+    check_range("--recon-voxel-mm", recon_voxel_mm, 0.1, 4.0, "mm")
+    check_range("--phantom-voxel-mm", phantom_voxel_mm, 0.25, 4.0, "mm")
     try:
         if resume:
             if protocol is not None:
                 fail("--resume continues the study with its own protocol: drop --protocol")
+            scanned = Study.open(study).stage("scan")
+            if scanned.get("status") == "complete":
+                console.print(
+                    f"[green]scan complete already[/]: {scanned.get('views')} views in "
+                    f"{study / 'scan'}; nothing to resume",
+                    soft_wrap=True,
+                    highlight=False,
+                )
+                raise typer.Exit(0)
             inputs = None
             override = load_backend_spec(backend, config) if backend_config else None
         else:
@@ -239,7 +272,7 @@ def scan(
                 protocol, scanner, backend, config, phantom, phantom_voxel_mm=phantom_voxel_mm
             )
             override = None
-    except (ValueError, OSError) as err:
+    except (ValueError, OSError, StudyError) as err:
         fail(str(err))
 
     confirm = _confirmation(yes)
@@ -254,8 +287,6 @@ def scan(
         console=console,
     )
     task = None
-    if not 0.1 <= recon_voxel_mm <= 4.0:
-        fail(f"--recon-voxel-mm must be in [0.1, 4] mm, got {recon_voxel_mm}")
     live = LiveRecon(recon_voxel_mm)
     last_view = time.perf_counter()
     backlog_at_end = 0
@@ -285,6 +316,13 @@ def scan(
         live.close()
         fail(
             f"{err}\n  the study keeps every stored view; continue with: cbct scan --resume "
+            f"--study {study}",
+            FAILED,
+        )
+    except OperatorDeclined as err:
+        live.close()
+        fail(
+            f"{err}; the study keeps its plan: start the scan with cbct scan --resume "
             f"--study {study}"
         )
     except (ValueError, OSError, RuntimeError) as err:
@@ -292,7 +330,7 @@ def scan(
         fail(str(err))
     except KeyboardInterrupt as err:  # a stop signal before anything moved, or after the scan
         live.close()
-        fail(f"{err or 'interrupted'}; continue with: cbct scan --resume --study {study}")
+        fail(f"{err or 'interrupted'}; continue with: cbct scan --resume --study {study}", FAILED)
     try:
         recon_stage(
             done,
@@ -305,7 +343,8 @@ def scan(
         fail(
             f"{err}\n  the scan is complete and kept; reconstruct it offline with: cbct recon "
             f"--projections {study}/scan/projections.mha --geometry {study}/scan/geometry.xml "
-            f"--orbit {study}/scan/planned_geometry.xml --out VOLUME.nii.gz"
+            f"--orbit {study}/scan/planned_geometry.xml --out VOLUME.nii.gz",
+            FAILED,
         )
     ready = time.perf_counter() - last_view
     stage = done.stage("scan")
@@ -374,9 +413,78 @@ def _confirmation(yes: bool):
         if yes:
             console.print(f"{question} [bold]yes[/] (--yes)", soft_wrap=True, highlight=False)
             return True
-        return typer.confirm(question, default=False, err=True)
+        try:
+            return typer.confirm(question, default=False, err=True)
+        except typer.Abort:  # no answer: end of input, or Ctrl-D
+            console.print(
+                "\n[yellow]no answer[/] (no terminal to answer on?): taken as no; give --yes "
+                "to answer yes without a terminal",
+                soft_wrap=True,
+                highlight=False,
+            )
+            return False
 
     return confirm
+
+
+@app.command()
+def segment(
+    volume: Annotated[
+        Path,
+        typer.Option(help="static knee scan: .nii.gz, .nii, .mha, .mhd, or a DICOM CT folder"),
+    ],
+    out: Annotated[Path, typer.Option(help="new label volume (.nii.gz, .nii, .mha or .mhd)")],
+    unit: Annotated[
+        str | None,
+        typer.Option(help="the scan's unit where its file does not say: hu or 1/mm"),
+    ] = None,
+    side: Annotated[
+        str | None, typer.Option(help="right or left knee (default: found from the fibula)")
+    ] = None,
+    meshes: Annotated[
+        Path | None, typer.Option(help="also write one bone surface (STL) per bone here")
+    ] = None,
+    effective_energy_kev: Annotated[
+        float, typer.Option(help="effective energy HU are converted to 1/mm at, keV")
+    ] = DEFAULT_EFFECTIVE_ENERGY_KEV,
+) -> None:
+    """Label the bones of a static knee scan as the demo does: air 0, soft tissue 1, femur 2,
+    tibia 3, fibula 4, patella 5 (the labels register, assess and export read)."""
+    import numpy as np
+
+    from recon.io import VOLUME_SUFFIXES
+    from registration.labels import LABELS
+    from scanner.outputs import Output, new_outputs
+    from study import jobs
+
+    units = {"hu": "HU", "1/mm": "1/mm"}
+    if unit is not None and unit.lower() not in units:
+        fail(f"--unit {unit!r}: give hu (CT numbers) or 1/mm (linear attenuation)")
+    check_range("--effective-energy-kev", effective_energy_kev, *ENERGY_RANGE_KEV, "keV")
+    if side is not None and side not in ("right", "left"):
+        fail(f"--side {side!r}: give right or left")
+    outputs = [Output(out, "--out", suffixes=VOLUME_SUFFIXES)]
+    if meshes is not None:
+        outputs.append(Output(meshes, "--meshes", folder=True))
+    try:
+        with new_outputs(*outputs) as staged:
+            labels = jobs.segment_files(
+                volume,
+                staged[0],
+                unit=None if unit is None else units[unit.lower()],
+                side=side,
+                effective_energy_kev=effective_energy_kev,
+                meshes=staged[1] if meshes is not None else None,
+            )
+    except (ValueError, OSError) as err:
+        fail(str(err))
+    voxel_ml = float(np.prod(labels.grid.spacing_mm)) / 1000.0
+    found = ", ".join(
+        f"{name} {np.count_nonzero(labels.data == value) * voxel_ml:.0f} ml"
+        for name, value in LABELS.items()
+        if name not in ("air", "soft_tissue")
+    )
+    console.print(f"[green]wrote[/] {out}: {found}", soft_wrap=True, highlight=False)
 
 
 @app.command()
@@ -395,12 +503,22 @@ def assess(
 ) -> None:
     """Knee kinematics, TP-condyle distances and flags: report.html, metrics.csv, plots, 4D,
     and export/ (ITK transforms, Autoscoper .tra, a 3D Slicer scene)."""
+    from scanner.outputs import Output, new_outputs
     from study import jobs
 
+    if side not in ("right", "left"):
+        fail(f"--side {side!r}: give right or left")
     try:
-        result = jobs.assess_files(
-            poses, labels, out, side, tka=tka, plateau_offset_mm=plateau_offset_mm, volume=volume
-        )
+        with new_outputs(Output(out, "--out", folder=True)) as (written,):
+            result = jobs.assess_files(
+                poses,
+                labels,
+                written,
+                side,
+                tka=tka,
+                plateau_offset_mm=plateau_offset_mm,
+                volume=volume,
+            )
     except (ValueError, OSError) as err:
         fail(str(err))
     kin = result.kinematics
@@ -428,6 +546,7 @@ def export(
 ) -> None:
     """The tracked bones for other tools: per-frame ITK transforms (SimpleITK, ITK-SNAP, 3D
     Slicer), Autoscoper .tra files, and a 3D Slicer scene (scene.mrml) that plays the motion."""
+    from scanner.outputs import Output, new_outputs
     from study import jobs
 
     if study is not None:
@@ -439,7 +558,8 @@ def export(
     elif poses is None or labels is None:
         fail("give --study, or --poses and --labels (and --volume for the Slicer scene)")
     try:
-        written = jobs.export_files(poses, labels, out, volume)
+        with new_outputs(Output(out, "--out", folder=True)) as (staged,):
+            written = jobs.export_files(poses, labels, staged, volume)
     except (ValueError, OSError) as err:
         fail(str(err))
     console.print(
@@ -524,6 +644,13 @@ def register(
     effective_energy_kev: Annotated[
         float, typer.Option(help="effective energy HU are converted to 1/mm at, keV")
     ] = DEFAULT_EFFECTIVE_ENERGY_KEV,
+    frames_range: Annotated[
+        str | None,
+        typer.Option(
+            help="track only frames FIRST:LAST[:STEP] (numbered from 0, LAST included); "
+            "poses keep the sequence's frame numbers"
+        ),
+    ] = None,
 ) -> None:
     """Track the knee's bones (from a static scan) or its implant components (from their
     meshes) through a fluoroscopy sequence (BoneAxis-Reg)."""
@@ -531,12 +658,13 @@ def register(
     from recon.distortion import Distortion
     from registration.boneaxis import Settings
     from registration.track import ImplantSpec, register_files
+    from scanner.outputs import Output, new_outputs
 
-    if out.exists():
-        fail(f"{out} exists: choose a new output folder (nothing is overwritten)")
     units = {"hu": "HU", "1/mm": "1/mm"}
     if unit is not None and unit.lower() not in units:
         fail(f"--unit {unit!r}: give hu (CT numbers) or 1/mm (linear attenuation)")
+    check_range("--effective-energy-kev", effective_energy_kev, *ENERGY_RANGE_KEV, "keV")
+    frame_range = None if frames_range is None else _frame_range(frames_range)
     try:
         meshes = _body_files("--implant", implant)
         materials = _body_words("--material", material)
@@ -552,22 +680,13 @@ def register(
             settings = CONFIGS / ("registration_implants.yaml" if alone else "registration.yaml")
         chosen = load_config(settings, Settings)
         warp = None if distortion is None else Distortion.read(distortion)
-        bar = Progress(
-            TextColumn("BoneAxis-Reg"),
-            BarColumn(),
-            TextColumn("{task.completed}/{task.total} frames"),
-            TimeElapsedColumn(),
-            TimeRemainingColumn(),
-            console=console,
-        )
-        with bar:
-            task = bar.add_task("frames", total=None)
+        with new_outputs(Output(out, "--out", folder=True)) as (staged,), views_progress() as bar:
             results = register_files(
                 volume,
                 labels,
                 frames,
                 geometry,
-                out,
+                staged,
                 implants=implants,
                 calibration_path=calibration,
                 polarity=polarity,
@@ -576,9 +695,10 @@ def register(
                 pixel_pitch_mm=pixel_pitch_mm,
                 distortion=warp,
                 settings=chosen,
-                progress=lambda done, total: bar.update(task, completed=done, total=total),
+                progress=views_done(bar, "BoneAxis-Reg", "frames"),
                 unit=None if unit is None else units[unit.lower()],
                 effective_energy_kev=effective_energy_kev,
+                frame_range=frame_range,
             )
     except (ValueError, OSError) as err:
         fail(str(err))
@@ -597,6 +717,18 @@ def register(
         soft_wrap=True,
         highlight=False,
     )
+
+
+def _frame_range(text: str) -> tuple[int, int, int]:
+    """``FIRST:LAST[:STEP]`` as three integers; the console's error otherwise."""
+    parts = text.split(":")
+    try:
+        numbers = [int(p) for p in parts]
+    except ValueError:
+        numbers = []
+    if len(numbers) not in (2, 3):
+        fail(f"--frames-range {text!r}: give FIRST:LAST or FIRST:LAST:STEP, e.g. 0:9 or 0:29:2")
+    return (numbers[0], numbers[1], numbers[2] if len(numbers) == 3 else 1)
 
 
 def _body_words(option: str, given: list[str] | None) -> dict[str, str]:
@@ -645,25 +777,30 @@ def demo(
     """Run the main job on the simulated scanner, into one study folder: plan, calibrate,
     scan, reconstruct, segment, simulate fluoroscopy, track the bones, assess, record."""
     from scanner.scan import ScanFault
+    from scanner.study import StudyError
     from study import demo as demo_job
 
     try:
+        prepared = demo_job.open_demo(out, CONFIGS, quick=quick, resume=resume, seed=seed)
+    except (ValueError, OSError, StudyError) as err:
+        fail(str(err))
+    try:
         with views_progress() as bar:
             summary = demo_job.run(
-                out,
+                prepared,
                 CONFIGS,
-                quick=quick,
-                resume=resume,
-                seed=seed,
                 status=lambda msg: console.print(f"  {msg}", highlight=False),
                 bars=lambda description, unit: views_done(bar, description, unit),
             )
     except ScanFault as err:
-        fail(f"{err}\n  continue with: cbct demo --resume --out {out}")
+        fail(f"{err}\n  continue with: cbct demo --resume --out {out}", FAILED)
     except (ValueError, OSError, RuntimeError) as err:
-        fail(f"{err}\n  what was written is kept; continue with: cbct demo --resume --out {out}")
+        fail(
+            f"{err}\n  what was written is kept; continue with: cbct demo --resume --out {out}",
+            FAILED,
+        )
     except KeyboardInterrupt:
-        fail(f"interrupted; continue with: cbct demo --resume --out {out}")
+        fail(f"interrupted; continue with: cbct demo --resume --out {out}", FAILED)
     console.print(summary, soft_wrap=True, highlight=False)
 
 
@@ -762,7 +899,7 @@ def batch(
         with bar:
             report = batch_job.run(client, paths, action, options, on_outcome=heard)
     except KeyboardInterrupt:
-        fail("interrupted: finished stages are kept; rerun the same command to continue")
+        fail("interrupted: finished stages are kept; rerun the same command to continue", FAILED)
     finally:
         client.close()
         if cluster is not None:
@@ -784,7 +921,7 @@ def batch(
             soft_wrap=True,
             highlight=False,
         )
-        raise typer.Exit(1)
+        raise typer.Exit(FAILED)
 
 
 def _batch_table(report: BatchReport, studies: int) -> Table:

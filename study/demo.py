@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import yaml
@@ -257,21 +257,29 @@ def acquire(
     )
 
 
-def run(
-    out: Path,
-    configs: Path,
-    *,
-    quick: bool = False,
-    resume: bool = False,
-    seed: int = 0,
-    status: Status | None = None,
-    bars: Bars | None = None,
-) -> str:
-    """Run the demo into the new folder ``out`` (or continue it); returns the summary.
-    ``seed`` draws the arms' tracking noise, the panels' quantum noise and the fluoroscopy's
-    (:func:`acquire`). ``status`` takes a line per stage, ``bars(description, unit)`` a progress
-    callback per long step (views scanned and fitted, views reconstructed, frames registered)."""
-    say = status or (lambda _msg: None)
+@dataclass(frozen=True)
+class Demo:
+    """A demo study ready to run: its folder, sizes, seed and registration settings."""
+
+    study: Study
+    size: dict
+    seed: int
+    settings: Settings
+
+
+def open_demo(
+    out: Path, configs: Path, *, quick: bool = False, resume: bool = False, seed: int = 0
+) -> Demo:
+    """The demo's study, before anything runs: new at ``out`` (a new or empty folder), or the
+    one to continue (``resume``; its own seed). Raises StudyError or ConfigError.
+
+    Args:
+        out: The study folder.
+        configs: The configs folder (protocols, phantoms, registration settings).
+        quick: The small demo (:data:`QUICK`) instead of the full one (:data:`FULL`).
+        resume: Continue the study at ``out``: redo only its incomplete stages.
+        seed: The noise seed of a new demo (:func:`acquire`).
+    """
     size = QUICK if quick else FULL
     settings = load_config(configs / "registration.yaml", Settings)
     if resume:
@@ -279,10 +287,26 @@ def run(
         made = study.manifest["config"].get("demo", {})
         if made.get("size") != size:
             raise StudyError(f"{out} was made with other demo settings (--quick differs)")
-        seed = made.get("seed", 0)
-    else:
-        demo = {"size": size, "varus_deg": VARUS_DEG, "seed": seed}
-        study = Study.create(out, {"demo": demo})
+        return Demo(study, size, made.get("seed", 0), settings)
+    demo = {"size": size, "varus_deg": VARUS_DEG, "seed": seed}
+    return Demo(Study.create(out, {"demo": demo}), size, seed, settings)
+
+
+def run(
+    demo: Demo, configs: Path, *, status: Status | None = None, bars: Bars | None = None
+) -> str:
+    """Run the demo's stages (those not complete yet); returns the summary.
+
+    Args:
+        demo: The study from :func:`open_demo`.
+        configs: The configs folder.
+        status: Takes a line per stage.
+        bars: ``bars(description, unit)`` gives a progress callback per long step (views
+            scanned and fitted, views reconstructed, frames registered).
+    """
+    say = status or (lambda _msg: None)
+    study, size, seed, settings = demo.study, demo.size, demo.seed, demo.settings
+    out = study.path
     started = time.perf_counter()
     acquire(study, configs, size, seed=seed, say=say, bars=bars)
 

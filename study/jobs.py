@@ -9,26 +9,68 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import trimesh
 
-from assessment.handoff import Motion, write_handoff
+from assessment.handoff import Motion, check_static_volume, write_handoff
 from assessment.knee import BONE_LABELS, KneeAssessment, assess_knee
 from assessment.report import write_report
 from assessment.series import bone_mesh, export_series, record_series
 from calibration.calibrate import Calibration, calibrate, corrected_geometry
 from calibration.distortion import DewarpGridSpec, fit_distortion
 from calibration.phantom import BBPhantomSpec
-from recon.config import load_config, load_protocol
+from recon.attenuation import DEFAULT_EFFECTIVE_ENERGY_KEV
+from recon.config import ScanProtocol, load_config, load_protocol
 from recon.distortion import Distortion
 from recon.fdk import FDKResult, Progress, check_axis_on_panel, default_grid, fdk_reconstruct
+from recon.geometry import Geometry
 from recon.io import read_projections, read_volume, write_volume
 from recon.preview import save_orthogonal_slices
 from recon.rtk_xml import read_rtk_geometry
+from recon.static_volume import StaticUnit, read_attenuation
 from recon.volume import Volume, VolumeGrid
 from registration.frames import read_frames
 from registration.poses import BonePose, read_poses
+from registration.segment import bone_surfaces, segment_bones
 from registration.track import fluoroscopy_view
 from scanner.scan_files import new_folder
+
+PLAN_TOLERANCE_MM = 1e-3
+"""How far a scan's planned views may lie from its protocol's nominal orbit, mm (the plan's
+inverse kinematics leaves ~1e-5 mm)."""
+
+
+def check_is_plan(geometry: Geometry, protocol: ScanProtocol, path: Path) -> None:
+    """ValueError unless ``geometry`` is ``protocol``'s orbit within :data:`PLAN_TOLERANCE_MM`,
+    saying by how much and which view differ.
+
+    Args:
+        geometry: The views read from ``path``.
+        protocol: The protocol they should be the plan of.
+        path: The geometry file, for the message.
+    """
+    nominal = protocol.orbit.geometry(protocol.detector)
+    hint = (
+        "give the protocol that acquired the scan and its planned geometry (a study's "
+        "scan/planned_geometry.xml)"
+    )
+    if (len(geometry), geometry.rows, geometry.cols) != (len(nominal), nominal.rows, nominal.cols):
+        raise ValueError(
+            f"{path}: {len(geometry)} views of {geometry.cols} x {geometry.rows} pixels, but "
+            f"protocol {protocol.name!r} plans {len(nominal)} of {nominal.cols} x "
+            f"{nominal.rows}: {hint}"
+        )
+    for k, (view, planned) in enumerate(zip(geometry, nominal, strict=True)):
+        if not view.isclose(planned, PLAN_TOLERANCE_MM):
+            apart = max(
+                float(np.abs(getattr(view, a) - getattr(planned, a)).max())
+                for a in ("source_mm", "detector_origin_mm")
+            )
+            raise ValueError(
+                f"{path} is not the plan of protocol {protocol.name!r}: view {k} lies "
+                f"{apart:.3g} mm from it (source or panel; tolerance {PLAN_TOLERANCE_MM:g} mm): "
+                f"{hint}"
+            )
 
 
 def reconstruct_files(
@@ -63,8 +105,7 @@ def reconstruct_files(
         if protocol_path is None:
             raise ValueError("--calibration needs --protocol (the scan's protocol)")
         protocol = load_protocol(protocol_path)
-        if geometry != protocol.orbit.geometry(protocol.detector):
-            raise ValueError(f"{geometry_path} is not the plan of protocol {protocol.name!r}")
+        check_is_plan(geometry, protocol, geometry_path)
         geometry = corrected_geometry(calibration, protocol)
     if len(geometry) != stack.data.shape[0]:
         raise ValueError(
@@ -97,6 +138,12 @@ def reconstruct_files(
         orbit_geometry=orbit,
         progress=progress,
     )
+    if not result.mask.any():
+        raise ValueError(
+            f"every voxel is seen over less than {min_coverage_deg:g} degrees of the orbit "
+            f"(the most any voxel gets: {float(result.coverage_deg.max()):.0f}): lower "
+            "--min-coverage-deg"
+        )
     write_volume(out, result.volume)
     if preview is not None:
         save_orthogonal_slices(
@@ -144,6 +191,42 @@ def bone_motion(
     return motion, {bone: bone_mesh(labels, BONE_LABELS[bone]) for bone in motion.poses}
 
 
+def segment_files(
+    volume_path: Path,
+    out: Path,
+    *,
+    unit: StaticUnit | None = None,
+    side: str | None = None,
+    effective_energy_kev: float = DEFAULT_EFFECTIVE_ENERGY_KEV,
+    meshes: Path | None = None,
+) -> Volume:
+    """``cbct segment``: label the bones of a static knee scan as the demo does.
+
+    Args:
+        volume_path: The scan: a volume file or a DICOM CT series folder, in HU or 1/mm.
+        out: The new label volume (registration.labels: air 0, soft tissue 1, femur 2,
+            tibia 3, fibula 4, patella 5).
+        unit: The scan's unit where its file does not say.
+        side: "right" or "left"; inferred from the fibula when None.
+        effective_energy_kev: Effective energy (keV) HU are converted to 1/mm at.
+        meshes: A new folder for one surface (STL, world mm) per bone, or None.
+
+    Returns:
+        The labels.
+    """
+    for path in (out, meshes):
+        if path is not None and path.exists():
+            raise FileExistsError(f"{path} exists: nothing is overwritten")
+    volume, _ = read_attenuation(volume_path, unit, effective_energy_kev)
+    labels = segment_bones(volume, side=side)
+    write_volume(out, labels)
+    if meshes is not None:
+        meshes.mkdir(parents=True)
+        for name, mesh in bone_surfaces(labels).items():
+            mesh.export(meshes / f"{name}.stl")
+    return labels
+
+
 def assess_files(
     poses_path: Path,
     labels_path: Path,
@@ -157,6 +240,8 @@ def assess_files(
     """``cbct assess``: read poses.csv and the label volume, then :func:`write_assessment`."""
     if out.exists():
         raise FileExistsError(f"{out} exists: choose a new output folder")
+    if volume is not None:
+        check_static_volume(volume)
     poses = read_poses(poses_path)
     labels = read_volume(labels_path, unit="label")
     return write_assessment(
@@ -178,6 +263,8 @@ def export_files(
     (assessment.handoff) in the new folder ``out``; bone models from the label volume."""
     if out.exists():
         raise FileExistsError(f"{out} exists: choose a new output folder")
+    if volume is not None:
+        check_static_volume(volume)
     poses = read_poses(poses_path)
     labels = read_volume(labels_path, unit="label")
     return write_handoff(out, *bone_motion(poses, labels, poses_path), volume)
@@ -199,11 +286,7 @@ def calibrate_to_study(
     phantom = load_config(phantom_path, BBPhantomSpec)
     stack = read_projections(projections_path)
     planned = read_rtk_geometry(geometry_path, stack.header)
-    if planned != protocol.orbit.geometry(protocol.detector):
-        raise ValueError(
-            f"{geometry_path} is not the plan of protocol {protocol.name!r}: "
-            "calibrate with the protocol that acquired the scan"
-        )
+    check_is_plan(planned, protocol, geometry_path)
     calibration = calibrate(stack.data, planned, phantom, protocol, progress=progress)
     calibration.save(folder)
     return calibration

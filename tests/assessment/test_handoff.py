@@ -179,3 +179,9 @@ def test_cbct_export_from_files_and_its_refusals(tmp_path):
     assert again.exit_code == 2 and "exists" in again.output
     bad = runner.invoke(app, [*args, "--out", str(tmp_path / "o2"), "--volume", str(poses_path)])
     assert bad.exit_code == 2 and "poses.csv" in bad.output and not (tmp_path / "o2").exists()
+    # the scene's volume is a copy: editing it cannot change the study's file behind its sha256
+    given = runner.invoke(app, [*args, "--out", str(tmp_path / "o3"), "--volume", str(labels_path)])
+    assert given.exit_code == 0, given.output
+    static = tmp_path / "o3" / "static.nii.gz"
+    assert static.read_bytes() == labels_path.read_bytes()
+    assert static.stat().st_ino != labels_path.stat().st_ino

@@ -39,7 +39,7 @@ def test_water_attenuation_follows_nist():
     assert mu_water_per_mm(60.0) == pytest.approx(0.02059, rel=1e-12)
     assert mu_water_per_mm(100.0) == pytest.approx(0.01707, rel=1e-12)
     assert mu_water_per_mm(70.0) == pytest.approx(NIST_WATER_70KEV_PER_MM, rel=2e-4)
-    with pytest.raises(ValueError, match="effective_energy_kev = 300"):
+    with pytest.raises(ValueError, match="effective energy 300"):
         mu_water_per_mm(300.0)
 
 

@@ -86,7 +86,8 @@ def test_register_takes_an_image_intensifier_fluoroscopy_as_dicom(
 ) -> None:
     """The frames as a fluoroscopy unit stores them: one multi-frame XA file of 12-bit
     intensities (LIN, sign +1: bone dark), MONOCHROME2, imager pixel spacing, a circular
-    image-intensifier field with black outside. They register as the line integrals do."""
+    image-intensifier field with black outside. They register as the line integrals do; here
+    every second frame (--frames-range), whose poses keep the sequence's frame numbers."""
     folder, paths = inputs
     line_integrals = knee_case.frames[:FRAMES].astype(np.float64)
     stored = 4000.0 * np.exp(-(line_integrals - line_integrals.min()))
@@ -104,8 +105,14 @@ def test_register_takes_an_image_intensifier_fluoroscopy_as_dicom(
     writer.Execute(image)
     out = folder / "from-xa"
     given = {"frames": folder / "fluoro_xa.dcm", "truth": paths["truth"]}
-    result = runner.invoke(app, _args(paths, out, initial=paths["initial"], **given))
+    args = [*_args(paths, out, initial=paths["initial"], **given), "--frames-range", "0:2:2"]
+    result = runner.invoke(app, args)
     assert result.exit_code == 0, result.output
+    assert {p.frame for p in read_poses(out / "poses.csv")} == {0, 2}
+    assert sorted(p.name for p in (out / "overlays").iterdir()) == [
+        "frame_0000.png",
+        "frame_0002.png",
+    ]
     tre = json.loads((out / "metrics.json").read_text())["tre_mm_median"]
     measured("tre_mm_median", tre, below=1.0)
     report = json.loads((out / "registration.json").read_text())

@@ -110,7 +110,8 @@ def check_stopped(
 ) -> float:
     """The session's stop, checked; its time to SAFE, s."""
     output = log.read_text(encoding="utf-8", errors="replace")
-    assert code == 2 and f"stopped by {sig.name}" in output, output[-2000:]
+    # exit status 1: the work was stopped (2 would mean the input was refused)
+    assert code == 1 and f"stopped by {sig.name}" in output, output[-2000:]
     before, pending = sent
     late = [t - pending for t, body in generator_commands(study, session) if body == "EXP"]
     assert max(late) < 0, f"EXP sent {max(late) * 1e3:.3f} ms after {sig.name}\n{output[-800:]}"

@@ -125,6 +125,22 @@ def full_demo(tmp_path_factory, seed) -> Path:
     return out
 
 
+def test_cbct_segment_labels_a_scan_as_the_demo_does(demo: Path, tmp_path):
+    """A user's own static scan through cbct segment: the demo's reconstruction gives the
+    demo's labels (the side found from the fibula, not told), and a mesh per bone."""
+    out, meshes = tmp_path / "labels.nii.gz", tmp_path / "meshes"
+    args = ["segment", "--volume", str(demo / "recon" / "volume.nii.gz"), "--out", str(out)]
+    result = runner.invoke(app, [*args, "--meshes", str(meshes)])
+    assert result.exit_code == 0, result.output
+    assert "femur" in result.output and "patella" in result.output
+    ours = read_volume(out, unit="label")
+    demos = read_volume(demo / "segmentation" / "labels.nii.gz", unit="label")
+    assert ours.grid == demos.grid and np.array_equal(ours.data, demos.data)
+    assert sorted(p.name for p in meshes.iterdir()) == sorted(
+        p.name for p in (demo / "segmentation").glob("*.stl")
+    )
+
+
 @pytest.mark.slow
 def test_the_full_demo_tracks_every_frame_within_the_rsr_threshold(full_demo: Path, measured):
     """30 frames to 90 deg, a static scan of 0.8 mm voxels: every registration's TRE below the

@@ -44,11 +44,11 @@ def test_scan_fault_then_resume(tmp_path):
     result = scan(
         *common, "--protocol", str(tiny_protocol(tmp_path)), "--backend-config", str(faulty)
     )
-    assert result.exit_code == 2
+    assert result.exit_code == 1  # failed during the work (2: input refused)
     assert "protective stop" in result.output and "cbct scan --resume" in result.output
     assert Study.open(study).stage("scan")["views_stored"] == 20
 
-    result = scan(*common, "--resume", "--backend-config", str(sim_config(tmp_path)))
+    result = scan(*common, "--resume")  # the study's own config: its fault is not repeated
     assert result.exit_code == 0, result.output
     assert "scan complete: 60 views" in result.output
     assert "reconstructed during the scan" in result.output
@@ -56,13 +56,22 @@ def test_scan_fault_then_resume(tmp_path):
     assert done.verify() == []
     assert done.stage("recon")["status"] == "complete" and done.stage("recon")["during_scan"]
     assert (study / "recon" / "volume.nii.gz").is_file()
+    assert "protective_stop_at_view=20) are not injected again" in result.output
+
+    again = scan(*common, "--resume")  # a script resuming until done learns it is done
+    assert again.exit_code == 0 and "scan complete already: 60 views" in again.output
 
 
-def test_declining_at_the_prompt_moves_nothing(tmp_path):
-    study = tmp_path / "study"
-    result = scan("--study", str(study), "--protocol", str(tiny_protocol(tmp_path)), answers="n\n")
+def test_a_planned_study_is_scanned_and_declining_at_the_prompt_moves_nothing(tmp_path):
+    study, protocol = tmp_path / "study", tiny_protocol(tmp_path)
+    planned = runner.invoke(app, ["plan", "--protocol", str(protocol), "--out", str(study)])
+    assert planned.exit_code == 0 and f"cbct scan --study {study}" in planned.output
+    result = scan("--study", str(study), "--protocol", str(protocol), answers="n\n")
     assert result.exit_code == 2 and "Start motion?" in result.output
-    assert "declined motion" in result.output
+    assert "declined motion" in result.output and "cbct scan --resume" in result.output
+    assert not (study / "scan" / "views").exists()
+    silent = scan("--study", str(study), "--resume", answers="")  # no terminal, no --yes
+    assert silent.exit_code == 2 and "no answer" in silent.output and "--yes" in silent.output
     assert not (study / "scan" / "views").exists()
 
 
