@@ -18,8 +18,13 @@ $(STAMP): $(BIN)/python pyproject.toml
 demo: $(STAMP)
 	$(BIN)/cbct demo --out $(DEMO_OUT)
 
+# the suite on two workers of one thread each (pytest-xdist; a worker's numba and BLAS
+# threads would fight the other's for the cores), then the tests that bound real device
+# times alone (tests/conftest.py: REALTIME)
 test: $(STAMP)
-	$(BIN)/python -m pytest
+	NUMBA_NUM_THREADS=1 OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 \
+		$(BIN)/python -m pytest -n 2 --dist loadgroup -m 'not slow and not realtime'
+	$(BIN)/python -m pytest -m 'not slow and realtime'
 
 DOCS_STAMP := $(VENV)/.installed-docs
 

@@ -57,13 +57,19 @@ def load_config(path: str | Path, model: type[Model]) -> Model:
         raise ConfigError(f"{path}: not valid YAML ({err})") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping of fields, got {type(data).__name__}")
-    for field, value in _numbers(data):
-        if not math.isfinite(value):
-            raise ConfigError(f"{path}: {field} is {value!r}: give a finite number")
+    _check_finite(path, data)  # before pydantic, whose limits say nothing useful of NaN
     try:
-        return model.model_validate(data)
+        config = model.model_validate(data)
     except ValidationError as err:
         raise ConfigError(_describe(path, err)) from None
+    _check_finite(path, config.model_dump())  # e.g. the string "nan", which pydantic parses
+    return config
+
+
+def _check_finite(path: Path, tree: object) -> None:
+    for field, value in _numbers(tree):
+        if not math.isfinite(value):
+            raise ConfigError(f"{path}: {field} is {value!r}: give a finite number")
 
 
 def _numbers(tree: object, where: str = "") -> Iterator[tuple[str, float]]:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import platform
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -101,11 +102,27 @@ def pytest_addoption(parser) -> None:
     )
 
 
+REALTIME = ("scanner/", "test_bench_soak.py")
+"""Tests (folders or files under tests/) that drive devices on real clocks and bound their
+times (time to SAFE, timeouts, pacing): marked ``realtime``; ``make test`` runs them alone,
+after the others, so that no parallel work stretches their clocks."""
+
+
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist reads the groups
 def pytest_collection_modifyitems(config, items) -> None:
-    """Tests that check an accuracy figure (they use ``measured``) are marked ``accuracy``."""
+    """Tests that check an accuracy figure (they use ``measured``) are marked ``accuracy``;
+    the tests of the quick demo's study share one pytest-xdist worker (it is made once); the
+    tests of :data:`REALTIME` are marked ``realtime``."""
+    tests = Path(__file__).resolve().parent
     for item in items:
-        if "measured" in getattr(item, "fixturenames", ()):
+        where = Path(str(item.path)).resolve().relative_to(tests).as_posix()
+        if where.startswith(REALTIME):
+            item.add_marker(pytest.mark.realtime)
+        fixtures = getattr(item, "fixturenames", ())
+        if "measured" in fixtures:
             item.add_marker(pytest.mark.accuracy)
+        if "demo" in fixtures:
+            item.add_marker(pytest.mark.xdist_group("quick_demo"))
 
 
 @pytest.fixture(scope="session")
