@@ -23,7 +23,7 @@ demo: $(STAMP)
 # times alone (tests/conftest.py: REALTIME)
 test: $(STAMP)
 	NUMBA_NUM_THREADS=1 OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 \
-		$(BIN)/python -m pytest -n 2 --dist loadgroup -m 'not slow and not realtime'
+		$(BIN)/python -m pytest -n 2 --dist loadfile -m 'not slow and not realtime'
 	$(BIN)/python -m pytest -m 'not slow and realtime'
 
 DOCS_STAMP := $(VENV)/.installed-docs

@@ -48,6 +48,10 @@ import SimpleITK as sitk
 from recon.rtk_xml import PanelHeader, centered_origin_uv_mm
 from recon.volume import Unit, Volume, VolumeGrid
 
+# ITK prints its warnings to stderr unasked, before our own message says what went wrong
+# and what to do; what matters of them is in the errors raised here
+sitk.ProcessObject.SetGlobalWarningDisplay(False)
+
 VOLUME_SUFFIXES = (".nii.gz", ".nii", ".mha", ".mhd")
 """File name endings :func:`write_volume` and :func:`read_volume` accept."""
 

@@ -108,11 +108,9 @@ times (time to SAFE, timeouts, pacing): marked ``realtime``; ``make test`` runs 
 after the others, so that no parallel work stretches their clocks."""
 
 
-@pytest.hookimpl(tryfirst=True)  # before pytest-xdist reads the groups
 def pytest_collection_modifyitems(config, items) -> None:
     """Tests that check an accuracy figure (they use ``measured``) are marked ``accuracy``;
-    the tests of the quick demo's study share one pytest-xdist worker (it is made once); the
-    tests of :data:`REALTIME` are marked ``realtime``."""
+    the tests of :data:`REALTIME` are marked ``realtime``."""
     tests = Path(__file__).resolve().parent
     for item in items:
         where = Path(str(item.path)).resolve().relative_to(tests).as_posix()
@@ -121,8 +119,6 @@ def pytest_collection_modifyitems(config, items) -> None:
         fixtures = getattr(item, "fixturenames", ())
         if "measured" in fixtures:
             item.add_marker(pytest.mark.accuracy)
-        if "demo" in fixtures:
-            item.add_marker(pytest.mark.xdist_group("quick_demo"))
 
 
 @pytest.fixture(scope="session")

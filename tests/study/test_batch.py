@@ -11,16 +11,13 @@ from __future__ import annotations
 
 import os
 import shutil
-import signal
 import socket
-import threading
 import time
 from pathlib import Path
 
 import pyarrow.csv as pa_csv
 import pyarrow.parquet as pq
 import pytest
-from distributed import Client
 from typer.testing import CliRunner
 
 from scanner.cli import CONFIGS
@@ -132,52 +129,6 @@ def test_batch_all_makes_the_cohort_reports_the_fault_and_skips_finished_work(co
 
     taken = runner.invoke(app, [*args, "--out", str(tmp_path / "second")])
     assert taken.exit_code == 2 and "exists and is not empty" in taken.output
-
-
-def test_a_worker_killed_mid_task_loses_nothing(demo, tmp_path):
-    """On a copy of the quick demo's study whose reconstruction and segmentation are to be
-    made again: a worker SIGKILLed while it reconstructs; the task runs again elsewhere."""
-    studies = [tmp_path / "studies" / "knee"]
-    shutil.copytree(demo, studies[0], copy_function=os.link)
-    copy = Study.open(studies[0])
-    for stage in ("recon", "segmentation"):
-        copy.mark(stage, "incomplete", reason="made again by the test")
-    killed: dict[str, object] = {}
-
-    def kill_a_worker_in_recon(client: Client) -> None:
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and "pid" not in killed:
-            if any((p / "recon.partial").is_dir() for p in studies):
-                for address, stacks in client.call_stack().items():
-                    keys = [k for k in stacks if str(k).startswith("recon-")]
-                    if keys:
-                        pid = client.run(os.getpid, workers=[address])[address]
-                        os.kill(pid, signal.SIGKILL)
-                        killed.update(address=address, pid=pid, key=str(keys[0]))
-                        return
-            time.sleep(0.05)
-
-    options = batch.TaskOptions()
-    cluster = batch.local_cluster(2)
-    try:
-        with Client(cluster) as client:
-            killer = threading.Thread(target=kill_a_worker_in_recon, args=(client,))
-            killer.start()
-            report = batch.run(client, studies, "recon", options)
-            killer.join()
-    finally:
-        cluster.close()
-
-    assert "pid" in killed, "no recon task was seen running"
-    index = int(str(killed["key"]).rsplit("-", 1)[1])
-    assert [o.status for o in report.outcomes] == ["ran"], report.outcomes
-    rerun = next(o for o in report.outcomes if o.study == str(studies[index]))
-    assert rerun.pid != killed["pid"]  # the killed task ran again, in another process
-    for path in studies:
-        study = Study.open(path)
-        assert all(study.stage(s)["status"] == "complete" for s in ("recon", "segmentation"))
-        assert study.verify() == [] and not list(path.glob("*.partial"))
-        assert (path / "segmentation" / "labels.nii.gz").is_file()
 
 
 def _free_port() -> int:

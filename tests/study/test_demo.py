@@ -4,7 +4,11 @@ fixture: tests/study/conftest.py)."""
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import signal
+import threading
+import time
 from collections import defaultdict
 from pathlib import Path
 
@@ -12,6 +16,7 @@ import numpy as np
 import pytest
 import rerun as rr
 import SimpleITK as sitk
+from distributed import Client
 from scipy.ndimage import binary_erosion
 from typer.testing import CliRunner
 
@@ -22,10 +27,23 @@ from registration.labels import LABELS
 from registration.poses import read_poses
 from scanner.study import Study
 from sim.phantoms.knee import KneePhantomSpec, attenuation_per_mm, rasterize_knee
+from study import batch
 from study.cli import app
 from study.demo import STAGES
 
 runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory, seed) -> Path:
+    """The quick demo, made once: the tests below check it, and the batch test takes a
+    hard-linked copy of it (study files are replaced by rename, never rewritten in place, so
+    the copy's changes leave it as it was)."""
+    out = tmp_path_factory.mktemp("demo") / "study"
+    result = runner.invoke(app, ["demo", "--out", str(out), "--quick", "--seed", str(seed)])
+    assert result.exit_code == 0, result.output
+    assert "demo finished" in result.output and f"rerun {out}/recording.rrd" in result.output
+    return out
 
 
 def test_every_stage_is_complete_and_every_file_checked(demo: Path):
@@ -139,6 +157,54 @@ def test_cbct_segment_labels_a_scan_as_the_demo_does(demo: Path, tmp_path):
     assert sorted(p.name for p in meshes.iterdir()) == sorted(
         p.name for p in (demo / "segmentation").glob("*.stl")
     )
+
+
+def test_a_worker_killed_mid_task_loses_nothing(demo, tmp_path):
+    """cbct batch on a copy of the quick demo's study whose reconstruction and segmentation
+    are to be made again: a worker SIGKILLed while it reconstructs; the task runs again
+    elsewhere. (Here, beside the demo's other tests: the suite's parallel workers take whole
+    files, and the demo is made once per worker.)"""
+    studies = [tmp_path / "studies" / "knee"]
+    shutil.copytree(demo, studies[0], copy_function=os.link)
+    copy = Study.open(studies[0])
+    for stage in ("recon", "segmentation"):
+        copy.mark(stage, "incomplete", reason="made again by the test")
+    killed: dict[str, object] = {}
+
+    def kill_a_worker_in_recon(client: Client) -> None:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and "pid" not in killed:
+            if any((p / "recon.partial").is_dir() for p in studies):
+                for address, stacks in client.call_stack().items():
+                    keys = [k for k in stacks if str(k).startswith("recon-")]
+                    if keys:
+                        pid = client.run(os.getpid, workers=[address])[address]
+                        os.kill(pid, signal.SIGKILL)
+                        killed.update(address=address, pid=pid, key=str(keys[0]))
+                        return
+            time.sleep(0.05)
+
+    options = batch.TaskOptions()
+    cluster = batch.local_cluster(2)
+    try:
+        with Client(cluster) as client:
+            killer = threading.Thread(target=kill_a_worker_in_recon, args=(client,))
+            killer.start()
+            report = batch.run(client, studies, "recon", options)
+            killer.join()
+    finally:
+        cluster.close()
+
+    assert "pid" in killed, "no recon task was seen running"
+    index = int(str(killed["key"]).rsplit("-", 1)[1])
+    assert [o.status for o in report.outcomes] == ["ran"], report.outcomes
+    rerun = next(o for o in report.outcomes if o.study == str(studies[index]))
+    assert rerun.pid != killed["pid"]  # the killed task ran again, in another process
+    for path in studies:
+        study = Study.open(path)
+        assert all(study.stage(s)["status"] == "complete" for s in ("recon", "segmentation"))
+        assert study.verify() == [] and not list(path.glob("*.partial"))
+        assert (path / "segmentation" / "labels.nii.gz").is_file()
 
 
 @pytest.mark.slow
