@@ -102,7 +102,15 @@ def pytest_addoption(parser) -> None:
     )
 
 
-REALTIME = ("scanner/", "test_bench_soak.py")
+REALTIME = (
+    "scanner/test_serial_devices.py",
+    "scanner/test_stop.py",
+    "scanner/test_stop_signals_scan.py",
+    "scanner/test_ur.py",
+    "scanner/test_ur_move.py",
+    "scanner/test_ur_scan.py",
+    "test_bench_soak.py",
+)
 """Tests (folders or files under tests/) that drive devices on real clocks and bound their
 times (time to SAFE, timeouts, pacing): marked ``realtime``; ``make test`` runs them alone,
 after the others, so that no parallel work stretches their clocks."""
