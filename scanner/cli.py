@@ -111,7 +111,7 @@ def plan(
     from scanner.session import plan_study
 
     try:
-        with new_outputs(Output(out, "--out", folder=True, empty_ok=True)) as (staged,):
+        with new_outputs(Output(out, "--out", empty_ok=True)) as (staged,):
             with views_progress() as bar:
                 result = plan_study(
                     protocol, staged, scanner, progress=views_done(bar, "inverse kinematics")
@@ -202,7 +202,7 @@ def simulate_scan(
         except ValueError as err:
             fail(str(err))
     try:
-        staging = new_outputs(Output(out, "--out", folder=True, empty_ok=True))
+        staging = new_outputs(Output(out, "--out", empty_ok=True))
         with staging as (staged,), views_progress() as bar:
             written = scan_files.simulate_to_folder(
                 protocol,

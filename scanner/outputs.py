@@ -1,9 +1,10 @@
-"""A command's new outputs: checked before the work, written under temporary names beside
-their place, renamed into place only when the work succeeds.
+"""A command's new outputs: checked before the work, written in a temporary folder beside
+their place, moved into place only when the work succeeds.
 
-A failure (an error, Ctrl-C, a killed process's next run aside) leaves nothing at the output
-paths; the temporary files of a failed run are removed. Every command that writes a new file
-or folder goes through :func:`new_outputs`.
+A failure (an error, Ctrl-C, a stop signal) leaves nothing at the output paths and removes
+what was written; a killed process leaves its temporary folder (``.partial-PID-NAME``), which
+is never taken for an output. Every console command that writes new files or folders outside
+a study goes through :func:`new_outputs`.
 """
 
 from __future__ import annotations
@@ -24,16 +25,14 @@ class Output:
     """One new output of a command.
 
     Args:
-        path: Where the output goes.
+        path: Where the output goes (a file or a folder).
         option: The option that named it, for messages (e.g. ``--out``).
-        folder: A folder (True) or a file (False).
         suffixes: The file name endings allowed (lower case, with the dot); empty: any.
         empty_ok: An existing empty folder may take the output's place.
     """
 
     path: Path
     option: str
-    folder: bool = False
     suffixes: tuple[str, ...] = ()
     empty_ok: bool = False
 

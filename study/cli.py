@@ -465,7 +465,7 @@ def segment(
         fail(f"--side {side!r}: give right or left")
     outputs = [Output(out, "--out", suffixes=VOLUME_SUFFIXES)]
     if meshes is not None:
-        outputs.append(Output(meshes, "--meshes", folder=True))
+        outputs.append(Output(meshes, "--meshes"))
     try:
         with new_outputs(*outputs) as staged:
             labels = jobs.segment_files(
@@ -509,7 +509,7 @@ def assess(
     if side not in ("right", "left"):
         fail(f"--side {side!r}: give right or left")
     try:
-        with new_outputs(Output(out, "--out", folder=True)) as (written,):
+        with new_outputs(Output(out, "--out")) as (written,):
             result = jobs.assess_files(
                 poses,
                 labels,
@@ -558,7 +558,7 @@ def export(
     elif poses is None or labels is None:
         fail("give --study, or --poses and --labels (and --volume for the Slicer scene)")
     try:
-        with new_outputs(Output(out, "--out", folder=True)) as (staged,):
+        with new_outputs(Output(out, "--out")) as (staged,):
             written = jobs.export_files(poses, labels, staged, volume)
     except (ValueError, OSError) as err:
         fail(str(err))
@@ -680,7 +680,7 @@ def register(
             settings = CONFIGS / ("registration_implants.yaml" if alone else "registration.yaml")
         chosen = load_config(settings, Settings)
         warp = None if distortion is None else Distortion.read(distortion)
-        with new_outputs(Output(out, "--out", folder=True)) as (staged,), views_progress() as bar:
+        with new_outputs(Output(out, "--out")) as (staged,), views_progress() as bar:
             results = register_files(
                 volume,
                 labels,

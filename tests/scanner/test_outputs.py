@@ -15,7 +15,7 @@ def _leftovers(folder):
 
 def test_outputs_and_their_companions_appear_when_the_work_succeeds(tmp_path):
     volume, report = tmp_path / "deep" / "er" / "volume.mhd", tmp_path / "report"
-    outputs = (Output(volume, "--out", suffixes=(".mhd",)), Output(report, "--report", True))
+    outputs = (Output(volume, "--out", suffixes=(".mhd",)), Output(report, "--report"))
     with new_outputs(*outputs) as (volume_at, report_at):
         assert volume_at.name == "volume.mhd" and report_at.name == "report"
         assert not (tmp_path / "deep").exists()  # missing folders wait for the result
@@ -33,7 +33,7 @@ def test_outputs_and_their_companions_appear_when_the_work_succeeds(tmp_path):
 @pytest.mark.parametrize("error", [ValueError("bad frame"), KeyboardInterrupt()])
 def test_a_failure_leaves_nothing(tmp_path, error):
     out = tmp_path / "out"
-    with pytest.raises(type(error)), new_outputs(Output(out, "--out", folder=True)) as (at,):
+    with pytest.raises(type(error)), new_outputs(Output(out, "--out")) as (at,):
         at.mkdir()
         (at / "poses.csv").write_text("frame,bone\n")
         raise error
@@ -48,12 +48,12 @@ def test_an_output_not_written_is_skipped(tmp_path):
 
 def test_an_empty_folder_may_take_the_output_where_allowed(tmp_path):
     (tmp_path / "out").mkdir()
-    with new_outputs(Output(tmp_path / "out", "--out", folder=True, empty_ok=True)) as (at,):
+    with new_outputs(Output(tmp_path / "out", "--out", empty_ok=True)) as (at,):
         at.mkdir()
         (at / "x").write_text("1")
     assert (tmp_path / "out" / "x").read_text() == "1"
     with pytest.raises(FileExistsError, match=r"--out .*out: the folder exists and is not empty"):
-        with new_outputs(Output(tmp_path / "out", "--out", folder=True, empty_ok=True)):
+        with new_outputs(Output(tmp_path / "out", "--out", empty_ok=True)):
             pytest.fail("the block ran")
 
 
