@@ -9,6 +9,7 @@ scanning and reconstruction.
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Iterator
 from pathlib import Path
 from typing import TypeVar
@@ -25,9 +26,19 @@ class ConfigError(ValueError):
     """A configuration file that cannot be used; the message says where and why."""
 
 
-def _describe(path: Path, err: ValidationError) -> str:
+def _describe(path: Path, err: ValidationError, model: type[BaseModel]) -> str:
+    errors = err.errors()
+    unknown = [".".join(str(p) for p in e["loc"]) for e in errors if e["type"] == "extra_forbidden"]
+    missing = [".".join(str(p) for p in e["loc"]) for e in errors if e["type"] == "missing"]
+    if len(unknown) > 2 and missing:  # another kind of file altogether
+        kind = re.sub(r"(?<!^)(?=[A-Z])", " ", model.__name__).lower()
+        shown = ", ".join(unknown[:4]) + (", ..." if len(unknown) > 4 else "")
+        return (
+            f"{path}: not a {kind} file? {len(unknown)} unknown fields ({shown}), and "
+            f"{', '.join(missing)} missing"
+        )
     lines = [f"{path}: {err.error_count()} invalid field(s)"]
-    for e in err.errors():
+    for e in errors:
         field = ".".join(str(p) for p in e["loc"]) or "(top level)"
         value = e.get("input")
         shown = "missing" if e["type"] == "missing" else f"value {value!r}"
@@ -61,7 +72,7 @@ def load_config(path: str | Path, model: type[Model]) -> Model:
     try:
         config = model.model_validate(data)
     except ValidationError as err:
-        raise ConfigError(_describe(path, err)) from None
+        raise ConfigError(_describe(path, err, model)) from None
     _check_finite(path, config.model_dump())  # e.g. the string "nan", which pydantic parses
     return config
 

@@ -198,6 +198,13 @@ def read_view(frames: Frames, geometry_path: Path | None, calibration_path: Path
     return view
 
 
+def _named_paths(what: str, given: Path | dict[str, Path] | None) -> dict[str, Path | None]:
+    """One poses file, or one per body, each under a name for messages."""
+    if isinstance(given, dict):
+        return {f"{what} of {body}": path for body, path in given.items()}
+    return {what: given}
+
+
 def frame_numbers(count: int, frame_range: tuple[int, int, int] | None) -> np.ndarray:
     """The numbers of the frames tracked out of ``count``, or ValueError naming --frames-range.
 
@@ -279,6 +286,18 @@ def register_files(
         raise ValueError("a static scan needs both its volume and its labels")
     if volume_path is None and not implants:
         raise ValueError("nothing to track: give a static scan (volume and labels) or implants")
+    given = {
+        "static volume": volume_path,
+        "labels": labels_path,
+        "geometry": geometry_path,
+        "calibration": calibration_path,
+        **{f"{spec.body} mesh": spec.mesh for spec in implants},
+        **_named_paths("true poses", truth_path),
+        **_named_paths("initial poses", initial_path),
+    }
+    for what, path in given.items():
+        if path is not None and not Path(path).exists():
+            raise FileNotFoundError(f"{path}: no such file or folder ({what})")
     if calibration_path is not None and pixel_pitch_mm is None:
         if is_mayacam(calibration_path):
             raise ValueError(

@@ -118,6 +118,10 @@ ROWS = [
      "--effective-energy-kev"),
     ("export", "--poses {F}/poses.csv --labels {F}/stack.mha --out {OUT} --volume {F}/empty",
      "export", "0 DICOM series"),
+    ("register", "--frames {F}/stack.mha --calibration {F}/missing.txt --implant "
+     "femur={F}/stack.mha --out {OUT}", "poses", "missing.txt: no such file or folder"),
+    ("simulate-scan", f"--protocol {CONFIGS}/phantoms/knee.yaml --out {{OUT}}", "scan",
+     "not a scan protocol file?"),
 ]
 # fmt: on
 
