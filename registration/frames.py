@@ -137,6 +137,14 @@ def read_frames(
     if path.suffix.lower() in (".mha", ".mhd"):
         stack = read_projections(path)
         return Frames(stack.data, stack.header, None, "line integrals")
+    if path.is_file():
+        with open(path, "rb") as fh:
+            if fh.read(132)[128:] != b"DICM":
+                raise ValueError(
+                    f"{path}: not frames this reads: give an .mha/.mhd stack, a DICOM file or "
+                    f"folder, or {'/'.join(s.lstrip('.').upper() for s in IMAGE_SUFFIXES)} "
+                    "images"
+                )
     return _read_dicom(path, pixel_pitch_mm)
 
 

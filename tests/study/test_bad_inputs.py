@@ -31,6 +31,7 @@ def files(tmp_path_factory):
     whole = (root / "stack.mha").read_bytes()
     (root / "truncated.mha").write_bytes(whole[: len(whole) - 1000])
     (root / "garbage.mha").write_text("not an image\n")
+    (root / "garbage.jpg").write_bytes(b"\xff\xd8\xff\xe0" + b"\0" * 200)
     (root / "text.nii.gz").write_text("a text file named like a volume\n")
     (root / "image.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"\0" * 64)
     (root / "poses.csv").write_text("frame,bone\n")
@@ -122,6 +123,8 @@ ROWS = [
      "femur={F}/stack.mha --out {OUT}", "poses", "missing.txt: no such file or folder"),
     ("simulate-scan", f"--protocol {CONFIGS}/phantoms/knee.yaml --out {{OUT}}", "scan",
      "not a scan protocol file?"),
+    ("register", "--frames {F}/garbage.jpg --geometry {F}/geometry.xml --volume {F}/stack.mha "
+     "--labels {F}/stack.mha --out {OUT}", "poses", "garbage.jpg: not frames this reads"),
 ]
 # fmt: on
 
