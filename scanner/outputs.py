@@ -65,13 +65,18 @@ class Output:
         if not above.is_dir():
             raise ValueError(f"{self.option} {path}: {above} is a file, not a folder")
         if not os.access(above, os.W_OK | os.X_OK):
-            raise PermissionError(f"{self.option} {path}: cannot write in {above}")
+            why = "a read-only file system" if _read_only(above) else "no permission"
+            raise PermissionError(f"{self.option} {path}: cannot write in {above} ({why})")
         return above
 
     def staging(self, above: Path) -> Path:
         """The temporary folder of this output in ``above``; the output is written inside it
         under its own name (with any companion file, e.g. an .mhd's .raw)."""
         return above / f"{TEMP_PREFIX}{os.getpid()}-{self.path.name}"
+
+
+def _read_only(folder: Path) -> bool:
+    return bool(os.statvfs(folder).f_flag & os.ST_RDONLY)
 
 
 def _remove(path: Path) -> None:
@@ -119,9 +124,15 @@ def new_outputs(*outputs: Output) -> Iterator[list[Path]]:
     stagings = [out.staging(out.check()) for out in outputs]
     kept: list[Path] = []
     try:
-        for staging in stagings:
+        for out, staging in zip(outputs, stagings, strict=True):
             _remove(staging)  # left by an earlier process with the same id
-            staging.mkdir()
+            try:
+                staging.mkdir()
+            except OSError as err:  # a read-only filesystem, whatever the permissions say
+                raise PermissionError(
+                    f"{out.option} {out.path}: cannot write in {staging.parent} "
+                    f"({err.strerror or err})"
+                ) from None
         yield [staging / out.path.name for out, staging in zip(outputs, stagings, strict=True)]
         for out, staging in zip(outputs, stagings, strict=True):
             try:
