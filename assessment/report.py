@@ -9,6 +9,8 @@ from __future__ import annotations
 import base64
 import csv
 import html
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +18,7 @@ import numpy as np
 from assessment.flags import angle_text, describe_flags
 from assessment.plots import save_all
 from assessment.results import KneeKinematics
+from registration.poses import BonePose
 
 CSV_COLUMNS = (
     "frame",
@@ -65,7 +68,90 @@ tr.flagged td { background: #fde2e1; }
 figure { margin: 0; }
 figure img { width: 100%; height: auto; border: 1px solid #ddd; }
 figcaption { font-size: 13px; color: #444; margin-top: 4px; }
+.player img.view { max-width: 640px; width: 100%; border: 1px solid #ddd; display: block; }
+.player .controls { display: flex; gap: 12px; align-items: center; margin: 8px 0;
+                    font-size: 14px; }
+.player input[type=range] { width: 320px; }
+.filmstrip { display: flex; flex-wrap: wrap; gap: 4px; }
+.filmstrip img { height: 72px; border: 3px solid transparent; cursor: pointer; }
+.filmstrip img.flagged { border-color: #c0392b; }
+.filmstrip img.current { outline: 2px solid #2c7be5; }
 """
+
+_PLAYER_JS = """
+(() => {
+  const thumbs = [...document.querySelectorAll('.filmstrip img')];
+  const view = document.getElementById('overlay-view');
+  const slider = document.getElementById('overlay-slider');
+  const caption = document.getElementById('overlay-caption');
+  const button = document.getElementById('overlay-play');
+  let current = 0, timer = null;
+  function show(k) {
+    current = k;
+    view.src = thumbs[k].src;
+    slider.value = k;
+    caption.textContent = thumbs[k].dataset.caption;
+    thumbs.forEach((t, j) => t.classList.toggle('current', j === k));
+  }
+  slider.addEventListener('input', () => show(Number(slider.value)));
+  thumbs.forEach((t, j) => t.addEventListener('click', () => show(j)));
+  button.addEventListener('click', () => {
+    if (timer === null) {
+      timer = setInterval(() => show((current + 1) % thumbs.length), 250);
+      button.textContent = 'Pause';
+    } else {
+      clearInterval(timer);
+      timer = null;
+      button.textContent = 'Play';
+    }
+  });
+  show(0);
+})();
+"""
+
+
+@dataclass(frozen=True)
+class FrameOverlay:
+    """One registered frame for the report's player.
+
+    Attributes:
+        frame: The frame's number in the sequence.
+        png: The frame with each tracked body's outline at its registered pose.
+        caption: What the registration and the assessment said of it (NCC per body, flags).
+        flagged: Whether the assessment flagged the frame.
+    """
+
+    frame: int
+    png: Path
+    caption: str
+    flagged: bool
+
+
+def frame_overlays(
+    folder: Path, kin: KneeKinematics, poses: Sequence[BonePose]
+) -> list[FrameOverlay]:
+    """The registration's overlays (``frame_NNNN.png`` in ``folder``) of the assessed frames,
+    captioned with each body's NCC and the frame's flag; frames without one are left out.
+
+    Args:
+        folder: The registration's ``overlays/``.
+        kin: The assessed motion (its frames and flags).
+        poses: The registered poses, whose similarity is each body's NCC.
+    """
+    ncc: dict[int, list[str]] = {}
+    for pose in poses:
+        ncc.setdefault(pose.frame, []).append(f"{pose.bone} {pose.similarity:.3f}")
+    out = []
+    for k, frame in enumerate(int(f) for f in kin.frames):
+        png = folder / f"frame_{frame:04d}.png"
+        if not png.is_file():
+            continue
+        flagged = bool(kin.flagged[k])
+        caption = f"frame {frame}: NCC " + ", ".join(ncc.get(frame, ["not recorded"]))
+        if flagged:
+            caption += f"; flagged (|MLD| {abs(kin.mld_mm[k]):.2f} mm > {kin.flag_mm:g} mm)"
+        out.append(FrameOverlay(frame, png, caption, flagged))
+    return out
 
 
 def _fmt(value: float, digits: int) -> str:
@@ -192,8 +278,41 @@ def _frame_table(kin: KneeKinematics) -> str:
     return _table(rows, header, flagged=kin.flagged)
 
 
+def _player(overlays: Sequence[FrameOverlay]) -> str:
+    """The registered frames: a view, play/pause, a frame slider, a caption and a filmstrip
+    (the images embedded once, as the filmstrip's; the view shows the current one)."""
+    if not overlays:
+        return ""
+    thumbs = []
+    for item in overlays:
+        data = base64.b64encode(item.png.read_bytes()).decode("ascii")
+        cls = ' class="flagged"' if item.flagged else ""
+        thumbs.append(
+            f'<img{cls} src="data:image/png;base64,{data}" alt="frame {item.frame}" '
+            f'data-caption="{html.escape(item.caption)}">'
+        )
+    return f"""<h2>Registered outlines</h2>
+<div class="player">
+<img class="view" id="overlay-view" alt="the current frame with the registered outlines">
+<div class="controls"><button id="overlay-play" type="button">Play</button>
+<input id="overlay-slider" type="range" min="0" max="{len(overlays) - 1}" step="1" value="0">
+<span id="overlay-caption"></span></div>
+<div class="filmstrip">
+{"".join(thumbs)}
+</div>
+<p class="note">Each frame with every tracked body's outline at its registered pose; frames
+the assessment flagged are framed in red. Click a frame to show it.</p>
+</div>
+<script>{_PLAYER_JS}</script>
+"""
+
+
 def _html(
-    kin: KneeKinematics, title: str, extra_rows: dict[str, str], plots: dict[str, Path]
+    kin: KneeKinematics,
+    title: str,
+    extra_rows: dict[str, str],
+    plots: dict[str, Path],
+    overlays: Sequence[FrameOverlay] = (),
 ) -> str:
     """The complete report page."""
     summary = {**summary_rows(kin), **extra_rows}
@@ -227,7 +346,7 @@ def _html(
 plateau plane (Scarvell's method). MLD = medial − lateral distance; a frame is flagged when
 |MLD| &gt; {kin.flag_mm:g} mm. DDV = variance of the MLD over the motion. Flags are cues for
 review of alignment and ligament balance, not a diagnosis.</p>
-<h2>Plots</h2>
+{_player(overlays)}<h2>Plots</h2>
 <div class="plots">
 {"".join(figures)}
 </div>
@@ -244,6 +363,7 @@ def write_report(
     *,
     title: str,
     extra_rows: dict[str, str] | None = None,
+    overlays: Sequence[FrameOverlay] = (),
 ) -> dict[str, Path]:
     """Write metrics.csv, the plot PNGs and a self-contained report.html into ``folder``.
 
@@ -253,6 +373,8 @@ def write_report(
         title: page title and heading.
         extra_rows: more summary-table rows (label -> text), e.g. subject or scan id; shown
             after the computed rows, escaped.
+        overlays: the registered frames with their outlines (:func:`frame_overlays`): a
+            player and a filmstrip in the report, flagged frames marked; none: no section.
 
     Returns:
         Paths by name: "report", "metrics" and one per plot (see ``assessment.plots.PLOTS``).
@@ -267,5 +389,5 @@ def write_report(
     plots = save_all(kin, folder)
     metrics = write_metrics_csv(kin, folder / "metrics.csv")
     with report.open("x", encoding="utf-8") as f:
-        f.write(_html(kin, title, extra_rows or {}, plots))
+        f.write(_html(kin, title, extra_rows or {}, plots, overlays))
     return {"report": report, "metrics": metrics, **plots}

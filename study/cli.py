@@ -500,14 +500,26 @@ def assess(
     volume: Annotated[
         Path | None, typer.Option(help="static scan for the 3D Slicer scene (file or DICOM)")
     ] = None,
+    overlays: Annotated[
+        Path | None,
+        typer.Option(
+            help="the registration's overlays/ to play in the report (default: the one "
+            "beside --poses, if there is one)"
+        ),
+    ] = None,
 ) -> None:
-    """Knee kinematics, TP-condyle distances and flags: report.html, metrics.csv, plots, 4D,
-    and export/ (ITK transforms, Autoscoper .tra, a 3D Slicer scene)."""
+    """Knee kinematics, TP-condyle distances and flags: report.html (with the registered
+    frames' outlines played), metrics.csv, plots, 4D, and export/ (ITK transforms, Autoscoper
+    .tra, a 3D Slicer scene)."""
     from scanner.outputs import Output, new_outputs
     from study import jobs
 
     if side not in ("right", "left"):
         fail(f"--side {side!r}: give right or left")
+    if overlays is None and (poses.parent / "overlays").is_dir():
+        overlays = poses.parent / "overlays"
+    elif overlays is not None and not overlays.is_dir():
+        fail(f"--overlays {overlays}: no such folder (a registration's overlays/)")
     try:
         with new_outputs(Output(out, "--out")) as (written,):
             result = jobs.assess_files(
@@ -518,6 +530,7 @@ def assess(
                 tka=tka,
                 plateau_offset_mm=plateau_offset_mm,
                 volume=volume,
+                overlays=overlays,
             )
     except (ValueError, OSError) as err:
         fail(str(err))

@@ -14,7 +14,7 @@ import trimesh
 
 from assessment.handoff import Motion, check_static_volume, write_handoff
 from assessment.knee import BONE_LABELS, KneeAssessment, assess_knee
-from assessment.report import write_report
+from assessment.report import frame_overlays, write_report
 from assessment.series import bone_mesh, export_series, record_series
 from calibration.calibrate import Calibration, calibrate, corrected_geometry
 from calibration.distortion import DewarpGridSpec, fit_distortion
@@ -162,16 +162,19 @@ def write_assessment(
     plateau_offset_mm: float = 0.0,
     title: str = "Knee kinematics",
     volume: Path | None = None,
+    overlays: Path | None = None,
 ) -> KneeAssessment:
     """Assess the motion and write the report, metrics.csv, plots, the 4D series (meshes
     per frame and a rerun recording) and the hand-off for other tools (``export/``: ITK
     transforms, Autoscoper .tra, a 3D Slicer scene with the static ``volume`` when given) into
-    the new folder ``out``."""
+    the new folder ``out``. ``overlays``: the registration's overlays folder, played in the
+    report."""
     result = assess_knee(labels, poses, side, tka=tka, plateau_offset_mm=plateau_offset_mm)
     new_folder(out)
     plane = "polyethylene insert" if tka else "fitted tibial plateau"
     extra = {"TP plane": f"{plane}, offset {plateau_offset_mm:g} mm along its normal"}
-    write_report(result.kinematics, out, title=title, extra_rows=extra)
+    frames = [] if overlays is None else frame_overlays(overlays, result.kinematics, poses)
+    write_report(result.kinematics, out, title=title, extra_rows=extra, overlays=frames)
     motion, meshes = bone_motion(poses, labels, "poses")
     export_series(meshes, motion.frames, motion.poses, out / "series")
     record_series(meshes, motion.frames, motion.poses, out / "series.rrd")
@@ -236,8 +239,10 @@ def assess_files(
     tka: bool = False,
     plateau_offset_mm: float = 0.0,
     volume: Path | None = None,
+    overlays: Path | None = None,
 ) -> KneeAssessment:
-    """``cbct assess``: read poses.csv and the label volume, then :func:`write_assessment`."""
+    """``cbct assess``: read poses.csv and the label volume, then :func:`write_assessment`
+    (``overlays``: the registration's overlays folder, for the report's player)."""
     if out.exists():
         raise FileExistsError(f"{out} exists: choose a new output folder")
     if volume is not None:
@@ -253,6 +258,7 @@ def assess_files(
         plateau_offset_mm=plateau_offset_mm,
         title=f"Knee kinematics: {poses_path.name}",
         volume=volume,
+        overlays=overlays,
     )
 
 

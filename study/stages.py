@@ -296,7 +296,10 @@ def assessment_stage(study: Study, title: str = "Knee kinematics", say: Say = pr
         side = study.stage("segmentation")["side"]
         folder.rmdir()  # write_assessment makes its own new folder
         volume = study.path / "recon" / "volume.nii.gz"
-        kin = write_assessment(labels, poses, folder, side, title=title, volume=volume).kinematics
+        overlays = study.path / "registration" / "overlays"
+        kin = write_assessment(
+            labels, poses, folder, side, title=title, volume=volume, overlays=overlays
+        ).kinematics
         return {
             "frames": len(kin.frames),
             "max_abs_mld_mm": float(np.abs(kin.mld_mm).max()),

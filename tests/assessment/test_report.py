@@ -17,8 +17,9 @@ import pytest
 
 from assessment.flags import FlagRun, angle_text, describe_flags, flag_runs
 from assessment.plots import DPI, PLOTS, save_all
-from assessment.report import CSV_COLUMNS, write_report
+from assessment.report import CSV_COLUMNS, frame_overlays, write_report
 from assessment.results import KneeKinematics
+from registration.poses import BonePose
 
 ROOT = Path(__file__).resolve().parents[2]
 RENDER_SCRIPT = ROOT / "scripts" / "render_report.py"
@@ -158,6 +159,34 @@ def test_report_html_self_contained(report):
     assert "<td>-0.00</td>" not in text  # no negative zeros in the per-frame table
     for name in PLOTS:
         assert report[name].read_bytes().startswith(PNG_SIGNATURE)
+
+
+def test_the_registered_frames_play_in_the_report(kin, tmp_path):
+    """Overlays of three frames (13 flagged, 20 without a PNG): a player, a slider over the
+    frames shown, a filmstrip embedding each image once, the flagged frame marked, captions
+    with every body's NCC; still no request leaves the file."""
+    overlays = tmp_path / "overlays"
+    overlays.mkdir()
+    for frame in (0, 13, 29):
+        image = np.full((8, 8, 3), frame / 29.0)
+        matplotlib.image.imsave(overlays / f"frame_{frame:04d}.png", image)
+    poses = [
+        BonePose(frame, bone, np.eye(4), similarity=0.9 + frame / 1000)
+        for frame in range(N_FRAMES)
+        for bone in ("femur", "tibia_fibula")
+    ]
+    frames = frame_overlays(overlays, kin, poses)
+    assert [f.frame for f in frames] == [0, 13, 29]
+    assert [f.flagged for f in frames] == [False, True, False]
+    assert frames[1].caption.startswith("frame 13: NCC femur 0.913, tibia_fibula 0.913; flagged")
+    page = write_report(kin, tmp_path / "r", title="t", overlays=frames)["report"]
+    text = page.read_text(encoding="utf-8")
+    start = text.index('<div class="filmstrip">')
+    strip = text[start : text.index("</div>", start)]
+    assert strip.count("data:image/png;base64,") == 3 and strip.count('class="flagged"') == 1
+    assert 'id="overlay-slider" type="range" min="0" max="2"' in text
+    assert "Play</button>" in text and "flagged (|MLD|" in text
+    assert not re.search(r"https?:", text)
 
 
 def test_metrics_csv(report, kin):

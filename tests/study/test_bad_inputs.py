@@ -124,6 +124,8 @@ ROWS = [
      "femur={F}/stack.mha --out {OUT}", "poses", "missing.txt: no such file or folder"),
     ("simulate-scan", f"--protocol {CONFIGS}/phantoms/knee.yaml --out {{OUT}}", "scan",
      "not a scan protocol file?"),
+    ("assess", "--poses {F}/poses.csv --labels {F}/stack.mha --out {OUT} --overlays "
+     "{F}/missing", "report", "--overlays"),
     ("register", "--frames {F}/garbage.jpg --geometry {F}/geometry.xml --volume {F}/stack.mha "
      "--labels {F}/stack.mha --out {OUT}", "poses", "garbage.jpg: not frames this reads"),
 ]

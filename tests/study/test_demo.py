@@ -81,10 +81,16 @@ def test_the_assessment_hands_the_motion_to_slicer_itk_and_autoscoper(demo: Path
         np.testing.assert_allclose(pose_of_itk(tfm), pose.T_world_bone, atol=1e-9)
 
 
-def test_report_has_its_plots(demo: Path):
-    html = (demo / "assessment" / "report.html").read_text(encoding="utf-8")
-    assert html.count("data:image/png;base64,") >= 4
+def test_report_has_its_plots_and_plays_every_registered_frame(demo: Path):
+    report = demo / "assessment" / "report.html"
+    html = report.read_text(encoding="utf-8")
     assert len(list((demo / "assessment").glob("*.png"))) >= 4
+    frames = len(list((demo / "registration" / "overlays").glob("frame_*.png")))
+    start = html.index('<div class="filmstrip">')
+    strip = html[start : html.index("</div>", start)]
+    assert frames == 8 and strip.count("data:image/png;base64,") == frames
+    assert html.count("data:image/png;base64,") >= frames + 4  # and the plots
+    assert report.stat().st_size <= 15e6  # the bound for the full demo's report
 
 
 def test_the_calibration_recovers_the_vibration(demo: Path, measured):
