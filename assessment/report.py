@@ -106,6 +106,7 @@ _PLAYER_JS = """
     }
   });
   show(0);
+  if (location.hash === '#play') button.click();
 })();
 """
 
@@ -301,7 +302,8 @@ def _player(overlays: Sequence[FrameOverlay]) -> str:
 {"".join(thumbs)}
 </div>
 <p class="note">Each frame with every tracked body's outline at its registered pose; frames
-the assessment flagged are framed in red. Click a frame to show it.</p>
+the assessment flagged are framed in red. Click a frame to show it; open the report with
+<code>#play</code> after its name to start playing.</p>
 </div>
 <script>{_PLAYER_JS}</script>
 """

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import base64
 import csv
+import html
 import importlib.util
 import io
 import re
@@ -187,6 +188,33 @@ def test_the_registered_frames_play_in_the_report(kin, tmp_path):
     assert 'id="overlay-slider" type="range" min="0" max="2"' in text
     assert "Play</button>" in text and "flagged (|MLD|" in text
     assert not re.search(r"https?:", text)
+    chromium = render_report.find_chromium()
+    if chromium is None:
+        pytest.skip("chromium not installed (" + render_report.INSTALL_HINT + ")")
+    shown = {}
+    for hash_ in ("", "#play"):  # opened as it is, and playing (timers on Chromium's clock)
+        dom = subprocess.run(
+            [
+                chromium,
+                "--headless",
+                "--no-sandbox",
+                "--disable-gpu",
+                "--no-first-run",
+                f"--user-data-dir={tmp_path / 'profile'}",
+                "--virtual-time-budget=1100",
+                "--dump-dom",
+                page.as_uri() + hash_,
+            ],
+            capture_output=True,
+            text=True,
+            timeout=120,
+            check=True,
+        ).stdout
+        caption = re.search(r'<span id="overlay-caption">([^<]*)</span>', dom).group(1)
+        shown[hash_] = html.unescape(caption)
+    captions = [f.caption for f in frames]
+    assert shown[""] == captions[0]  # the script ran: the first frame is shown
+    assert shown["#play"] in captions[1:]  # the player advanced on its own
 
 
 def test_metrics_csv(report, kin):
