@@ -206,7 +206,7 @@ def test_the_registered_frames_play_in_the_report(kin, tmp_path):
                 page.as_uri() + hash_,
             ],
             capture_output=True,
-            text=True,
+            encoding="utf-8",  # the page's dashes, whatever the locale
             timeout=120,
             check=True,
         ).stdout
