@@ -227,6 +227,36 @@ def angles_png(kin: KneeKinematics) -> bytes:
     return _png(fig)
 
 
+MOTION_FRAMES = 6
+"""Frames the motion-frames figure shows, evenly spaced over the sequence."""
+
+
+def motion_frames_png(kin: KneeKinematics, images: dict[int, np.ndarray]) -> bytes:
+    """The motion frames with their joint angles (the paper's figure): up to
+    :data:`MOTION_FRAMES` frames evenly spaced over those with an image, each titled with
+    its frame number and Grood–Suntay angles; flagged frames titled in red.
+
+    Args:
+        kin: per-frame knee metrics.
+        images: the frames' images by frame number (grey or RGB arrays, as read from PNG).
+    """
+    shown = [k for k, f in enumerate(int(f) for f in kin.frames) if f in images]
+    if not shown:
+        raise ValueError("no frame has an image for the motion-frames figure")
+    picks = sorted({shown[round(i)] for i in np.linspace(0, len(shown) - 1, MOTION_FRAMES)})
+    fig = _figure((2.3 * len(picks), 3.0))
+    for ax, k in zip(fig.subplots(1, len(picks), squeeze=False)[0], picks, strict=True):
+        ax.imshow(images[int(kin.frames[k])], cmap="gray")
+        ax.set_axis_off()
+        ax.set_title(
+            f"frame {int(kin.frames[k])}: flexion {kin.flexion_deg[k]:.0f}°\n"
+            f"varus {kin.varus_deg[k]:.1f}°, int. rot. {kin.internal_rotation_deg[k]:.1f}°",
+            fontsize=9,
+            color=FLAG_COLOR if kin.flagged[k] else "black",
+        )
+    return _png(fig)
+
+
 PLOTS: dict[str, Callable[[KneeKinematics], bytes]] = {
     "distance_scatter": distance_scatter_png,
     "mld": mld_png,

@@ -13,10 +13,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import matplotlib.image
 import numpy as np
 
 from assessment.flags import angle_text, describe_flags
-from assessment.plots import save_all
+from assessment.plots import motion_frames_png, save_all
 from assessment.results import KneeKinematics
 from registration.poses import BonePose
 
@@ -48,6 +49,8 @@ _CAPTIONS = {
     "trajectories": "Medial and lateral condyle points projected on the TP plane, joined per "
     "frame, light to dark over time (Feng's method).",
     "angles": "Joint angles per frame (Grood–Suntay).",
+    "motion_frames": "Motion frames with their joint angles: registered frames evenly spaced "
+    "over the motion, outlines at the registered poses; flagged frames titled in red.",
 }
 
 _CSS = """
@@ -379,7 +382,8 @@ def write_report(
             player and a filmstrip in the report, flagged frames marked; none: no section.
 
     Returns:
-        Paths by name: "report", "metrics" and one per plot (see ``assessment.plots.PLOTS``).
+        Paths by name: "report", "metrics" and one per plot (see ``assessment.plots.PLOTS``;
+        "motion_frames" too when there are overlays).
 
     Raises:
         FileExistsError: if ``folder/report.html`` exists; nothing is written then.
@@ -389,6 +393,10 @@ def write_report(
     if report.exists():
         raise FileExistsError(f"{report} exists; refusing to overwrite the report")
     plots = save_all(kin, folder)
+    if overlays:
+        images = {item.frame: matplotlib.image.imread(item.png) for item in overlays}
+        plots["motion_frames"] = folder / "motion_frames.png"
+        plots["motion_frames"].write_bytes(motion_frames_png(kin, images))
     metrics = write_metrics_csv(kin, folder / "metrics.csv")
     with report.open("x", encoding="utf-8") as f:
         f.write(_html(kin, title, extra_rows or {}, plots, overlays))

@@ -56,8 +56,12 @@ def write_overlays(
     folder: Path, frames: np.ndarray, view: View, models: dict, results: Sequence
 ) -> list[Path]:
     """One PNG per frame into the new ``folder``: ``frames[k]`` with ``results[k]``
-    (registration.boneaxis.FrameResult; named by its frame number)."""
+    (registration.boneaxis.FrameResult; named by its frame number). Where the view's rows go
+    up in the world (+z, the scanner's up), the image is flipped so that up is at its top, as
+    a reader expects; other views' images keep the frames' row order (a JointTrack frame's
+    row 0 is its top)."""
     folder.mkdir(parents=True)
+    upright = view.e_v[2] > 0.5
     written = []
     for image, result in zip(frames, results, strict=True):
         outlines = {
@@ -65,6 +69,7 @@ def write_overlays(
             for name, bone in result.bones.items()
         }
         path = folder / f"frame_{result.frame:04d}.png"
-        sitk.WriteImage(sitk.GetImageFromArray(overlay(image, outlines), True), path)
+        rgb = overlay(image, outlines)
+        sitk.WriteImage(sitk.GetImageFromArray(rgb[::-1] if upright else rgb, True), path)
         written.append(path)
     return written

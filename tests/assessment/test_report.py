@@ -180,7 +180,10 @@ def test_the_registered_frames_play_in_the_report(kin, tmp_path):
     assert [f.frame for f in frames] == [0, 13, 29]
     assert [f.flagged for f in frames] == [False, True, False]
     assert frames[1].caption.startswith("frame 13: NCC femur 0.913, tibia_fibula 0.913; flagged")
-    page = write_report(kin, tmp_path / "r", title="t", overlays=frames)["report"]
+    written = write_report(kin, tmp_path / "r", title="t", overlays=frames)
+    page = written["report"]
+    figure = matplotlib.image.imread(written["motion_frames"])  # the three frames, titled
+    assert figure.shape[1] == 3 * 230 and figure[..., :3].std() > 0.05
     text = page.read_text(encoding="utf-8")
     start = text.index('<div class="filmstrip">')
     strip = text[start : text.index("</div>", start)]
