@@ -131,8 +131,7 @@ def write_handoff(
     missing = sorted(set(motion.poses) - set(meshes))
     if missing:
         raise ValueError(f"{folder}: no bone model for the tracked bone(s) {missing}")
-    if volume is not None:
-        check_static_volume(volume)
+    kind = None if volume is None else check_static_volume(volume)
     folder.mkdir(parents=True, exist_ok=False)
     written = write_itk(folder / "itk", motion)
     (folder / "autoscoper").mkdir()
@@ -146,7 +145,7 @@ def write_handoff(
         bone: write_sequence(folder / "motion" / f"{bone}.seq.mha", bone, motion.frames, stack)
         for bone, stack in motion.poses.items()
     }
-    static = None if volume is None else _static_volume(volume, folder)
+    static = None if volume is None else _static_volume(volume, kind, folder)
     scene = write_scene(
         folder / "scene.mrml",
         None if static is None else static.name,
@@ -158,22 +157,22 @@ def write_handoff(
     return [*written, *models.values(), *sequences.values(), *extra, scene]
 
 
-def _static_volume(volume: Path, folder: Path) -> Path:
+def _static_volume(volume: Path, suffix: str, folder: Path) -> Path:
     """The static scan beside the scene: a copy of a volume file (a MetaImage header and its
     data as one .mha), a DICOM series folder written as NIfTI (its HU and LPS placement kept by
-    SimpleITK). A copy, not a link: the scene's volume cannot change the study's."""
-    suffix = check_static_volume(volume)
-    if suffix in ("dicom", ".mhd"):
-        if suffix == "dicom":
-            reader = sitk.ImageSeriesReader()
-            ids = reader.GetGDCMSeriesIDs(str(volume))
-            reader.SetFileNames(reader.GetGDCMSeriesFileNames(str(volume), ids[0]))
-            image, target = reader.Execute(), folder / "static.nii.gz"
-        else:
-            image, target = sitk.ReadImage(str(volume)), folder / "static.mha"
-        sitk.WriteImage(image, str(target), True)
-        return target
-    return Path(shutil.copyfile(volume, folder / f"static{suffix}"))
+    SimpleITK). A copy, not a link: the scene's volume cannot change the study's. ``suffix``:
+    :func:`check_static_volume`'s."""
+    if suffix == "dicom":
+        reader = sitk.ImageSeriesReader()
+        ids = reader.GetGDCMSeriesIDs(str(volume))
+        reader.SetFileNames(reader.GetGDCMSeriesFileNames(str(volume), ids[0]))
+        image, target = reader.Execute(), folder / "static.nii.gz"
+    elif suffix == ".mhd":
+        image, target = sitk.ReadImage(str(volume)), folder / "static.mha"
+    else:
+        return Path(shutil.copyfile(volume, folder / f"static{suffix}"))
+    sitk.WriteImage(image, str(target), True)
+    return target
 
 
 STATIC_SUFFIXES = (".nii.gz", ".nii", ".mha", ".mhd", ".nrrd")

@@ -11,6 +11,7 @@ import io
 from collections.abc import Callable
 from pathlib import Path
 
+import matplotlib.image
 import numpy as np
 from matplotlib import colormaps
 from matplotlib.axes import Axes
@@ -231,14 +232,14 @@ MOTION_FRAMES = 6
 """Frames the motion-frames figure shows, evenly spaced over the sequence."""
 
 
-def motion_frames_png(kin: KneeKinematics, images: dict[int, np.ndarray]) -> bytes:
+def motion_frames_png(kin: KneeKinematics, images: dict[int, Path]) -> bytes:
     """The motion frames with their joint angles (the paper's figure): up to
     :data:`MOTION_FRAMES` frames evenly spaced over those with an image, each titled with
     its frame number and Grood–Suntay angles; flagged frames titled in red.
 
     Args:
         kin: per-frame knee metrics.
-        images: the frames' images by frame number (grey or RGB arrays, as read from PNG).
+        images: the frames' images (PNG) by frame number; only those shown are read.
     """
     shown = [k for k, f in enumerate(int(f) for f in kin.frames) if f in images]
     if not shown:
@@ -246,7 +247,7 @@ def motion_frames_png(kin: KneeKinematics, images: dict[int, np.ndarray]) -> byt
     picks = sorted({shown[round(i)] for i in np.linspace(0, len(shown) - 1, MOTION_FRAMES)})
     fig = _figure((2.3 * len(picks), 3.0))
     for ax, k in zip(fig.subplots(1, len(picks), squeeze=False)[0], picks, strict=True):
-        ax.imshow(images[int(kin.frames[k])], cmap="gray")
+        ax.imshow(matplotlib.image.imread(images[int(kin.frames[k])]), cmap="gray")
         ax.set_axis_off()
         ax.set_title(
             f"frame {int(kin.frames[k])}: flexion {kin.flexion_deg[k]:.0f}°\n"

@@ -13,7 +13,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import matplotlib.image
 import numpy as np
 
 from assessment.flags import angle_text, describe_flags
@@ -394,7 +393,7 @@ def write_report(
         raise FileExistsError(f"{report} exists; refusing to overwrite the report")
     plots = save_all(kin, folder)
     if overlays:
-        images = {item.frame: matplotlib.image.imread(item.png) for item in overlays}
+        images = {item.frame: item.png for item in overlays}
         plots["motion_frames"] = folder / "motion_frames.png"
         plots["motion_frames"].write_bytes(motion_frames_png(kin, images))
     metrics = write_metrics_csv(kin, folder / "metrics.csv")

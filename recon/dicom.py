@@ -378,6 +378,15 @@ class _Corrupt(Exception):
     """Raised inside :func:`check_dicom_lengths`' walk; becomes ImageFileError."""
 
 
+def has_dicom_preamble(head: bytes) -> bool:
+    """Whether a file's first 132 bytes are a DICOM Part 10 preamble ("DICM" at byte 128).
+
+    Args:
+        head: The file's first 132 bytes (or fewer, for a shorter file).
+    """
+    return head[128:132] == b"DICM"
+
+
 def check_dicom_lengths(path: Path) -> None:
     """ImageFileError unless ``path`` is a DICOM Part 10 file ("DICM" at byte 128) whose
     elements, items and sequences all end within the file and carry valid VRs.
@@ -392,7 +401,7 @@ def check_dicom_lengths(path: Path) -> None:
             path.open("rb") as handle,
             mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ) as buf,
         ):
-            if len(buf) < 132 or buf[128:132] != b"DICM":
+            if not has_dicom_preamble(buf[:132]):
                 raise _Corrupt("not a DICOM file (no 'DICM' at byte 128)")
             pos = _walk(buf, 132, len(buf), "<", True, 0, meta=True)
             syntax = transfer_syntax(path)

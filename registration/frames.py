@@ -39,7 +39,7 @@ import numpy as np
 import SimpleITK as sitk
 from scipy.ndimage import label
 
-from recon.dicom import open_dicom, series_files
+from recon.dicom import has_dicom_preamble, open_dicom, series_files
 from recon.io import ImageFileError, read_projections
 from recon.rtk_xml import PanelHeader
 
@@ -139,7 +139,7 @@ def read_frames(
         return Frames(stack.data, stack.header, None, "line integrals")
     if path.is_file():
         with open(path, "rb") as fh:
-            if fh.read(132)[128:] != b"DICM":
+            if not has_dicom_preamble(fh.read(132)):
                 raise ValueError(
                     f"{path}: not frames this reads: give an .mha/.mhd stack, a DICOM file or "
                     f"folder, or {'/'.join(s.lstrip('.').upper() for s in IMAGE_SUFFIXES)} "

@@ -221,7 +221,6 @@ def run_session(
     else:
         if inputs is None:
             raise ValueError("a new study needs its inputs")
-        study = None
         if (Path(study_path) / MANIFEST).is_file():  # a study made by cbct plan: scan it
             study = Study.open(study_path)
             if study.manifest["config"] or set(study.manifest["stages"]) != {"plan"}:
@@ -229,7 +228,8 @@ def run_session(
                     f"{study_path} is a study already scanned (or started): continue it with "
                     "--resume, or choose a new folder"
                 )
-        study = study or Study.create(study_path, {})
+        else:
+            study = Study.create(study_path, {})
     scan_stage(
         study,
         None if resume else inputs,

@@ -457,10 +457,7 @@ def segment(
     from scanner.outputs import Output, new_outputs
     from study import jobs
 
-    units = {"hu": "HU", "1/mm": "1/mm"}
-    if unit is not None and unit.lower() not in units:
-        fail(f"--unit {unit!r}: give hu (CT numbers) or 1/mm (linear attenuation)")
-    check_range("--effective-energy-kev", effective_energy_kev, *ENERGY_RANGE_KEV, "keV")
+    static_unit = _static_unit(unit, effective_energy_kev)
     if side is not None and side not in ("right", "left"):
         fail(f"--side {side!r}: give right or left")
     outputs = [Output(out, "--out", suffixes=VOLUME_SUFFIXES)]
@@ -471,7 +468,7 @@ def segment(
             labels = jobs.segment_files(
                 volume,
                 staged[0],
-                unit=None if unit is None else units[unit.lower()],
+                unit=static_unit,
                 side=side,
                 effective_energy_kev=effective_energy_kev,
                 meshes=staged[1] if meshes is not None else None,
@@ -673,10 +670,7 @@ def register(
     from registration.track import ImplantSpec, register_files
     from scanner.outputs import Output, new_outputs
 
-    units = {"hu": "HU", "1/mm": "1/mm"}
-    if unit is not None and unit.lower() not in units:
-        fail(f"--unit {unit!r}: give hu (CT numbers) or 1/mm (linear attenuation)")
-    check_range("--effective-energy-kev", effective_energy_kev, *ENERGY_RANGE_KEV, "keV")
+    static_unit = _static_unit(unit, effective_energy_kev)
     frame_range = None if frames_range is None else _frame_range(frames_range)
     try:
         meshes = _body_files("--implant", implant)
@@ -709,7 +703,7 @@ def register(
                 distortion=warp,
                 settings=chosen,
                 progress=views_done(bar, "BoneAxis-Reg", "frames"),
-                unit=None if unit is None else units[unit.lower()],
+                unit=static_unit,
                 effective_energy_kev=effective_energy_kev,
                 frame_range=frame_range,
             )
@@ -730,6 +724,16 @@ def register(
         soft_wrap=True,
         highlight=False,
     )
+
+
+def _static_unit(unit: str | None, effective_energy_kev: float) -> str | None:
+    """A static scan's ``--unit`` (hu or 1/mm, any case) as recon.static_volume names it, its
+    ``--effective-energy-kev`` checked; the console's error otherwise."""
+    units = {"hu": "HU", "1/mm": "1/mm"}
+    if unit is not None and unit.lower() not in units:
+        fail(f"--unit {unit!r}: give hu (CT numbers) or 1/mm (linear attenuation)")
+    check_range("--effective-energy-kev", effective_energy_kev, *ENERGY_RANGE_KEV, "keV")
+    return None if unit is None else units[unit.lower()]
 
 
 def _frame_range(text: str) -> tuple[int, int, int]:
