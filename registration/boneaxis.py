@@ -60,7 +60,8 @@ from recon.geometry import View
 from recon.project import JosephProjector
 from registration.drr import BoneModel, SoftTissue, along_axis, scene
 from registration.frames import blocks
-from registration.similarity import gradient_ncc, highpass, ncc, turned_gaussian
+from registration.implants import ImplantModel
+from registration.similarity import BlurredHighpass, gradient_ncc, highpass, ncc, turned_gaussian
 
 TRACK_ORDER = ("tibia_fibula", "femur", "patella")
 """Bones are registered in this order each frame (largest and slowest first)."""
@@ -296,10 +297,16 @@ class _Objective:
         self.bone, self.carried, self.T0 = bone, carried, T0
         self._deformed_inv = None if carried is None else np.linalg.inv(carried[1])
         self.sigma, self.coarse, self.prior = sigma_px, coarse, prior
+        self._sharp = None  # a mesh's render: its blur and the high-pass in one filter
+        if isinstance(bone, ImplantModel) and carried is None:
+            blur_px = bone.blur_mm / self.view.pitch_u_mm
+            self._sharp = BlurredHighpass(self.mask.shape, blur_px, sigma_px)
         self.evaluations = 0
         self._unit_target: np.ndarray | None = None
 
     def image(self, T: np.ndarray) -> np.ndarray:
+        if self._sharp is not None:
+            return self.background + self._sharp(self.bone.render(self.view, T, blurred=False))
         moving = self.bone.render(self.view, T, self.coarse, self.spans)
         if self.carried is not None:
             moving += self.carried[0].project_moved(self.view, T @ self._deformed_inv, self.spans)

@@ -233,6 +233,7 @@ class ImplantModel:
         T_world_body: np.ndarray,
         coarse: bool = False,
         spans: np.ndarray | None = None,
+        blurred: bool = True,
     ) -> np.ndarray:
         """The share of the beam the component at ``T_world_body`` stops.
 
@@ -241,6 +242,8 @@ class ImplantModel:
             T_world_body: Pose of the component, 4x4, mesh mm to world mm.
             coarse: Ignored: a voxel model's option (a mesh is never rendered coarse).
             spans: Ignored: a voxel model's option (the whole view is rendered).
+            blurred: Blurred by :attr:`blur_mm` (False: sharp, for a caller that filters
+                it further anyway).
 
         Returns:
             The stopped share of the beam, in [0, 1], float32 (rows, cols).
@@ -248,7 +251,7 @@ class ImplantModel:
         uv, coef, A = _projected(view, self.vertices_mm, self.faces, T_world_body)
         out = np.zeros((view.rows, view.cols), dtype=np.float32)
         _render(uv, coef, A, self.supersample, self.mu_per_mm, out, numba.get_num_threads())
-        if self.blur_mm > 0.0:
+        if blurred and self.blur_mm > 0.0:
             gaussian_filter(out, self.blur_mm / view.pitch_u_mm, output=out, mode="constant")
         return out
 
@@ -374,30 +377,46 @@ def _render(uv, coef, A, s, mu, out, chunks):  # pragma: no cover
 @numba.njit(cache=True, inline="always")
 def _add_face(uv, coef, s, g0, g1, h0, h1, sums):  # pragma: no cover
     """Add one face's crossing, ``t`` where rays leave minus where they enter (``t`` = 1 on
-    the panel), to the samples it covers."""
+    the panel), to the samples it covers (edges included): row by row, over the span of
+    samples that every edge keeps on the face's side."""
     au, bu, cu = uv[0, 0], uv[1, 0], uv[2, 0]
     av, bv, cv = uv[0, 1], uv[1, 1], uv[2, 1]
     area = (bu - au) * (cv - av) - (cu - au) * (bv - av)
     if area == 0.0:
         return
-    a0 = max(g0, math.ceil((min(au, bu, cu) + 0.5) * s - 0.5))
-    a1 = min(g1, math.floor((max(au, bu, cu) + 0.5) * s - 0.5))
+    side = 1.0 if area > 0.0 else -1.0
     b0 = max(h0, math.ceil((min(av, bv, cv) + 0.5) * s - 0.5))
     b1 = min(h1, math.floor((max(av, bv, cv) + 0.5) * s - 0.5))
+    a0 = max(g0, math.ceil((min(au, bu, cu) + 0.5) * s - 0.5))
+    a1 = min(g1, math.floor((max(au, bu, cu) + 0.5) * s - 0.5))
     ku, kv, k1, num = coef[0], coef[1], coef[2], coef[3]
     for h in range(b0, b1 + 1):
         v = (h + 0.5) / s - 0.5
-        for g in range(a0, a1 + 1):
+        lo, hi = -math.inf, math.inf
+        for e in range(3):  # edge from corner e to the next: side * cross(edge, p - start) >= 0
+            pu, pv = uv[e, 0], uv[e, 1]
+            du, dv = uv[(e + 1) % 3, 0] - pu, uv[(e + 1) % 3, 1] - pv
+            slope = -side * dv  # the edge function is slope * u + offset
+            offset = side * (du * (v - pv) + dv * pu)
+            if slope > 0.0:
+                lo = max(lo, -offset / slope)
+            elif slope < 0.0:
+                hi = min(hi, -offset / slope)
+            elif offset < 0.0:
+                lo = math.inf
+        if hi < lo:
+            continue
+        first = max(a0, math.ceil((lo + 0.5) * s - 0.5))
+        last = min(a1, math.floor((hi + 0.5) * s - 0.5))
+        row = sums[h - h0]
+        base = kv * v + k1
+        for g in range(first, last + 1):
             u = (g + 0.5) / s - 0.5
-            wa = ((bu - u) * (cv - v) - (cu - u) * (bv - v)) / area
-            wb = ((cu - u) * (av - v) - (au - u) * (cv - v)) / area
-            if wa < 0.0 or wb < 0.0 or wa + wb > 1.0:
-                continue
-            denominator = ku * u + kv * v + k1
-            if denominator == 0.0:
-                continue
-            t = num / denominator
-            sums[h - h0, g - g0] += t if denominator > 0.0 else -t
+            denominator = ku * u + base
+            if denominator > 0.0:
+                row[g - g0] += num / denominator
+            elif denominator < 0.0:
+                row[g - g0] -= num / denominator
 
 
 def implant_model(
