@@ -1,18 +1,21 @@
-"""The knee-assessment plots as PNG bytes (matplotlib Agg, no pyplot global state).
+"""The knee-assessment plots (matplotlib Agg, no pyplot global state).
 
-Each ``*_png(kin)`` function draws one figure of docs/system.md's "Clinical assessment (knee)" at
-``DPI`` and returns the encoded PNG; ``PLOTS`` lists them by file stem and ``save_all`` writes
-them all to a folder.
+Each function of ``PLOTS`` draws one figure of docs/system.md's "Clinical assessment (knee)" at
+``DPI`` and returns a :class:`Plot`: the encoded PNG and where each frame's point falls on it
+(the report marks the current frame there); ``save_all`` writes them all to a folder.
 """
 
 from __future__ import annotations
 
 import io
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
+import matplotlib.colors
 import matplotlib.image
 import numpy as np
+import trimesh
 from matplotlib import colormaps
 from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -20,8 +23,11 @@ from matplotlib.collections import LineCollection
 from matplotlib.colors import Colormap, LinearSegmentedColormap, Normalize
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
+from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
 from assessment.results import KneeKinematics
+from assessment.viewer import COLORS as BODY_COLORS
+from assessment.viewer import MotionScene, decimated, view_direction
 
 DPI = 100
 """Resolution of every PNG, dots per inch."""
@@ -32,6 +38,31 @@ FIGSIZE_IN = (7.0, 5.0)
 MEDIAL_COLOR = "tab:blue"
 LATERAL_COLOR = "tab:orange"
 FLAG_COLOR = "tab:red"
+
+
+@dataclass(frozen=True)
+class Plot:
+    """A drawn plot: its PNG, and where each frame's point falls on it.
+
+    Attributes:
+        png: The encoded PNG.
+        markers: Per marked series and frame, the point's place on the image: (x from the
+            left, y from the top) as fractions of its width and height (series, frames, 2).
+    """
+
+    png: bytes
+    markers: np.ndarray
+
+
+def _drawn(fig: Figure, series: Sequence[tuple[Axes, np.ndarray, np.ndarray]]) -> Plot:
+    """``fig`` as a :class:`Plot` whose markers are each series' points (axes, x, y)."""
+    fig.canvas.draw()  # the layout is fixed here, as savefig lays it out again
+    width, height = fig.canvas.get_width_height()
+    markers = []
+    for ax, x, y in series:
+        px = ax.transData.transform(np.column_stack((x, y)).astype(np.float64))
+        markers.append(np.column_stack((px[:, 0] / width, 1.0 - px[:, 1] / height)))
+    return Plot(_png(fig), np.array(markers))
 
 
 def _time_cmap() -> Colormap:
@@ -62,7 +93,7 @@ def _frame_colorbar(fig: Figure, ax: Axes, kin: KneeKinematics, cmap: Colormap) 
     return norm
 
 
-def distance_scatter_png(kin: KneeKinematics) -> bytes:
+def distance_scatter(kin: KneeKinematics) -> Plot:
     """Medial vs lateral TP–condyle distance per frame, coloured by frame.
 
     Draws the y = x diagonal (equal gaps) and the ±``kin.flag_mm`` band around it; points
@@ -72,7 +103,7 @@ def distance_scatter_png(kin: KneeKinematics) -> bytes:
         kin: per-frame knee metrics.
 
     Returns:
-        PNG bytes.
+        The PNG, and each frame's point on it.
     """
     fig = _figure()
     ax = fig.add_subplot()
@@ -99,17 +130,17 @@ def distance_scatter_png(kin: KneeKinematics) -> bytes:
     ax.set_title("Medial vs lateral distance")
     ax.legend(loc="upper left")
     ax.grid(alpha=0.3)
-    return _png(fig)
+    return _drawn(fig, [(ax, med, lat)])
 
 
-def mld_png(kin: KneeKinematics) -> bytes:
+def mld(kin: KneeKinematics) -> Plot:
     """Medial–lateral difference (MLD) per frame with the ±``kin.flag_mm`` band shaded.
 
     Args:
         kin: per-frame knee metrics.
 
     Returns:
-        PNG bytes.
+        The PNG, and each frame's point on it.
     """
     fig = _figure()
     ax = fig.add_subplot()
@@ -136,17 +167,17 @@ def mld_png(kin: KneeKinematics) -> bytes:
     ax.set_title("Medial–lateral difference per frame")
     ax.legend(loc="upper left")
     ax.grid(alpha=0.3)
-    return _png(fig)
+    return _drawn(fig, [(ax, kin.frames, mld)])
 
 
-def extension_distance_png(kin: KneeKinematics) -> bytes:
+def extension_distance(kin: KneeKinematics) -> Plot:
     """Medial and lateral TP–condyle distances against the extension angle (= −flexion).
 
     Args:
         kin: per-frame knee metrics.
 
     Returns:
-        PNG bytes.
+        The PNG, and each frame's point on it.
     """
     fig = _figure()
     ax = fig.add_subplot()
@@ -161,10 +192,13 @@ def extension_distance_png(kin: KneeKinematics) -> bytes:
     ax.set_title("Distance vs extension angle")
     ax.legend()
     ax.grid(alpha=0.3)
-    return _png(fig)
+    return _drawn(
+        fig,
+        [(ax, extension, kin.medial_distance_mm), (ax, extension, kin.lateral_distance_mm)],
+    )
 
 
-def trajectories_png(kin: KneeKinematics) -> bytes:
+def trajectories(kin: KneeKinematics) -> Plot:
     """Trajectories of the medial and lateral projection points on the TP plane (Feng's method).
 
     Each frame's medial (circle) and lateral (square) points are joined by a line; colours go
@@ -174,7 +208,7 @@ def trajectories_png(kin: KneeKinematics) -> bytes:
         kin: per-frame knee metrics.
 
     Returns:
-        PNG bytes.
+        The PNG, and each frame's point on it.
     """
     fig = _figure((7.0, 6.0))
     ax = fig.add_subplot()
@@ -199,23 +233,24 @@ def trajectories_png(kin: KneeKinematics) -> bytes:
     ax.set_ylabel("Anterior–posterior on TP plane (mm)")
     ax.set_title("Condyle trajectories on the tibial plateau")
     ax.grid(alpha=0.3)
-    return _png(fig)
+    return _drawn(fig, [(ax, med[:, 0], med[:, 1]), (ax, lat[:, 0], lat[:, 1])])
 
 
-def angles_png(kin: KneeKinematics) -> bytes:
+def angles(kin: KneeKinematics) -> Plot:
     """Joint angles per frame: flexion, varus and internal rotation, one panel each.
 
     Args:
         kin: per-frame knee metrics.
 
     Returns:
-        PNG bytes.
+        The PNG, and each frame's point on it.
     """
     fig = _figure((7.0, 6.5))
     axes = fig.subplots(3, 1, sharex=True)
+    series = (kin.flexion_deg, kin.varus_deg, kin.internal_rotation_deg)
     for ax, values, label in zip(
         axes,
-        (kin.flexion_deg, kin.varus_deg, kin.internal_rotation_deg),
+        series,
         ("Flexion (°)", "Varus (°)", "Internal rot. (°)"),
         strict=True,
     ):
@@ -225,11 +260,20 @@ def angles_png(kin: KneeKinematics) -> bytes:
         ax.grid(alpha=0.3)
     axes[-1].set_xlabel("Frame")
     fig.suptitle(f"Joint angles ({kin.side} knee; + = flexion, varus, internal rotation)")
-    return _png(fig)
+    return _drawn(fig, [(ax, kin.frames, v) for ax, v in zip(axes, series, strict=True)])
 
 
 MOTION_FRAMES = 6
 """Frames the motion-frames figure shows, evenly spaced over the sequence."""
+
+
+def _picks(kin: KneeKinematics, images: dict[int, Path]) -> list[int]:
+    """Up to :data:`MOTION_FRAMES` indices of ``kin``'s frames, evenly spaced over those with
+    an image."""
+    shown = [k for k, f in enumerate(int(f) for f in kin.frames) if f in images]
+    if not shown:
+        raise ValueError("no frame has an image for the motion-frames figure")
+    return sorted({shown[round(i)] for i in np.linspace(0, len(shown) - 1, MOTION_FRAMES)})
 
 
 def motion_frames_png(kin: KneeKinematics, images: dict[int, Path]) -> bytes:
@@ -241,10 +285,7 @@ def motion_frames_png(kin: KneeKinematics, images: dict[int, Path]) -> bytes:
         kin: per-frame knee metrics.
         images: the frames' images (PNG) by frame number; only those shown are read.
     """
-    shown = [k for k, f in enumerate(int(f) for f in kin.frames) if f in images]
-    if not shown:
-        raise ValueError("no frame has an image for the motion-frames figure")
-    picks = sorted({shown[round(i)] for i in np.linspace(0, len(shown) - 1, MOTION_FRAMES)})
+    picks = _picks(kin, images)
     fig = _figure((2.3 * len(picks), 3.0))
     for ax, k in zip(fig.subplots(1, len(picks), squeeze=False)[0], picks, strict=True):
         ax.imshow(matplotlib.image.imread(images[int(kin.frames[k])]), cmap="gray")
@@ -258,17 +299,77 @@ def motion_frames_png(kin: KneeKinematics, images: dict[int, Path]) -> bytes:
     return _png(fig)
 
 
-PLOTS: dict[str, Callable[[KneeKinematics], bytes]] = {
-    "distance_scatter": distance_scatter_png,
-    "mld": mld_png,
-    "extension_distance": extension_distance_png,
-    "trajectories": trajectories_png,
-    "angles": angles_png,
+FIGURE_FACES = 2500
+"""Faces per mesh in the 4D rendering of :func:`frames_beside_4d_png`."""
+
+
+def frames_beside_4d_png(kin: KneeKinematics, images: dict[int, Path], scene: MotionScene) -> bytes:
+    """The registered frames beside the 4D rendering at the same instants (the paper's
+    "motion frames from 2D scanning / from 4D virtual imaging"): the frames of
+    :func:`motion_frames_png` on top; below each, the bodies at their registered poses as
+    the report's 3D view first shows them, with the TP plane and the lowest medial and
+    lateral condyle points.
+
+    Args:
+        kin: per-frame knee metrics (the scene's frames).
+        images: the frames' images (PNG) by frame number; only those shown are read.
+        scene: the motion in 3D (:func:`assessment.viewer.motion_scene`).
+    """
+    picks = _picks(kin, images)
+    meshes = {
+        name: decimated(trimesh.Trimesh(v, f, process=False), FIGURE_FACES)
+        for name, (v, f) in scene.meshes.items()
+    }
+    look = view_direction(scene.side)
+    points = np.concatenate([m.vertices for m in meshes.values()])
+    center = 0.5 * (points.min(axis=0) + points.max(axis=0))
+    half = 0.5 * float(np.max(points.max(axis=0) - points.min(axis=0)))
+    fig = _figure((2.3 * len(picks), 5.4))
+    axes = fig.subplots(2, len(picks), squeeze=False)
+    for i, k in enumerate(picks):
+        top = axes[0][i]
+        top.imshow(matplotlib.image.imread(images[int(kin.frames[k])]), cmap="gray")
+        top.set_axis_off()
+        top.set_title(f"frame {int(kin.frames[k])}", fontsize=9)
+        axes[1][i].remove()
+        ax = fig.add_subplot(2, len(picks), len(picks) + i + 1, projection="3d")
+        for name, mesh in meshes.items():
+            T = scene.poses[name][k]
+            triangles = (mesh.vertices @ T[:3, :3].T + T[:3, 3])[mesh.faces]
+            normals = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
+            normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+            shade = 0.35 + 0.65 * np.abs(normals @ look)
+            rgb = np.array(matplotlib.colors.to_rgb(BODY_COLORS.get(name, "#b0b0b0")))
+            ax.add_collection3d(
+                Poly3DCollection(triangles, facecolors=shade[:, None] * rgb, linewidths=0)
+            )
+        carrier = scene.poses[scene.tibia][k]
+        plane = scene.plane @ carrier[:3, :3].T + carrier[:3, 3]
+        ax.add_collection3d(Poly3DCollection([plane], facecolors=(0.24, 0.55, 0.25, 0.35)))
+        for j, color in enumerate((MEDIAL_COLOR, LATERAL_COLOR)):
+            ax.scatter(*scene.condyles[k, j], color=color, s=12, depthshade=False)
+        for set_limits, c in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), center, strict=True):
+            set_limits(c - half, c + half)
+        ax.set_box_aspect((1, 1, 1), zoom=1.5)
+        ax.view_init(
+            elev=float(np.degrees(np.arcsin(look[2]))),
+            azim=float(np.degrees(np.arctan2(look[1], look[0]))),
+        )
+        ax.set_axis_off()
+    return _png(fig)
+
+
+PLOTS: dict[str, Callable[[KneeKinematics], Plot]] = {
+    "distance_scatter": distance_scatter,
+    "mld": mld,
+    "extension_distance": extension_distance,
+    "trajectories": trajectories,
+    "angles": angles,
 }
 """The plots by file stem, in report order."""
 
 
-def save_all(kin: KneeKinematics, folder: Path | str) -> dict[str, Path]:
+def save_all(kin: KneeKinematics, folder: Path | str) -> dict[str, tuple[Path, Plot]]:
     """Write every plot in ``PLOTS`` to ``folder/<name>.png`` (creating the folder).
 
     Args:
@@ -276,13 +377,14 @@ def save_all(kin: KneeKinematics, folder: Path | str) -> dict[str, Path]:
         folder: output folder.
 
     Returns:
-        The written paths by plot name, in report order.
+        By plot name, in report order: the written path and the plot.
     """
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    paths: dict[str, Path] = {}
-    for name, plot in PLOTS.items():
+    written: dict[str, tuple[Path, Plot]] = {}
+    for name, draw in PLOTS.items():
+        plot = draw(kin)
         path = folder / f"{name}.png"
-        path.write_bytes(plot(kin))
-        paths[name] = path
-    return paths
+        path.write_bytes(plot.png)
+        written[name] = (path, plot)
+    return written

@@ -1,7 +1,9 @@
 """The knee-assessment report: per-frame metrics CSV, plot PNGs and a self-contained HTML page.
 
-The HTML embeds the plots as base64 data URIs and uses inline CSS only: no external resources,
-no JavaScript, so it opens offline and renders the same everywhere.
+The HTML holds everything it shows: the plots and the registered frames as base64 data URIs,
+inline CSS, and, where there is motion to play, its own scripts (a player, the 3D view with
+three.js inlined, the plots' markers). Its content security policy lets it load nothing else,
+so it opens offline and no request leaves the file.
 """
 
 from __future__ import annotations
@@ -9,6 +11,7 @@ from __future__ import annotations
 import base64
 import csv
 import html
+import json
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,8 +19,9 @@ from pathlib import Path
 import numpy as np
 
 from assessment.flags import angle_text, describe_flags
-from assessment.plots import motion_frames_png, save_all
+from assessment.plots import Plot, frames_beside_4d_png, motion_frames_png, save_all
 from assessment.results import KneeKinematics
+from assessment.viewer import MotionScene, view_html
 from registration.poses import BonePose
 
 CSV_COLUMNS = (
@@ -50,6 +54,9 @@ _CAPTIONS = {
     "angles": "Joint angles per frame (Grood–Suntay).",
     "motion_frames": "Motion frames with their joint angles: registered frames evenly spaced "
     "over the motion, outlines at the registered poses; flagged frames titled in red.",
+    "frames_beside_4d": "The registered frames (top) beside the 4D rendering at the same "
+    "instants (bottom): the bodies at their registered poses, the tibial plateau plane and "
+    "the lowest medial and lateral condyle points.",
 }
 
 _CSS = """
@@ -70,7 +77,12 @@ tr.flagged td { background: #fde2e1; }
 figure { margin: 0; }
 figure img { width: 100%; height: auto; border: 1px solid #ddd; }
 figcaption { font-size: 13px; color: #444; margin-top: 4px; }
-.player img.view { max-width: 640px; width: 100%; border: 1px solid #ddd; display: block; }
+.player .panes { display: flex; flex-wrap: wrap; gap: 12px; align-items: flex-start; }
+.player img.view { width: 520px; border: 1px solid #ddd; display: block; }
+.player canvas { width: 640px; height: 520px; border: 1px solid #ddd; cursor: grab; }
+.marked { position: relative; }
+.marker { position: absolute; width: 14px; height: 14px; margin: -9px 0 0 -9px;
+          border: 2px solid #d62728; border-radius: 50%; pointer-events: none; }
 .player .controls { display: flex; gap: 12px; align-items: center; margin: 8px 0;
                     font-size: 14px; }
 .player input[type=range] { width: 320px; }
@@ -80,26 +92,34 @@ figcaption { font-size: 13px; color: #444; margin-top: 4px; }
 .filmstrip img.current { outline: 2px solid #2c7be5; }
 """
 
-_PLAYER_JS = """
-(() => {
+_MOTION_JS = """
+window.reportMotion = (() => {
+  const el = (id) => document.getElementById(id);
+  const steps = JSON.parse(el('motion-steps').textContent);
   const thumbs = [...document.querySelectorAll('.filmstrip img')];
-  const view = document.getElementById('overlay-view');
-  const slider = document.getElementById('overlay-slider');
-  const caption = document.getElementById('overlay-caption');
-  const button = document.getElementById('overlay-play');
+  const view = el('overlay-view');
+  const slider = el('motion-slider');
+  const caption = el('motion-caption');
+  const button = el('motion-play');
+  const listeners = [];
   let current = 0, timer = null;
   function show(k) {
     current = k;
-    view.src = thumbs[k].src;
     slider.value = k;
-    caption.textContent = thumbs[k].dataset.caption;
-    thumbs.forEach((t, j) => t.classList.toggle('current', j === k));
+    caption.textContent = steps[k].caption;
+    const image = steps[k].image;
+    if (view) {
+      view.style.visibility = image >= 0 ? 'visible' : 'hidden';
+      if (image >= 0) view.src = thumbs[image].src;
+    }
+    thumbs.forEach((t, j) => t.classList.toggle('current', j === image));
+    listeners.forEach((f) => f(k));
   }
   slider.addEventListener('input', () => show(Number(slider.value)));
-  thumbs.forEach((t, j) => t.addEventListener('click', () => show(j)));
+  thumbs.forEach((t) => t.addEventListener('click', () => show(Number(t.dataset.step))));
   button.addEventListener('click', () => {
     if (timer === null) {
-      timer = setInterval(() => show((current + 1) % thumbs.length), 250);
+      timer = setInterval(() => show((current + 1) % steps.length), 250);
       button.textContent = 'Pause';
     } else {
       clearInterval(timer);
@@ -107,10 +127,29 @@ _PLAYER_JS = """
       button.textContent = 'Play';
     }
   });
-  show(0);
-  if (location.hash === '#play') button.click();
+  const asked = new URLSearchParams(location.hash.slice(1));
+  const start = steps.findIndex((s) => String(s.frame) === asked.get('frame'));
+  show(Math.max(start, 0));
+  if (asked.has('play')) button.click();
+  return {listen(f) { listeners.push(f); f(current); }};
 })();
 """
+
+_MARKERS_JS = """
+(() => {
+  const marks = [...document.querySelectorAll('.marker')].map((m) => [m, JSON.parse(m.dataset.xy)]);
+  window.reportMotion.listen((k) => marks.forEach(([m, xy]) => {
+    m.style.left = `${100 * xy[k][0]}%`;
+    m.style.top = `${100 * xy[k][1]}%`;
+  }));
+})();
+"""
+
+_CSP = (
+    "default-src 'none'; img-src data: blob:; style-src 'unsafe-inline'; "
+    "script-src 'unsafe-inline' blob:"
+)
+"""The page's content security policy: it may load nothing but what it holds."""
 
 
 @dataclass(frozen=True)
@@ -281,60 +320,109 @@ def _frame_table(kin: KneeKinematics) -> str:
     return _table(rows, header, flagged=kin.flagged)
 
 
-def _player(overlays: Sequence[FrameOverlay]) -> str:
-    """The registered frames: a view, play/pause, a frame slider, a caption and a filmstrip
-    (the images embedded once, as the filmstrip's; the view shows the current one)."""
-    if not overlays:
-        return ""
+def _steps(kin: KneeKinematics, overlays: Sequence[FrameOverlay]) -> list[dict]:
+    """Per assessed frame: its number, caption and overlay's place in the filmstrip (-1: none)."""
+    by_frame = {item.frame: (j, item) for j, item in enumerate(overlays)}
+    steps = []
+    for k, frame in enumerate(int(f) for f in kin.frames):
+        j, item = by_frame.get(frame, (-1, None))
+        if item is not None:
+            caption = item.caption
+        else:
+            caption = f"frame {frame}"
+            if kin.flagged[k]:
+                caption += f"; flagged (|MLD| {abs(kin.mld_mm[k]):.2f} mm > {kin.flag_mm:g} mm)"
+        steps.append({"frame": frame, "caption": caption, "image": j})
+    return steps
+
+
+def _motion(
+    kin: KneeKinematics, overlays: Sequence[FrameOverlay], scene: MotionScene | None
+) -> str:
+    """The motion section: the registered frame beside the 3D view, play/pause, a frame
+    slider, a caption, and a filmstrip of the overlays (each image embedded once, as the
+    filmstrip's; the view shows the current one)."""
+    steps = _steps(kin, overlays)
+    step_of = {step["frame"]: k for k, step in enumerate(steps)}
     thumbs = []
     for item in overlays:
         data = base64.b64encode(item.png.read_bytes()).decode("ascii")
         cls = ' class="flagged"' if item.flagged else ""
         thumbs.append(
             f'<img{cls} src="data:image/png;base64,{data}" alt="frame {item.frame}" '
-            f'data-caption="{html.escape(item.caption)}">'
+            f'data-step="{step_of.get(item.frame, 0)}">'
         )
-    return f"""<h2>Registered outlines</h2>
+    panes = []
+    if overlays:
+        panes.append(
+            '<img class="view" id="overlay-view" alt="the current frame with the registered '
+            'outlines">'
+        )
+    if scene is not None:
+        panes.append(view_html(scene))
+    strip = f'<div class="filmstrip">\n{"".join(thumbs)}\n</div>' if thumbs else ""
+    steps_json = json.dumps(steps).replace("</", "<\\/")  # no end of the script in its text
+    return f"""<h2>Motion</h2>
 <div class="player">
-<img class="view" id="overlay-view" alt="the current frame with the registered outlines">
-<div class="controls"><button id="overlay-play" type="button">Play</button>
-<input id="overlay-slider" type="range" min="0" max="{len(overlays) - 1}" step="1" value="0">
-<span id="overlay-caption"></span></div>
-<div class="filmstrip">
-{"".join(thumbs)}
+<div class="panes">
+{"".join(panes)}
 </div>
-<p class="note">Each frame with every tracked body's outline at its registered pose; frames
-the assessment flagged are framed in red. Click a frame to show it; open the report with
-<code>#play</code> after its name to start playing.</p>
+<div class="controls"><button id="motion-play" type="button">Play</button>
+<input id="motion-slider" type="range" min="0" max="{len(steps) - 1}" step="1" value="0">
+<span id="motion-caption"></span></div>
+{strip}
+<p class="note">Left, each frame with every tracked body's outline at its registered pose
+(frames the assessment flagged are framed in red); right, the bodies at their registered
+poses in 3D (drag to turn, scroll to zoom), the tibial plateau plane in green and the lowest
+medial (blue) and lateral (orange) condyle points. The red rings on the plots mark the frame
+shown. Click a frame of the strip to show it; open the report with <code>#play</code> after
+its name to start playing, <code>#frame=N</code> to start at frame N.</p>
 </div>
-<script>{_PLAYER_JS}</script>
+<script type="application/json" id="motion-steps">{steps_json}</script>
+<script>{_MOTION_JS}</script>
 """
+
+
+def _figure(name: str, path: Path, plot: Plot | None) -> str:
+    """One plot as a figure; with ``plot``, a ring per marked series the player moves."""
+    data = base64.b64encode(path.read_bytes()).decode("ascii")
+    rings = ""
+    if plot is not None:
+        rings = "".join(
+            f'<i class="marker" data-xy="{json.dumps(np.round(xy, 4).tolist())}"></i>'
+            for xy in plot.markers
+        )
+    return (
+        f'<figure><div class="marked"><img src="data:image/png;base64,{data}" '
+        f'alt="{html.escape(name)}">{rings}</div>'
+        f"<figcaption>{html.escape(_CAPTIONS[name])}</figcaption></figure>"
+    )
 
 
 def _html(
     kin: KneeKinematics,
     title: str,
     extra_rows: dict[str, str],
-    plots: dict[str, Path],
+    plots: dict[str, tuple[Path, Plot | None]],
     overlays: Sequence[FrameOverlay] = (),
+    scene: MotionScene | None = None,
 ) -> str:
     """The complete report page."""
     summary = {**summary_rows(kin), **extra_rows}
     sentences = describe_flags(kin)
     box_class = "flags" if kin.flagged.any() else "flags clear"
-    figures = []
-    for name, path in plots.items():
-        data = base64.b64encode(path.read_bytes()).decode("ascii")
-        caption = html.escape(_CAPTIONS[name])
-        figures.append(
-            f'<figure><img src="data:image/png;base64,{data}" alt="{html.escape(name)}">'
-            f"<figcaption>{caption}</figcaption></figure>"
-        )
+    moving = bool(overlays) or scene is not None
+    figures = [
+        _figure(name, path, plot if moving else None) for name, (path, plot) in plots.items()
+    ]
     flags = "\n".join(f"<p>{html.escape(s)}</p>" for s in sentences)
+    motion = _motion(kin, overlays, scene) if moving else ""
+    markers = f"<script>{_MARKERS_JS}</script>" if moving else ""
     return f"""<!DOCTYPE html>
 <html lang="en">
 <head>
 <meta charset="utf-8">
+<meta http-equiv="Content-Security-Policy" content="{_CSP}">
 <title>{html.escape(title)}</title>
 <style>{_CSS}</style>
 </head>
@@ -350,12 +438,13 @@ def _html(
 plateau plane (Scarvell's method). MLD = medial − lateral distance; a frame is flagged when
 |MLD| &gt; {kin.flag_mm:g} mm. DDV = variance of the MLD over the motion. Flags are cues for
 review of alignment and ligament balance, not a diagnosis.</p>
-{_player(overlays)}<h2>Plots</h2>
+{motion}<h2>Plots</h2>
 <div class="plots">
 {"".join(figures)}
 </div>
 <h2>Per-frame metrics</h2>
 {_frame_table(kin)}
+{markers}
 </body>
 </html>
 """
@@ -368,6 +457,7 @@ def write_report(
     title: str,
     extra_rows: dict[str, str] | None = None,
     overlays: Sequence[FrameOverlay] = (),
+    scene: MotionScene | None = None,
 ) -> dict[str, Path]:
     """Write metrics.csv, the plot PNGs and a self-contained report.html into ``folder``.
 
@@ -378,11 +468,14 @@ def write_report(
         extra_rows: more summary-table rows (label -> text), e.g. subject or scan id; shown
             after the computed rows, escaped.
         overlays: the registered frames with their outlines (:func:`frame_overlays`): a
-            player and a filmstrip in the report, flagged frames marked; none: no section.
+            player and a filmstrip in the report, flagged frames marked.
+        scene: the motion in 3D (:func:`assessment.viewer.motion_scene`): a 3D view the
+            player drives, and the figure of the frames beside it. With overlays or a scene,
+            a ring on each plot marks the frame shown; with neither, the page has no script.
 
     Returns:
         Paths by name: "report", "metrics" and one per plot (see ``assessment.plots.PLOTS``;
-        "motion_frames" too when there are overlays).
+        "motion_frames" too when there are overlays, and "frames_beside_4d" with a scene).
 
     Raises:
         FileExistsError: if ``folder/report.html`` exists; nothing is written then.
@@ -391,12 +484,17 @@ def write_report(
     report = folder / "report.html"
     if report.exists():
         raise FileExistsError(f"{report} exists; refusing to overwrite the report")
-    plots = save_all(kin, folder)
-    if overlays:
-        images = {item.frame: item.png for item in overlays}
-        plots["motion_frames"] = folder / "motion_frames.png"
-        plots["motion_frames"].write_bytes(motion_frames_png(kin, images))
+    plots: dict[str, tuple[Path, Plot | None]] = dict(save_all(kin, folder))
+    images = {item.frame: item.png for item in overlays}
+    if images:
+        path = folder / "motion_frames.png"
+        path.write_bytes(motion_frames_png(kin, images))
+        plots["motion_frames"] = (path, None)
+    if images and scene is not None:
+        path = folder / "frames_beside_4d.png"
+        path.write_bytes(frames_beside_4d_png(kin, images, scene))
+        plots["frames_beside_4d"] = (path, None)
     metrics = write_metrics_csv(kin, folder / "metrics.csv")
     with report.open("x", encoding="utf-8") as f:
-        f.write(_html(kin, title, extra_rows or {}, plots, overlays))
-    return {"report": report, "metrics": metrics, **plots}
+        f.write(_html(kin, title, extra_rows or {}, plots, overlays, scene))
+    return {"report": report, "metrics": metrics, **{k: p for k, (p, _) in plots.items()}}

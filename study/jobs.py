@@ -16,6 +16,7 @@ from assessment.handoff import Motion, check_static_volume, write_handoff
 from assessment.knee import BONE_LABELS, KneeAssessment, assess_knee
 from assessment.report import frame_overlays, write_report
 from assessment.series import bone_mesh, export_series, record_series
+from assessment.viewer import motion_scene
 from calibration.calibrate import Calibration, calibrate, corrected_geometry
 from calibration.distortion import DewarpGridSpec, fit_distortion
 from calibration.phantom import BBPhantomSpec
@@ -174,8 +175,11 @@ def write_assessment(
     plane = "polyethylene insert" if tka else "fitted tibial plateau"
     extra = {"TP plane": f"{plane}, offset {plateau_offset_mm:g} mm along its normal"}
     frames = [] if overlays is None else frame_overlays(overlays, result.kinematics, poses)
-    write_report(result.kinematics, out, title=title, extra_rows=extra, overlays=frames)
     motion, meshes = bone_motion(poses, labels, "poses")
+    scene = motion_scene(result, motion.frames, motion.poses, meshes)
+    write_report(
+        result.kinematics, out, title=title, extra_rows=extra, overlays=frames, scene=scene
+    )
     export_series(meshes, motion.frames, motion.poses, out / "series")
     record_series(meshes, motion.frames, motion.poses, out / "series.rrd")
     write_handoff(out / "export", motion, meshes, volume)

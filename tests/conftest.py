@@ -1,11 +1,19 @@
-"""Shared fixtures: small analytic phantoms that build in milliseconds; the machine the suite
-runs on, in its header (CPU, cores, numba's and BLAS's threads and code paths), so that a
-failure on another machine can be read."""
+"""Shared fixtures: small analytic phantoms that build in milliseconds; a page opened in
+headless Chromium; the machine the suite runs on, in its header (CPU, cores, numba's and
+BLAS's threads and code paths), so that a failure on another machine can be read."""
 
 from __future__ import annotations
 
+import base64
+import importlib.util
+import io
+import json
 import os
 import platform
+import re
+import subprocess
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -65,6 +73,91 @@ def make_ball():
 @pytest.fixture(scope="session")
 def make_cylinder():
     return cylinder
+
+
+RENDER_SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "render_report.py"
+
+
+@pytest.fixture(scope="session")
+def artefacts() -> Path:
+    """Where tests keep what a person may want to look at (screenshots), for CI to collect:
+    ``CBCT_TEST_ARTIFACTS``, else build/test-artifacts."""
+    default = Path(__file__).resolve().parents[1] / "build" / "test-artifacts"
+    folder = Path(os.environ.get("CBCT_TEST_ARTIFACTS", default))
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder
+
+
+@pytest.fixture(scope="session")
+def render_report():
+    """scripts/render_report.py imported as a module (scripts is not a package)."""
+    spec = importlib.util.spec_from_file_location("render_report", RENDER_SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@dataclass(frozen=True)
+class Browsed:
+    """A page as headless Chromium left it: its DOM, and the URLs the page itself asked the
+    network for (from Chromium's net log: not file:, data: or blob:; the browser's own
+    background requests, which have no origin, left out)."""
+
+    dom: str
+    requests: list[str]
+
+    def canvas(self) -> np.ndarray:
+        """The 3D view's canvas as the page wrote it into its DOM (``#probe``), RGB 0..1."""
+        import matplotlib.image
+
+        data = re.search(r'data-view3d="data:image/png;base64,([^"]+)"', self.dom).group(1)
+        return matplotlib.image.imread(io.BytesIO(base64.b64decode(data)))[..., :3]
+
+
+@pytest.fixture
+def browse(render_report, tmp_path) -> Callable[..., Browsed]:
+    """``browse(page, fragment="", budget_ms=4000)``: ``page#fragment`` once its scripts
+    have run for ``budget_ms`` of Chromium's virtual clock (:class:`Browsed`); skips without
+    Chromium."""
+    chromium = render_report.find_chromium()
+    if chromium is None:
+        pytest.skip("chromium not installed (" + render_report.INSTALL_HINT + ")")
+    runs = iter(range(1000))
+
+    def open_page(page: Path, fragment: str = "", budget_ms: int = 4000) -> Browsed:
+        netlog = tmp_path / f"chromium-net-{next(runs)}.json"
+        dom = subprocess.run(
+            [
+                chromium,
+                "--headless",
+                "--no-sandbox",
+                "--disable-gpu",
+                "--enable-unsafe-swiftshader",  # WebGL on the CPU
+                "--no-first-run",
+                f"--user-data-dir={tmp_path / 'chromium-profile'}",
+                f"--log-net-log={netlog}",
+                f"--virtual-time-budget={budget_ms}",
+                "--dump-dom",
+                f"{page.as_uri()}#{fragment}" if fragment else page.as_uri(),
+            ],
+            capture_output=True,
+            encoding="utf-8",  # the page's dashes, whatever the locale
+            timeout=120,
+            check=True,
+        ).stdout
+        log = json.loads(netlog.read_text(encoding="utf-8"))
+        start = log["constants"]["logEventTypes"]["URL_REQUEST_START_JOB"]
+        requests = [
+            e["params"]["url"]
+            for e in log["events"]
+            if e["type"] == start
+            and "url" in e.get("params", {})
+            and e["params"].get("initiator") != "not an origin"
+            and not e["params"]["url"].startswith(("file:", "data:", "blob:"))
+        ]
+        return Browsed(dom, requests)
+
+    return open_page
 
 
 def pytest_report_header(config) -> list[str]:

@@ -5,7 +5,6 @@ from __future__ import annotations
 import base64
 import csv
 import html
-import importlib.util
 import io
 import re
 import subprocess
@@ -22,23 +21,10 @@ from assessment.report import CSV_COLUMNS, frame_overlays, write_report
 from assessment.results import KneeKinematics
 from registration.poses import BonePose
 
-ROOT = Path(__file__).resolve().parents[2]
-RENDER_SCRIPT = ROOT / "scripts" / "render_report.py"
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 N_FRAMES = 30
 BUMP = {12: 2.2, 13: 2.4, 14: 2.6, 15: 2.5, 16: 2.3, 17: 2.1}
 """MLD (mm) in the flagged frames; everything else stays within ±0.5 mm."""
-
-
-def _render_module():
-    """scripts/render_report.py imported as a module (scripts is not a package)."""
-    spec = importlib.util.spec_from_file_location("render_report", RENDER_SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-render_report = _render_module()
 
 
 def make_kin(mld_mm: np.ndarray | None = None, flexion_deg: np.ndarray | None = None):
@@ -135,14 +121,24 @@ def test_describe_flags_none_flagged():
     assert flag_runs(clear) == []
 
 
-def test_plots_decode(kin, tmp_path):
-    paths = save_all(kin, tmp_path / "plots")
-    assert list(paths) == list(PLOTS)
-    for path in paths.values():
+def test_plots_decode_and_mark_every_frame_where_it_is_drawn(kin, tmp_path):
+    """Each plot's PNG is drawn; its markers (a point per frame and series) lie inside the
+    image, and on a dark pixel of the drawn series where the series is a line through the
+    frames' points (the MLD: 0.2 grey, its frames' points on it)."""
+    written = save_all(kin, tmp_path / "plots")
+    assert list(written) == list(PLOTS)
+    for path, plot in written.values():
         image = matplotlib.image.imread(path)
         height, width = image.shape[:2]
         assert 6 * DPI <= width <= 8 * DPI and 4 * DPI <= height <= 7 * DPI
         assert image[..., :3].std() > 0.05  # drawn, not blank
+        assert plot.markers.shape[1:] == (N_FRAMES, 2)
+        assert ((plot.markers > 0.0) & (plot.markers < 1.0)).all()
+    path, plot = written["mld"]
+    image = matplotlib.image.imread(path)[..., :3].mean(axis=2)
+    for x, y in plot.markers[0]:
+        row, col = round(y * image.shape[0]), round(x * image.shape[1])
+        assert image[row - 1 : row + 2, col - 1 : col + 2].min() < 0.4
 
 
 def test_report_html_self_contained(report):
@@ -162,10 +158,11 @@ def test_report_html_self_contained(report):
         assert report[name].read_bytes().startswith(PNG_SIGNATURE)
 
 
-def test_the_registered_frames_play_in_the_report(kin, tmp_path):
-    """Overlays of three frames (13 flagged, 20 without a PNG): a player, a slider over the
-    frames shown, a filmstrip embedding each image once, the flagged frame marked, captions
-    with every body's NCC; still no request leaves the file."""
+def test_the_registered_frames_play_in_the_report(kin, tmp_path, browse):
+    """Overlays of three frames (13 flagged, the others without a PNG): a player, a slider over
+    every frame, a filmstrip embedding each image once, the flagged frame marked, captions
+    with every body's NCC, a marker per plotted series; Chromium shows the first frame, plays,
+    and opens at the frame asked for."""
     overlays = tmp_path / "overlays"
     overlays.mkdir()
     for frame in (0, 13, 29):
@@ -188,36 +185,18 @@ def test_the_registered_frames_play_in_the_report(kin, tmp_path):
     start = text.index('<div class="filmstrip">')
     strip = text[start : text.index("</div>", start)]
     assert strip.count("data:image/png;base64,") == 3 and strip.count('class="flagged"') == 1
-    assert 'id="overlay-slider" type="range" min="0" max="2"' in text
+    assert f'id="motion-slider" type="range" min="0" max="{N_FRAMES - 1}"' in text
     assert "Play</button>" in text and "flagged (|MLD|" in text
+    assert text.count('class="marker"') == sum(len(p(kin).markers) for p in PLOTS.values())
     assert not re.search(r"https?:", text)
-    chromium = render_report.find_chromium()
-    if chromium is None:
-        pytest.skip("chromium not installed (" + render_report.INSTALL_HINT + ")")
     shown = {}
-    for hash_ in ("", "#play"):  # opened as it is, and playing (timers on Chromium's clock)
-        dom = subprocess.run(
-            [
-                chromium,
-                "--headless",
-                "--no-sandbox",
-                "--disable-gpu",
-                "--no-first-run",
-                f"--user-data-dir={tmp_path / 'profile'}",
-                "--virtual-time-budget=1100",
-                "--dump-dom",
-                page.as_uri() + hash_,
-            ],
-            capture_output=True,
-            encoding="utf-8",  # the page's dashes, whatever the locale
-            timeout=120,
-            check=True,
-        ).stdout
-        caption = re.search(r'<span id="overlay-caption">([^<]*)</span>', dom).group(1)
-        shown[hash_] = html.unescape(caption)
-    captions = [f.caption for f in frames]
-    assert shown[""] == captions[0]  # the script ran: the first frame is shown
-    assert shown["#play"] in captions[1:]  # the player advanced on its own
+    for fragment in ("", "play", "frame=13"):  # as it is, playing (Chromium's clock), at 13
+        dom = browse(page, fragment, budget_ms=1100).dom
+        caption = re.search(r'<span id="motion-caption">([^<]*)</span>', dom).group(1)
+        shown[fragment] = html.unescape(caption)
+    assert shown[""] == frames[0].caption  # the script ran: the first frame is shown
+    assert shown["play"].startswith("frame ") and shown["play"] != shown[""]  # it advanced
+    assert shown["frame=13"] == frames[1].caption
 
 
 def test_metrics_csv(report, kin):
@@ -236,18 +215,20 @@ def test_overwrite_refused(report, kin):
     assert report["report"].read_bytes() == before
 
 
-def test_render_without_chromium_says_how_to_install(report, tmp_path, monkeypatch, capsys):
+def test_render_without_chromium_says_how_to_install(
+    report, tmp_path, monkeypatch, capsys, render_report
+):
     monkeypatch.setattr(render_report, "find_chromium", lambda: None)
     assert render_report.main([str(report["report"]), str(tmp_path / "out.png")]) == 1
     assert "apt-get install -y chromium" in capsys.readouterr().err
 
 
-def test_render_with_chromium(report, tmp_path):
+def test_render_with_chromium(report, tmp_path, render_report):
     if render_report.find_chromium() is None:
         pytest.skip("chromium not installed (" + render_report.INSTALL_HINT + ")")
     out = tmp_path / "report.png"
     proc = subprocess.run(
-        [sys.executable, str(RENDER_SCRIPT), str(report["report"]), str(out)],
+        [sys.executable, render_report.__file__, str(report["report"]), str(out)],
         capture_output=True,
         text=True,
         timeout=120,

@@ -1,8 +1,9 @@
-"""``cbct demo --quick`` end to end: every stage in one study folder, checked (the ``demo``
-fixture: tests/study/conftest.py)."""
+"""``cbct demo --quick`` end to end: every stage in one study folder (the module's ``demo``
+fixture), checked."""
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import shutil
@@ -91,6 +92,23 @@ def test_report_has_its_plots_and_plays_every_registered_frame(demo: Path):
     assert frames == 8 and strip.count("data:image/png;base64,") == frames
     assert html.count("data:image/png;base64,") >= frames + 4  # and the plots
     assert report.stat().st_size <= 15e6  # the issue's bound for the full demo's report
+    assert (demo / "assessment" / "frames_beside_4d.png").is_file()
+
+
+def test_the_demo_report_plays_the_knee_in_3d_offline(demo: Path, browse):
+    """Chromium opens the report at the first frame and at the deepest flexion: no request
+    leaves the file, the 3D view draws both, and they differ (the knee flexed)."""
+    report = demo / "assessment" / "report.html"
+    with (demo / "assessment" / "metrics.csv").open(encoding="utf-8") as f:
+        rows = list(csv.DictReader(f))
+    deepest = max(rows, key=lambda r: float(r["flexion_deg"]))["frame"]
+    canvases = []
+    for frame in (rows[0]["frame"], deepest):
+        shown = browse(report, f"frame={frame}&probe")
+        assert shown.requests == []
+        canvases.append(shown.canvas())
+        assert canvases[-1].std() > 0.05
+    assert (np.abs(canvases[0] - canvases[1]).max(axis=2) > 0.1).mean() > 0.02
 
 
 def test_the_calibration_recovers_the_vibration(demo: Path, measured):
