@@ -73,9 +73,10 @@ BONES = ("femur", "tibia_fibula", "patella")
 
 
 def registration_table(result: dict) -> str:
-    """One row per regime x method (matched first, methods in the order run)."""
+    """One row per regime x method (matched first, methods in the order run); the implant
+    regimes (real_tka, tka: docs/implants.md) have their own tables there."""
     entries = sorted(
-        result["regimes"],
+        (e for e in result["regimes"] if "method" in e),
         key=lambda e: REGIMES.index(e["regime"]) if e["regime"] in REGIMES else len(REGIMES),
     )
     rows = []

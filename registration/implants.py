@@ -83,13 +83,17 @@ class MeshReport:
     repairs: tuple[str, ...] = ()
 
 
-def read_mesh(path: str | Path, unit: str = "mm") -> tuple[trimesh.Trimesh, MeshReport]:
+def read_mesh(
+    path: str | Path, unit: str = "mm", size_mm: tuple[float, float] = COMPONENT_SIZE_MM
+) -> tuple[trimesh.Trimesh, MeshReport]:
     """A component's closed mesh in mm, and what was found; raises ValueError naming the file
     and the problem (unknown unit, an implausible size, holes that cannot be closed).
 
     Args:
         path: an STL, OBJ or PLY file.
         unit: the mesh's unit (:data:`MESH_UNITS_MM`).
+        size_mm: the plausible range of its largest extent, mm (a knee implant's by
+            default; a whole bone is longer).
     """
     path = Path(path)
     if unit not in MESH_UNITS_MM:
@@ -104,13 +108,21 @@ def read_mesh(path: str | Path, unit: str = "mm") -> tuple[trimesh.Trimesh, Mesh
         raise ValueError(f"{path}: holds no surface mesh")
     mesh.apply_scale(MESH_UNITS_MM[unit])
     size = tuple(float(v) for v in mesh.extents)
-    low, high = COMPONENT_SIZE_MM
+    low, high = size_mm
     if not low <= max(size) <= high:
+        what = "a knee implant's" if size_mm == COMPONENT_SIZE_MM else "the plausible"
         raise ValueError(
-            f"{path}: in {unit} the component is {max(size):.4g} mm across, outside a knee "
-            f"implant's {low:g}-{high:g} mm: give its unit (--implant-unit)"
+            f"{path}: in {unit} the component is {max(size):.4g} mm across, outside {what} "
+            f"{low:g}-{high:g} mm: give its unit (--implant-unit)"
         )
     repairs = []
+    if not mesh.is_watertight:  # zero-volume slivers stuck to closed shells: drop them
+        pieces = mesh.split(only_watertight=False)
+        with np.errstate(invalid="ignore", divide="ignore"):  # a sliver's centre of mass
+            kept = [p for p in pieces if abs(p.volume) > 1e-6 * abs(mesh.volume)]
+        if len(kept) < len(pieces) and all(p.is_watertight for p in kept):
+            mesh = trimesh.util.concatenate(kept)
+            repairs.append(f"removed {len(pieces) - len(kept)} piece(s) of no volume")
     if not mesh.is_watertight:
         holes = len(mesh.faces)
         trimesh.repair.fill_holes(mesh)

@@ -487,8 +487,23 @@ def segment(
 @app.command()
 def assess(
     poses: Annotated[Path, typer.Option(help="poses.csv (frame, bone, 4x4, ...)")],
-    labels: Annotated[Path, typer.Option(help="label volume of the static scan")],
     out: Annotated[Path, typer.Option(help="new output folder")],
+    labels: Annotated[
+        Path | None, typer.Option(help="label volume of the static scan (bones tracked)")
+    ] = None,
+    implant: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="BODY=MESH of a tracked component (femur=FEMORAL, tibia=TRAY), in the "
+            "frame its poses move, anatomical axes (x anterior, y up, z right): a knee "
+            "replacement assessed from its components; repeatable"
+        ),
+    ] = None,
+    insert: Annotated[
+        Path | None,
+        typer.Option(help="the polyethylene insert's mesh in the tray's frame: the TP plane"),
+    ] = None,
+    implant_unit: Annotated[str, typer.Option(help="the meshes' unit: mm, cm, m or in")] = "mm",
     side: Annotated[str, typer.Option(help="right or left knee")] = "right",
     tka: Annotated[bool, typer.Option(help="fit the TP plane to the polyethylene insert")] = False,
     plateau_offset_mm: Annotated[
@@ -505,14 +520,23 @@ def assess(
         ),
     ] = None,
 ) -> None:
-    """Knee kinematics, TP-condyle distances and flags: report.html (with the registered
-    frames' outlines played), metrics.csv, plots, 4D, and export/ (ITK transforms, Autoscoper
-    .tra, a 3D Slicer scene)."""
+    """Knee kinematics, TP-condyle distances and flags: report.html (the registered frames
+    and the motion in 3D played), metrics.csv, plots, 4D, and export/ (ITK transforms,
+    Autoscoper .tra, a 3D Slicer scene); of bones (--labels) or of a knee replacement's
+    components (--implant, --insert)."""
     from scanner.outputs import Output, new_outputs
     from study import jobs
 
     if side not in ("right", "left"):
         fail(f"--side {side!r}: give right or left")
+    if (labels is None) == (not implant):
+        fail("give --labels (bones tracked from a static scan) or --implant (components)")
+    if insert is not None and not implant:
+        fail("--insert needs the components (--implant femur=... --implant tibia=...)")
+    try:
+        implants = _body_files("--implant", implant)
+    except ValueError as err:
+        fail(str(err))
     if overlays is None and (poses.parent / "overlays").is_dir():
         overlays = poses.parent / "overlays"
     elif overlays is not None and not overlays.is_dir():
@@ -528,6 +552,9 @@ def assess(
                 plateau_offset_mm=plateau_offset_mm,
                 volume=volume,
                 overlays=overlays,
+                implants=implants,
+                insert=insert,
+                implant_unit=implant_unit,
             )
     except (ValueError, OSError) as err:
         fail(str(err))

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from assessment.components import assess_components
 from assessment.handoff import Motion, check_static_volume, write_handoff
 from assessment.knee import BONE_LABELS, KneeAssessment, assess_knee
 from assessment.report import frame_overlays, write_report
@@ -31,6 +32,7 @@ from recon.rtk_xml import read_rtk_geometry
 from recon.static_volume import StaticUnit, read_attenuation
 from recon.volume import Volume, VolumeGrid
 from registration.frames import read_frames
+from registration.implants import read_mesh
 from registration.poses import BonePose, read_poses
 from registration.segment import bone_surfaces, segment_bones
 from registration.track import fluoroscopy_view
@@ -171,11 +173,55 @@ def write_assessment(
     the new folder ``out``. ``overlays``: the registration's overlays folder, played in the
     report."""
     result = assess_knee(labels, poses, side, tka=tka, plateau_offset_mm=plateau_offset_mm)
-    new_folder(out)
+    motion, meshes = bone_motion(poses, labels, "poses")
     plane = "polyethylene insert" if tka else "fitted tibial plateau"
     extra = {"TP plane": f"{plane}, offset {plateau_offset_mm:g} mm along its normal"}
+    _write_outputs(result, poses, motion, meshes, out, title, extra, volume, overlays)
+    return result
+
+
+def write_component_assessment(
+    components: dict[str, trimesh.Trimesh],
+    plateau: trimesh.Trimesh,
+    poses: list[BonePose],
+    out: Path,
+    side: str,
+    *,
+    plateau_offset_mm: float = 0.0,
+    title: str = "Knee replacement kinematics",
+    overlays: Path | None = None,
+) -> KneeAssessment:
+    """:func:`write_assessment` of a knee replacement from its tracked components' poses:
+    ``components`` by body ("femur": the femoral component, "tibia_fibula" or "tibia": the
+    tray), ``plateau`` the insert (or the tray) in the tray's frame
+    (assessment.components)."""
+    result = assess_components(
+        components["femur"], plateau, poses, side, plateau_offset_mm=plateau_offset_mm
+    )
+    tracked = [p for p in poses if p.bone in components]
+    motion = Motion.of(tracked)
+    missing = sorted(set(components) - set(motion.poses))
+    if missing:
+        raise ValueError(f"poses: no poses of the component(s) {missing}")
+    extra = {"TP plane": f"the insert's top, offset {plateau_offset_mm:g} mm along its normal"}
+    _write_outputs(result, tracked, motion, components, out, title, extra, None, overlays)
+    return result
+
+
+def _write_outputs(
+    result: KneeAssessment,
+    poses: list[BonePose],
+    motion: Motion,
+    meshes: dict[str, trimesh.Trimesh],
+    out: Path,
+    title: str,
+    extra: dict[str, str],
+    volume: Path | None,
+    overlays: Path | None,
+) -> None:
+    """The assessment's files in the new folder ``out`` (see :func:`write_assessment`)."""
+    new_folder(out)
     frames = [] if overlays is None else frame_overlays(overlays, result.kinematics, poses)
-    motion, meshes = bone_motion(poses, labels, "poses")
     scene = motion_scene(result, motion.frames, motion.poses, meshes)
     write_report(
         result.kinematics, out, title=title, extra_rows=extra, overlays=frames, scene=scene
@@ -183,7 +229,6 @@ def write_assessment(
     export_series(meshes, motion.frames, motion.poses, out / "series")
     record_series(meshes, motion.frames, motion.poses, out / "series.rrd")
     write_handoff(out / "export", motion, meshes, volume)
-    return result
 
 
 def bone_motion(
@@ -236,7 +281,7 @@ def segment_files(
 
 def assess_files(
     poses_path: Path,
-    labels_path: Path,
+    labels_path: Path | None,
     out: Path,
     side: str,
     *,
@@ -244,14 +289,41 @@ def assess_files(
     plateau_offset_mm: float = 0.0,
     volume: Path | None = None,
     overlays: Path | None = None,
+    implants: dict[str, Path] | None = None,
+    insert: Path | None = None,
+    implant_unit: str = "mm",
 ) -> KneeAssessment:
     """``cbct assess``: read poses.csv and the label volume, then :func:`write_assessment`
-    (``overlays``: the registration's overlays folder, for the report's player)."""
+    (``overlays``: the registration's overlays folder, for the report's player); or, with
+    ``implants`` (body -> mesh: the femoral component as "femur", the tray as "tibia_fibula"
+    or "tibia") and ``insert`` (in the tray's frame; else the tray's top is the plateau),
+    :func:`write_component_assessment`."""
     if out.exists():
         raise FileExistsError(f"{out} exists: choose a new output folder")
     if volume is not None:
         check_static_volume(volume)
     poses = read_poses(poses_path)
+    if implants:
+        meshes = {body: read_mesh(path, implant_unit)[0] for body, path in implants.items()}
+        tibia = next((b for b in ("tibia_fibula", "tibia") if b in meshes), None)
+        if "femur" not in meshes or tibia is None:
+            raise ValueError(
+                f"--implant: {sorted(meshes)}; give femur=FEMORAL_COMPONENT and "
+                "tibia=TRAY (the bodies the registration tracked them as)"
+            )
+        plateau = meshes[tibia] if insert is None else read_mesh(insert, implant_unit)[0]
+        return write_component_assessment(
+            meshes,
+            plateau,
+            poses,
+            out,
+            side,
+            plateau_offset_mm=plateau_offset_mm,
+            title=f"Knee replacement kinematics: {poses_path.name}",
+            overlays=overlays,
+        )
+    if labels_path is None:
+        raise ValueError("give --labels (the static scan's labels), or the components' meshes")
     labels = read_volume(labels_path, unit="label")
     return write_assessment(
         labels,

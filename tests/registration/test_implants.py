@@ -35,6 +35,8 @@ def test_a_sphere_voxelises_to_its_volume_and_centre():
 
 
 def test_a_mesh_in_another_unit_or_open_beyond_repair_is_refused(tmp_path):
+    """Units checked; one missing face closed, a fin of no volume removed, a round hole
+    refused."""
     box = trimesh.creation.box(extents=(0.06, 0.05, 0.07))  # metres, as OpenSim's meshes
     box.export(tmp_path / "box.stl")
     with pytest.raises(ValueError, match=r"0.07 mm across.*give its unit"):
@@ -48,6 +50,19 @@ def test_a_mesh_in_another_unit_or_open_beyond_repair_is_refused(tmp_path):
     nicked.export(tmp_path / "nicked.stl")
     mesh, report = read_mesh(tmp_path / "nicked.stl")
     assert mesh.is_watertight and report.repairs == ("closed 1 missing faces",)
+    box = trimesh.creation.box(extents=(60.0, 50.0, 70.0))
+    a, b = box.edges_unique[0]  # a flat fin of no volume on one of its edges (CAD exports)
+    tip = len(box.vertices)
+    fin = trimesh.Trimesh(
+        np.vstack((box.vertices, 0.5 * (box.vertices[a] + box.vertices[b]) + 9.0)),
+        np.vstack((box.faces, [[a, b, tip], [b, a, tip]])),
+        process=False,
+    )
+    assert not fin.is_watertight
+    fin.export(tmp_path / "fin.stl")
+    mesh, report = read_mesh(tmp_path / "fin.stl")
+    assert mesh.is_watertight and report.repairs == ("removed 1 piece(s) of no volume",)
+    assert mesh.volume == pytest.approx(60.0 * 50.0 * 70.0)
     dome = trimesh.creation.icosphere(subdivisions=3, radius=30.0)
     dome.update_faces(dome.triangles_center[:, 2] > -5.0)  # a cap cut off: a round hole
     dome.export(tmp_path / "dome.stl")

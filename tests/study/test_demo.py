@@ -95,11 +95,11 @@ def test_report_has_its_plots_and_plays_every_registered_frame(demo: Path):
     assert (demo / "assessment" / "frames_beside_4d.png").is_file()
 
 
-def test_the_demo_report_plays_the_knee_in_3d_offline(demo: Path, browse):
-    """Chromium opens the report at the first frame and at the deepest flexion: no request
-    leaves the file, the 3D view draws both, and they differ (the knee flexed)."""
-    report = demo / "assessment" / "report.html"
-    with (demo / "assessment" / "metrics.csv").open(encoding="utf-8") as f:
+def _plays_in_3d_offline(study: Path, browse) -> None:
+    """Chromium opens the study's report at the first frame and at the deepest flexion: no
+    request leaves the file, the 3D view draws both, and they differ (the knee flexed)."""
+    report = study / "assessment" / "report.html"
+    with (study / "assessment" / "metrics.csv").open(encoding="utf-8") as f:
         rows = list(csv.DictReader(f))
     deepest = max(rows, key=lambda r: float(r["flexion_deg"]))["frame"]
     canvases = []
@@ -109,6 +109,22 @@ def test_the_demo_report_plays_the_knee_in_3d_offline(demo: Path, browse):
         canvases.append(shown.canvas())
         assert canvases[-1].std() > 0.05
     assert (np.abs(canvases[0] - canvases[1]).max(axis=2) > 0.1).mean() > 0.02
+
+
+def test_the_demo_report_plays_the_knee_in_3d_offline(demo: Path, browse):
+    _plays_in_3d_offline(demo, browse)
+
+
+@pytest.mark.slow
+def test_the_full_demo_report_plays_every_frame_in_3d_offline(full_demo: Path, browse):
+    """The full demo's report: an overlay for each of its 30 frames, within 15 MB, played in
+    3D offline."""
+    report = full_demo / "assessment" / "report.html"
+    text = report.read_text(encoding="utf-8")
+    start = text.index('<div class="filmstrip">')
+    assert text[start : text.index("</div>", start)].count("data:image/png;base64,") == 30
+    assert report.stat().st_size <= 15e6
+    _plays_in_3d_offline(full_demo, browse)
 
 
 def test_the_calibration_recovers_the_vibration(demo: Path, measured):
