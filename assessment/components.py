@@ -85,7 +85,7 @@ def plateau_anatomy(plateau: trimesh.Trimesh, offset_mm: float = 0.0) -> TibiaAn
         )
     areas = np.asarray(plateau.area_faces)[top]
     center = np.average(centers[top], axis=0, weights=areas)
-    _, _, vt = np.linalg.svd((centers[top] - center) * np.sqrt(areas)[:, None])
+    _, _, vt = np.linalg.svd((centers[top] - center) * np.sqrt(areas)[:, None], full_matrices=False)
     normal = vt[2] * np.sign(vt[2][1])
     return TibiaAnatomy(
         plateau_center_mm=center + offset_mm * normal,
