@@ -278,10 +278,15 @@ def tka(sequences: int, frames: int, panel: int) -> dict:
     detector = DetectorSpec(rows=panel, cols=panel, pixel_pitch_mm=307.2 / panel)
     settings = load_config(ROOT / "configs" / "registration_implants.yaml", Settings)
     models = {
-        body: implant_model(body, knee.meshes[part], knee.materials[part])
-        for body, part in TKA_TRACKED.items()
+        body: implant_model(
+            body,
+            knee.meshes[part],
+            knee.materials[part],
+            attached=[(knee.meshes[p], knee.materials[p]) for p in attached],
+        )
+        for body, (part, attached) in TKA_TRACKED.items()
     }
-    truth = {body: part_poses(knee, motion, part) for body, part in TKA_TRACKED.items()}
+    truth = {body: part_poses(knee, motion, part) for body, (part, _) in TKA_TRACKED.items()}
     errors, first, warm, render_s = [], [], [], []
     for seq in range(sequences):
         started = time.perf_counter()

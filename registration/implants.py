@@ -14,6 +14,7 @@ holes are missing (said in :attr:`MeshReport.repairs`) and refused otherwise.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -210,14 +211,15 @@ class ImplantModel:
     the share of the beam the component stops, ``1 - exp(-mu L)``, averaged over
     ``supersample`` x ``supersample`` rays: a metal component's shadow, flat inside as a real
     frame shows it (the detector chain saturates long before the metal's thickness varies),
-    its edge placed to a fraction of a pixel.
+    its edge placed to a fraction of a pixel. A component with parts attached (a tray and its
+    insert) sums each part's ``mu L``: its faces carry their part's attenuation.
 
     Attributes:
         name: the body's name (registration.boneaxis.TRACK_ORDER: the femoral component
             carries the femur's, the tibial tray the tibia's).
         vertices_mm: the mesh's vertices in its own frame (V, 3), mm.
         faces: the mesh's triangles (T, 3), outward by their winding.
-        mu_per_mm: the material's attenuation, 1/mm.
+        face_mu: each face's attenuation, its part's material's, 1/mm (T,).
         points_mm: points filling the component (the centres of its 1 mm voxels at least half
             inside), in its frame: the TRE's and the principal axes' (N, 3).
         centroid_mm: their mean (rotations of the 6-DoF parameterisation are about it).
@@ -229,7 +231,7 @@ class ImplantModel:
     name: str
     vertices_mm: np.ndarray
     faces: np.ndarray
-    mu_per_mm: float
+    face_mu: np.ndarray
     points_mm: np.ndarray
     centroid_mm: np.ndarray
     supersample: int = 3
@@ -262,7 +264,7 @@ class ImplantModel:
         """
         uv, coef, A = _projected(view, self.vertices_mm, self.faces, T_world_body)
         out = np.zeros((view.rows, view.cols), dtype=np.float32)
-        _render(uv, coef, A, self.supersample, self.mu_per_mm, out, numba.get_num_threads())
+        _render(uv, coef, self.face_mu, A, self.supersample, True, out, numba.get_num_threads())
         if blurred and self.blur_mm > 0.0:
             gaussian_filter(out, self.blur_mm / view.pitch_u_mm, output=out, mode="constant")
         return out
@@ -287,7 +289,7 @@ def ray_lengths(
     float32 (rows, cols): its silhouette is where it is > 0."""
     uv, coef, A = _projected(view, vertices_mm, faces, T_world_body)
     out = np.zeros((view.rows, view.cols), dtype=np.float32)
-    _render(uv, coef, A, 1, 0.0, out, numba.get_num_threads())
+    _render(uv, coef, np.ones(len(faces)), A, 1, False, out, numba.get_num_threads())
     return out
 
 
@@ -346,12 +348,14 @@ def _project_faces(vertices, faces, M, P, A, source):  # pragma: no cover
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
-def _render(uv, coef, A, s, mu, out, chunks):  # pragma: no cover
-    """Into ``out`` (rows, cols): with ``mu`` > 0, the mean over each pixel's ``s x s`` rays of
-    ``1 - exp(-mu L)``; with ``mu`` = 0, ``L`` of its centre's ray (``s`` = 1). ``L``, a ray's
-    length through the closed mesh: over the faces it crosses, ``|d| t`` where it leaves minus
-    where it enters. Only the samples within the mesh's projected bounds are visited; the
-    faces are shared out in ``chunks`` (one a thread), each summing into its own buffer."""
+def _render(uv, coef, weight, A, s, attenuate, out, chunks):  # pragma: no cover
+    """Into ``out`` (rows, cols): with ``attenuate``, the mean over each pixel's ``s x s`` rays
+    of ``1 - exp(-a)``; else ``a`` of its centre's ray (``s`` = 1). ``a``, a ray's weighted
+    length through the closed mesh: over the faces it crosses, ``weight[f] |d| t`` where it
+    leaves minus where it enters (the attenuation where the weights are each part's, the
+    length where they are 1). Only the samples within the mesh's projected bounds are
+    visited; the faces are shared out in ``chunks`` (one a thread), each summing into its own
+    buffer."""
     rows, cols = out.shape
     g0 = max(0, math.ceil((uv[:, :, 0].min() + 0.5) * s - 0.5))
     g1 = min(cols * s - 1, math.floor((uv[:, :, 0].max() + 0.5) * s - 0.5))
@@ -363,7 +367,7 @@ def _render(uv, coef, A, s, mu, out, chunks):  # pragma: no cover
     per = (uv.shape[0] + chunks - 1) // chunks
     for c in numba.prange(chunks):
         for f in range(c * per, min((c + 1) * per, uv.shape[0])):
-            _add_face(uv[f], coef[f], s, g0, g1, h0, h1, sums[c])
+            _add_face(uv[f], coef[f], weight[f], s, g0, g1, h0, h1, sums[c])
     share = 1.0 / (s * s)
     for r in numba.prange(h1 // s - h0 // s + 1):
         row = h0 // s + r
@@ -380,17 +384,20 @@ def _render(uv, coef, A, s, mu, out, chunks):  # pragma: no cover
                 dy = A[1, 0] * u + A[1, 1] * v + A[1, 2]
                 dz = A[2, 0] * u + A[2, 1] * v + A[2, 2]
                 length = max(total, 0.0) * math.sqrt(dx * dx + dy * dy + dz * dz)
-                if mu > 0.0:
-                    out[row, g // s] += share * (1.0 - math.exp(-mu * length))
+                if attenuate:
+                    out[row, g // s] += share * (1.0 - math.exp(-length))
                 else:
                     out[row, g // s] += length
 
 
 @numba.njit(cache=True, inline="always")
-def _add_face(uv, coef, s, g0, g1, h0, h1, sums):  # pragma: no cover
-    """Add one face's crossing, ``t`` where rays leave minus where they enter (``t`` = 1 on
-    the panel), to the samples it covers (edges included): row by row, over the span of
-    samples that every edge keeps on the face's side."""
+def _add_face(uv, coef, weight, s, g0, g1, h0, h1, sums):  # pragma: no cover
+    """Add one face's crossing times ``weight``, ``t`` where rays leave minus where they enter
+    (``t`` = 1 on the panel), to the samples it covers: row by row, over the span of samples
+    that every edge keeps on the face's side. A sample on an edge shared by two faces counts
+    for exactly one of them (a ray along a mesh edge crosses the surface once): where an edge
+    crosses a row is computed from its endpoints in one order whichever face asks, the face
+    to its right keeps the sample, and a row along an edge belongs to the face below it."""
     au, bu, cu = uv[0, 0], uv[1, 0], uv[2, 0]
     av, bv, cv = uv[0, 1], uv[1, 1], uv[2, 1]
     area = (bu - au) * (cv - av) - (cu - au) * (bv - av)
@@ -401,25 +408,36 @@ def _add_face(uv, coef, s, g0, g1, h0, h1, sums):  # pragma: no cover
     b1 = min(h1, math.floor((max(av, bv, cv) + 0.5) * s - 0.5))
     a0 = max(g0, math.ceil((min(au, bu, cu) + 0.5) * s - 0.5))
     a1 = min(g1, math.floor((max(au, bu, cu) + 0.5) * s - 0.5))
-    ku, kv, k1, num = coef[0], coef[1], coef[2], coef[3]
+    ku, kv, k1, num = coef[0], coef[1], coef[2], weight * coef[3]
     for h in range(b0, b1 + 1):
         v = (h + 0.5) / s - 0.5
-        lo, hi = -math.inf, math.inf
-        for e in range(3):  # edge from corner e to the next: side * cross(edge, p - start) >= 0
+        lo, hi, empty = -math.inf, math.inf, False  # samples lo <= u < hi
+        for e in range(3):  # edge from corner e to the next; inside: side * cross(edge, p) > 0
             pu, pv = uv[e, 0], uv[e, 1]
-            du, dv = uv[(e + 1) % 3, 0] - pu, uv[(e + 1) % 3, 1] - pv
-            slope = -side * dv  # the edge function is slope * u + offset
-            offset = side * (du * (v - pv) + dv * pu)
-            if slope > 0.0:
-                lo = max(lo, -offset / slope)
-            elif slope < 0.0:
-                hi = min(hi, -offset / slope)
-            elif offset < 0.0:
-                lo = math.inf
-        if hi < lo:
+            qu, qv = uv[(e + 1) % 3, 0], uv[(e + 1) % 3, 1]
+            if pv == qv:  # along the rows: inside below it (or above), the row itself below
+                below = side * (qu - pu) > 0.0
+                if (v < pv) if below else (v > pv):
+                    empty = True
+                elif v == pv and not below:
+                    empty = True
+                continue
+            if (pv, pu) < (qv, qu):  # the same crossing from both faces of the edge
+                cross = pu + (v - pv) * ((qu - pu) / (qv - pv))
+            else:
+                cross = qu + (v - qv) * ((pu - qu) / (pv - qv))
+            if -side * (qv - pv) > 0.0:  # inside to the crossing's right
+                lo = max(lo, cross)
+            else:
+                hi = min(hi, cross)
+        if empty or hi <= lo:
             continue
-        first = max(a0, math.ceil((lo + 0.5) * s - 0.5))
-        last = min(a1, math.floor((hi + 0.5) * s - 0.5))
+        first = max(a0, math.ceil((lo + 0.5) * s - 0.5) - 1)
+        while first <= a1 and (first + 0.5) / s - 0.5 < lo:
+            first += 1
+        last = min(a1, math.floor((hi + 0.5) * s - 0.5) + 1)
+        while last >= first and (last + 0.5) / s - 0.5 >= hi:
+            last -= 1
         row = sums[h - h0]
         base = kv * v + k1
         for g in range(first, last + 1):
@@ -437,6 +455,7 @@ def implant_model(
     material: Material,
     energy_kev: float = 70.0,
     supersample: int = 3,
+    attached: Sequence[tuple[trimesh.Trimesh, Material]] = (),
 ) -> ImplantModel:
     """A component as a tracked body in the mesh's own frame.
 
@@ -449,6 +468,8 @@ def implant_model(
         material: Its material; must be radiopaque.
         energy_kev: Effective energy (keV) of the attenuation coefficient.
         supersample: Rays per pixel along each axis when rendering.
+        attached: Parts fixed to it and moving with it, each a closed mesh in its frame and
+            a material (a tray's polyethylene insert): rendered with it, not in its points.
     """
     if not material.radiopaque:
         raise ValueError(
@@ -459,11 +480,16 @@ def implant_model(
     kz, ky, kx = np.nonzero(fraction >= 0.5)
     x, y, z = grid.axes_mm()
     points = np.column_stack((x[kx], y[ky], z[kz]))
+    parts = [(mesh, material), *attached]
+    whole = trimesh.util.concatenate([part for part, _ in parts])
+    face_mu = np.concatenate(
+        [np.full(len(part.faces), m.mu_per_mm(energy_kev)) for part, m in parts]
+    )
     return ImplantModel(
         name,
-        np.asarray(mesh.vertices, dtype=np.float64),
-        np.asarray(mesh.faces, dtype=np.int64),
-        material.mu_per_mm(energy_kev),
+        np.asarray(whole.vertices, dtype=np.float64),
+        np.asarray(whole.faces, dtype=np.int64),
+        face_mu,
         points,
         points.mean(axis=0),
         supersample,

@@ -66,9 +66,9 @@ PARTS = {
 }
 """Each part of the knee: its mesh file, the OpenSim body that carries it, its material."""
 
-TRACKED = {"femur": "femoral_component", "tibia_fibula": "tibial_tray"}
-"""The tracked bodies (the bones' names, as the tracker's) and the components that stand for
-them."""
+TRACKED = {"femur": ("femoral_component", ()), "tibia_fibula": ("tibial_tray", ("tibial_insert",))}
+"""The tracked bodies (the bones' names, as the tracker's): the component that stands for each,
+and the parts fixed to it that move with it (the tray's insert)."""
 
 
 @dataclass(frozen=True)

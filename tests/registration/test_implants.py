@@ -76,6 +76,30 @@ def test_a_radiolucent_part_is_not_tracked_alone():
         implant_model("insert", box, MATERIALS["UHMWPE"])
 
 
+def test_an_attached_part_adds_its_own_attenuation():
+    """A tray with its insert fixed on top, seen from above: a ray through both stops
+    1 - exp(-(mu_CoCr 3 + mu_UHMWPE 12)) of the beam, one through the insert alone (beyond the
+    tray's edge) 1 - exp(-mu_UHMWPE 12), the chords being the boxes' heights (rays 0.6 deg
+    from the axis at most: lengths within 1e-4 of them)."""
+    view = camera_view(1198.0, 0.0, 0.0, 0.373, 64, 64)
+    tray = trimesh.creation.box(extents=(6.0, 20.0, 3.0))
+    tray.apply_translation((0.0, 0.0, -1.5))
+    insert = trimesh.creation.box(extents=(20.0, 20.0, 12.0))
+    insert.apply_translation((0.0, 0.0, -9.0))
+    model = implant_model(
+        "tibia_fibula", tray, MATERIALS["CoCr"], attached=[(insert, MATERIALS["UHMWPE"])]
+    )
+    T = np.eye(4)
+    T[:3, 3] = (0.0, 0.0, -1000.0)
+    shadow = model.render(view, T)
+    mu = {m: MATERIALS[m].mu_per_mm(70.0) for m in ("CoCr", "UHMWPE")}
+    both, insert_only = shadow[32, 32], shadow[32, 32 + 12]  # 12 px: 4.5 mm at the panel / 1.2
+    assert both == pytest.approx(1.0 - np.exp(-(3.0 * mu["CoCr"] + 12.0 * mu["UHMWPE"])), abs=1e-4)
+    assert insert_only == pytest.approx(1.0 - np.exp(-12.0 * mu["UHMWPE"]), abs=1e-4)
+    points = model.points_mm  # the tray's own 1 mm voxels only: none in the insert below it
+    assert len(points) > 0 and points[:, 2].min() >= -3.0 and np.abs(points[:, 0]).max() <= 3.0
+
+
 def test_a_sphere_renders_its_chords_and_a_shadow_flat_inside():
     """Ray lengths through a closed mesh are its chords (a sphere: 2 sqrt(r^2 - d^2), to the
     facets' sag), and the rendered shadow of 20 mm of CoCr is flat inside."""
