@@ -79,8 +79,7 @@ class TkaKnee:
         meshes: Each part's closed mesh in its body's frame, mm.
         bodies: Each part's body: "femur_r", "tibia_r" or "patella_r".
         materials: Each part's material.
-        knee_parent_mm: The ``knee_r`` joint's frame in the femur's (4x4, mm).
-        knee_defaults: The ``knee_r`` joint's default coordinates by name (rad, m).
+        knee: The ``knee_r`` joint (femur to tibia).
         patella_mm: The patella's frame in the femur's at the ``pf_r`` defaults (4x4, mm).
         repairs: What reading the meshes repaired, by part.
     """
@@ -88,8 +87,7 @@ class TkaKnee:
     meshes: dict[str, trimesh.Trimesh]
     bodies: dict[str, str]
     materials: dict[str, Material]
-    knee_parent_mm: np.ndarray
-    knee_defaults: dict[str, float]
+    knee: Joint
     patella_mm: np.ndarray
     repairs: dict[str, tuple[str, ...]]
 
@@ -198,9 +196,7 @@ def load_tka(folder: Path | str) -> TkaKnee:
     if not np.allclose(knee.child_mm, np.eye(4)):
         raise ValueError(f"{where}: the knee joint's tibial frame is not the tibia's own")
     patella = read_joint(model, "pf_r", str(where))
-    return TkaKnee(
-        meshes, bodies, materials, knee.parent_mm, knee.defaults, patella.transform(), repairs
-    )
+    return TkaKnee(meshes, bodies, materials, knee, patella.transform(), repairs)
 
 
 @dataclass(frozen=True)
@@ -249,20 +245,6 @@ def tka_motion(
     """
     samples = np.linspace(0, len(gait["time"]) - 1, frames)
     at = {k: np.interp(samples, np.arange(len(v)), v) for k, v in gait.items()}
-    knee_joint = Joint(
-        "knee_r",
-        knee.knee_parent_mm,
-        np.eye(4),
-        knee.knee_defaults,
-        (
-            ("knee_flex_r", np.array([0.0, 0.0, 1.0]), (-1.0, 0.0)),
-            ("knee_add_r", np.array([1.0, 0.0, 0.0]), (1.0, 0.0)),
-            ("knee_rot_r", np.array([0.0, 1.0, 0.0]), (1.0, 0.0)),
-            ("knee_tx_r", np.array([1.0, 0.0, 0.0]), (1.0, 0.0)),
-            ("knee_ty_r", np.array([0.0, 1.0, 0.0]), (1.0, 0.0)),
-            ("knee_tz_r", np.array([0.0, 0.0, 1.0]), (1.0, 0.0)),
-        ),
-    )
     turns = {"knee_add_r": ("knee_flex_r", 1.0), "knee_rot_r": ("knee_add_r", 1.0)}
     turns["knee_flex_r"] = ("knee_rot_r", -1.0)  # about z, the model's flexion is minus it
     moved = {"knee_tx_r": "knee_ant_r", "knee_ty_r": "knee_sup_r", "knee_tz_r": "knee_lat_r"}
@@ -273,9 +255,9 @@ def tka_motion(
         values = {name: sign * at[column][k] for name, (column, sign) in turns.items()}
         for model_name, gait_name in moved.items():
             values[model_name] = (
-                knee.knee_defaults[model_name] + at[gait_name][k] - at[gait_name][0]
+                knee.knee.defaults[model_name] + at[gait_name][k] - at[gait_name][0]
             )
-        femur_tibia = knee_joint.transform(values)
+        femur_tibia = knee.knee.transform(values)
         half = np.eye(4)  # the thigh's share of the flexion and adduction, about the knee
         half[:3, :3] = Rotation.from_rotvec(
             0.5 * values["knee_flex_r"] * np.array([0.0, 0.0, 1.0])
@@ -283,7 +265,7 @@ def tka_motion(
         ).as_matrix()
         place = np.eye(4)
         place[:3, 3] = center_mm
-        femur = place @ world @ half @ np.linalg.inv(knee.knee_parent_mm)
+        femur = place @ world @ half @ np.linalg.inv(knee.knee.parent_mm)
         poses["femur_r"][k] = femur
         poses["tibia_r"][k] = femur @ femur_tibia
         poses["patella_r"][k] = femur @ knee.patella_mm
