@@ -7,12 +7,13 @@ from __future__ import annotations
 import base64
 import importlib.util
 import io
+import itertools
 import json
 import os
 import platform
 import re
 import subprocess
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -88,6 +89,27 @@ def artefacts() -> Path:
     return folder
 
 
+@pytest.fixture
+def tmpfs(tmp_path) -> Iterator[Callable[[str], Path]]:
+    """``tmpfs(options)``: a new folder with a tmpfs of its own mounted on it (``options`` as
+    mount's ``-o``, e.g. ``size=8m`` or ``ro,size=64k``), unmounted after the test; skips
+    where mounting is not allowed (it needs root)."""
+    mounted = []
+
+    def mount(options: str) -> Path:
+        folder = tmp_path / f"tmpfs-{len(mounted)}"
+        folder.mkdir()
+        command = ["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(folder)]
+        if subprocess.run(command, capture_output=True, check=False).returncode != 0:
+            pytest.skip("cannot mount a tmpfs here (needs root)")
+        mounted.append(folder)
+        return folder
+
+    yield mount
+    for folder in mounted:
+        subprocess.run(["umount", "-l", str(folder)], check=False)
+
+
 @pytest.fixture(scope="session")
 def render_report():
     """scripts/render_report.py imported as a module (scripts is not a package)."""
@@ -122,7 +144,7 @@ def browse(render_report, tmp_path) -> Callable[..., Browsed]:
     chromium = render_report.find_chromium()
     if chromium is None:
         pytest.skip("chromium not installed (" + render_report.INSTALL_HINT + ")")
-    runs = iter(range(1000))
+    runs = itertools.count()
 
     def open_page(page: Path, fragment: str = "", budget_ms: int = 4000) -> Browsed:
         netlog = tmp_path / f"chromium-net-{next(runs)}.json"

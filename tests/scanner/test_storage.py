@@ -9,7 +9,6 @@ import os
 import subprocess
 import sys
 import threading
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -170,15 +169,11 @@ def test_an_image_set_aside_is_flushed_under_its_new_name(tmp_path, monkeypatch)
     assert fsynced == [(views, False), (views / "interrupted", True), (views, True)]
 
 
-def test_a_full_disk_fails_the_recording_instead_of_hanging(tmp_path):
+def test_a_full_disk_fails_the_recording_instead_of_hanging(tmpfs):
     """The recording on a full filesystem (a 256 kB tmpfs): the failure is raised and the
     process exits; rerun's own file sink blocked its flush, its disconnect and the
     interpreter's exit for ever, so a scan that filled the disk never ended."""
-    disk = tmp_path / "disk"
-    disk.mkdir()
-    mount = ["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(disk)]
-    if subprocess.run(mount, capture_output=True, check=False).returncode != 0:
-        pytest.skip("cannot mount a small tmpfs here (needs root)")
+    disk = tmpfs("size=256k")
     script = f"""
 from dataclasses import replace
 import numpy as np
@@ -201,35 +196,25 @@ try:
 except RuntimeError as err:
     print("close:", err)
 """
-    try:
-        done = subprocess.run(
-            [sys.executable, "-c", script],
-            cwd=Path(__file__).resolve().parents[2],
-            capture_output=True,
-            text=True,
-            timeout=30,
-        )
-    finally:
-        subprocess.run(["umount", "-l", str(disk)], check=False)
+    done = subprocess.run(
+        [sys.executable, "-c", script],
+        cwd=Path(__file__).resolve().parents[2],
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
     assert done.returncode == 0, done.stderr
     # a later view reports it when rerun's batches reach the file during the scan, else close
     assert "[Errno 28] No space left on device" in done.stdout, done.stdout
 
 
 @pytest.fixture
-def small_disk(tmp_path) -> Iterator[ScanStore]:
+def small_disk(tmpfs) -> ScanStore:
     """A store of three 64² views in a study on an 8 MB tmpfs of its own (root only)."""
-    disk = tmp_path / "disk"
-    disk.mkdir()
-    mount = ["mount", "-t", "tmpfs", "-o", "size=8m", "tmpfs", str(disk)]
-    if subprocess.run(mount, capture_output=True, check=False).returncode != 0:
-        pytest.skip("cannot mount a small tmpfs here (needs root)")
-    try:
-        panel = DetectorSpec(rows=64, cols=64, pixel_pitch_mm=1.0)
-        study = Study.create(disk / "s", {})
-        yield ScanStore(study, panel, ("rotary", "lift"), 3, circular_orbit(3, 500.0, 1e3, panel))
-    finally:
-        subprocess.run(["umount", "-l", str(disk)], check=False)
+    disk = tmpfs("size=8m")
+    panel = DetectorSpec(rows=64, cols=64, pixel_pitch_mm=1.0)
+    study = Study.create(disk / "s", {})
+    return ScanStore(study, panel, ("rotary", "lift"), 3, circular_orbit(3, 500.0, 1e3, panel))
 
 
 def _ballast(disk: Path, size: int) -> None:

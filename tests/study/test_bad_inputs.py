@@ -4,7 +4,6 @@ or the file, and nothing created at its output (or an existing output left as it
 from __future__ import annotations
 
 import shutil
-import subprocess
 
 import numpy as np
 import pytest
@@ -158,17 +157,10 @@ def test_a_bad_input_is_refused_with_its_name_and_nothing_written(
         "assess --poses {F}/poses.csv --labels {F}/stack.mha --out {OUT}/report",
     ],
 )
-def test_an_output_on_a_read_only_filesystem_is_refused_before_the_work(files, tmp_path, args):
+def test_an_output_on_a_read_only_filesystem_is_refused_before_the_work(files, tmpfs, args):
     """Unwritable for root too: a read-only tmpfs (skipped where mounting is not allowed)."""
-    disk = tmp_path / "ro"
-    disk.mkdir()
-    mount = ["mount", "-t", "tmpfs", "-o", "ro,size=64k", "tmpfs", str(disk)]
-    if subprocess.run(mount, capture_output=True, check=False).returncode != 0:
-        pytest.skip("cannot mount a read-only tmpfs here (needs root)")
-    try:
-        result = runner.invoke(app, args.format(F=files, OUT=disk).split(), terminal_width=400)
-        assert result.exit_code == 2, result.output
-        assert f"--out {disk}/" in result.output and "cannot write in" in result.output
-        assert "(a read-only file system)" in result.output
-    finally:
-        subprocess.run(["umount", str(disk)], check=False)
+    disk = tmpfs("ro,size=64k")
+    result = runner.invoke(app, args.format(F=files, OUT=disk).split(), terminal_width=400)
+    assert result.exit_code == 2, result.output
+    assert f"--out {disk}/" in result.output and "cannot write in" in result.output
+    assert "(a read-only file system)" in result.output
