@@ -188,12 +188,16 @@ def frame_overlays(
         png = folder / f"frame_{frame:04d}.png"
         if not png.is_file():
             continue
-        flagged = bool(kin.flagged[k])
         caption = f"frame {frame}: NCC " + ", ".join(ncc.get(frame, ["not recorded"]))
-        if flagged:
-            caption += f"; flagged (|MLD| {abs(kin.mld_mm[k]):.2f} mm > {kin.flag_mm:g} mm)"
-        out.append(FrameOverlay(frame, png, caption, flagged))
+        out.append(FrameOverlay(frame, png, caption + _flag_note(kin, k), bool(kin.flagged[k])))
     return out
+
+
+def _flag_note(kin: KneeKinematics, k: int) -> str:
+    """What a caption says of the ``k``-th assessed frame's flag ("" when it is not flagged)."""
+    if not kin.flagged[k]:
+        return ""
+    return f"; flagged (|MLD| {abs(kin.mld_mm[k]):.2f} mm > {kin.flag_mm:g} mm)"
 
 
 def _fmt(value: float, digits: int) -> str:
@@ -326,12 +330,7 @@ def _steps(kin: KneeKinematics, overlays: Sequence[FrameOverlay]) -> list[dict]:
     steps = []
     for k, frame in enumerate(int(f) for f in kin.frames):
         j, item = by_frame.get(frame, (-1, None))
-        if item is not None:
-            caption = item.caption
-        else:
-            caption = f"frame {frame}"
-            if kin.flagged[k]:
-                caption += f"; flagged (|MLD| {abs(kin.mld_mm[k]):.2f} mm > {kin.flag_mm:g} mm)"
+        caption = item.caption if item is not None else f"frame {frame}" + _flag_note(kin, k)
         steps.append({"frame": frame, "caption": caption, "image": j})
     return steps
 

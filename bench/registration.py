@@ -329,17 +329,12 @@ def tka(sequences: int, frames: int, panel: int) -> dict:
         axis: round(float(np.median(dof[:, i])), 3)
         for i, axis in enumerate(("tx_mm", "ty_mm", "tz_mm", "rx_deg", "ry_deg", "rz_deg"))
     }
+    medians = {"tre_mm": "tre_mm_median", "in_plane_mm": "in_plane_mm_median"}
+    medians["out_of_plane_mm"] = "depth_mm_median"
     entry["by_component"] = {
         body: {
-            "tre_mm_median": round(
-                float(np.median([e.tre_mm for e in errors if e.bone == body])), 3
-            ),
-            "in_plane_mm_median": round(
-                float(np.median([e.in_plane_mm for e in errors if e.bone == body])), 3
-            ),
-            "depth_mm_median": round(
-                float(np.median([e.out_of_plane_mm for e in errors if e.bone == body])), 3
-            ),
+            key: round(float(np.median([getattr(e, field) for e in errors if e.bone == body])), 3)
+            for field, key in medians.items()
         }
         for body in models
     }

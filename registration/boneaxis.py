@@ -1095,7 +1095,7 @@ class Tracker:
         for name, bone in result.bones.items():
             if math.isnan(bone.ncc):
                 continue
-            if hasattr(self.bones[name], "blur_mm"):
+            if isinstance(self.bones[name], ImplantModel):
                 self._match_model_blur(frame, name, poses, bone)
                 continue
             objective = self._objective(frame, level, name, poses)
