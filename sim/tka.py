@@ -286,11 +286,7 @@ WATER_PER_MM = 0.0193
 def _leg_chords(view: View, center_mm: np.ndarray) -> np.ndarray:
     """Each pixel centre's ray length through the leg's cylinder (rows, cols), mm."""
     v, u = np.mgrid[: view.rows, : view.cols].astype(np.float64)
-    d = (
-        u[..., None] * (view.pitch_u_mm * view.e_u)
-        + v[..., None] * (view.pitch_v_mm * view.e_v)
-        + (view.detector_origin_mm - view.source_mm)
-    )
+    d = view.pixel_to_world(u, v) - view.source_mm
     s = view.source_mm[:2] - center_mm[:2]
     a = d[..., 0] ** 2 + d[..., 1] ** 2
     b = 2.0 * (d[..., 0] * s[0] + d[..., 1] * s[1])
