@@ -44,6 +44,10 @@ class URBackendSpec(BaseModel):
     servo_gain: float = Field(300.0, ge=100.0, le=2000.0)
     detector: Literal["sim"] = "sim"
     simulated_panel: SimBackendSpec = SimBackendSpec()
+    detector_maps: str | None = Field(
+        None, description="folder of the panel's maps (cbct detector-calibrate)"
+    )
+    max_map_age_days: float = Field(7.0, gt=0.0, description="oldest detector maps a scan uses")
 
 
 BACKEND_SPECS = {"sim": SimBackendSpec, "ur": URBackendSpec}
@@ -104,7 +108,13 @@ def open_backend(
 
     clock = _WallClock()
     detector = SimDetector(
-        panel, measured_view, subject, clock.now, sdd_mm=sdd_mm, seed=spec.simulated_panel.seed
+        panel,
+        measured_view,
+        subject,
+        clock.now,
+        sdd_mm=sdd_mm,
+        seed=spec.simulated_panel.seed,
+        sensor=spec.simulated_panel.panel,
     )
     driver = SerialGenerator(spec.generator_port, baudrate=spec.baudrate, on_sent=on_generator_sent)
     generator = _PanelSensing(driver, detector)

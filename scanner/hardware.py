@@ -2,7 +2,8 @@
 
 A backend is a set of devices that satisfy these protocols: the simulated one (``sim.backend``:
 mock arms on a virtual clock, the mock generator over a pty, a rendering detector) and the UR one
-(``scanner.ur``: ur-rtde arms, the serial generator and stage drivers). ``sim`` implements them
+(``scanner.ur``: ur-rtde arms, the serial generator and stage drivers, the GigE Vision panel of
+``scanner.gige``). ``sim`` implements them
 structurally and imports nothing from ``scanner`` (docs/design.md).
 
 Units: joint positions in the plan's joint units (degrees for revolute joints, millimetres for
@@ -168,7 +169,8 @@ class XrayGenerator(Protocol):
 
 @dataclass(frozen=True)
 class Frame:
-    """One detector read-out: raw counts [row, col] and the clock time it was read."""
+    """One detector read-out: raw counts [row, col] (ADU, uint16 from a real panel) and the
+    clock time it was read."""
 
     counts: np.ndarray
     t_s: float
@@ -176,24 +178,27 @@ class Frame:
 
 @runtime_checkable
 class Detector(Protocol):
-    """A flat panel: arm for one exposure, read the frame."""
+    """A flat panel: open an integration window, read its frame.
+
+    ``serial`` and ``mode`` name the panel and its read-out mode (size, pixel format): the
+    offset, gain and defect maps a scan corrects with are bound to both
+    (:mod:`scanner.corrections`)."""
 
     rows: int
     cols: int
     pixel_pitch_mm: float
+    serial: str
+    mode: str
 
     def connect(self, timeout_s: float) -> None: ...
 
     def arm(self, timeout_s: float) -> None:
-        """Ready the panel to integrate the next exposure."""
+        """Open the integration window of the next frame (a pulse inside it is integrated)."""
         ...
 
     def read_frame(self, timeout_s: float) -> Frame:
-        """The frame of the last exposure; raises DeviceTimeout when none arrives."""
-        ...
-
-    def flood_counts(self, technique: Technique) -> np.ndarray:
-        """Mean unattenuated counts per pixel at ``technique`` (the panel's gain calibration)."""
+        """The window's frame (dark when no pulse came); raises DeviceTimeout when none
+        arrives, DeviceError when a frame is lost, late or incomplete."""
         ...
 
     def close(self) -> None: ...

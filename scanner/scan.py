@@ -37,6 +37,7 @@ import numpy as np
 
 from recon.config import ScanProtocol
 from recon.geometry import DetectorSpec, View
+from scanner.corrections import Corrector, PanelMaps
 from scanner.hardware import Backend, DeviceError, Technique
 from scanner.stop import StopRequest
 from scanner.storage import PendingView, ScanStore, ViewRecord
@@ -163,6 +164,8 @@ class ScanRun:
             e.g. after parking the arms).
         stop: the operator's stop request (a session routes the stop signals to it:
             :func:`scanner.stop.stop_signals`).
+        maps: the panel's offset, gain, defect and lag maps (of its serial number and mode,
+            made at the protocol's kV); every frame is corrected with them before its log.
     """
 
     backend: Backend
@@ -177,6 +180,7 @@ class ScanRun:
     truth: Callable[[], np.ndarray | None] = lambda: None
     close_backend: bool = True
     stop: StopRequest = field(default_factory=StopRequest)
+    maps: PanelMaps | None = None
     state: State = State.PREFLIGHT
     transitions: list[tuple[float, State]] = field(default_factory=list)
 
@@ -270,6 +274,7 @@ class ScanRun:
                 f"detector reads {b.detector.rows}x{b.detector.cols} pixels, protocol asks "
                 f"{self.panel.rows}x{self.panel.cols}"
             )
+        self._check_maps()
         b.generator.set_technique(self.technique, timeout)
         status = b.generator.status(timeout)
         if not status.interlocks_closed:
@@ -297,6 +302,26 @@ class ScanRun:
             clearance_margin_mm=plan.clearance_margin_mm,
             technique=self.technique,
         )
+
+    def _check_maps(self) -> None:
+        """Refuse maps missing, of another panel or mode, or made at another kV."""
+        maps, detector = self.maps, self.backend.detector
+        if maps is None:
+            raise PreflightError(
+                f"no offset/gain/defect maps for panel {detector.serial!r} in mode "
+                f"{detector.mode!r}: run `cbct detector-calibrate` first"
+            )
+        if (maps.serial, maps.mode) != (detector.serial, detector.mode):
+            raise PreflightError(
+                f"detector maps are of panel {maps.serial!r} in mode {maps.mode!r}; the panel is "
+                f"{detector.serial!r} in mode {detector.mode!r}"
+            )
+        if abs(maps.kv - self.technique.kv) > 0.5:
+            raise PreflightError(
+                f"detector maps were made at {maps.kv:g} kV, the protocol exposes at "
+                f"{self.technique.kv:g} kV: calibrate the panel at the protocol's kV"
+            )
+        self._corrector = Corrector(maps)
 
     # -- motion -------------------------------------------------------------------------
 
@@ -364,11 +389,8 @@ class ScanRun:
         self._reserve_next(k)  # while the panel reads out
         self._report_stored()  # handed on while the panel reads out, not amid the requests
         frame = b.detector.read_frame(timeout)
-        flood = b.detector.flood_counts(exposure.technique)
-        line_integrals = np.maximum(frame.counts, 1.0) / flood  # -ln(I / I0), then in place
-        np.log(line_integrals, out=line_integrals)
-        np.negative(line_integrals, out=line_integrals)
-        line_integrals = line_integrals.astype(np.float32, copy=False)
+        used = exposure.technique
+        line_integrals = self._corrector.line_integrals(frame.counts, used.kv, used.mas)
         record = ViewRecord(
             view=k,
             planned_time_s=float(self.plan.view_times_s[k]),
@@ -383,7 +405,8 @@ class ScanRun:
             exposure_sequence=exposure.sequence,
             true_matrix=self.truth(),
         )
-        pending = self.store.start_put(record, line_integrals, frame.counts)
+        raw = np.asarray(frame.counts, dtype=np.float32)  # exact for 16-bit counts
+        pending = self.store.start_put(record, line_integrals, raw)
         self._storing.append((pending, line_integrals))
         del self._reserved[k]  # its files are being written
 

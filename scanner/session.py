@@ -25,10 +25,12 @@ from recon.config import ScanProtocol, load_config, load_protocol
 from recon.geometry import DetectorSpec, Geometry, View
 from recon.volume import Volume
 from scanner.backends import BACKEND_SPECS, load_backend_spec, open_backend
-from scanner.hardware import Backend
+from scanner.corrections import MapsError, PanelMaps, find_maps
+from scanner.detector_calibration import calibrate_detector
+from scanner.hardware import Backend, Technique
 from scanner.move import MoveResult, move_scanner
+from scanner.scan import PreflightError, ScanFault, ScanRun, ScanSettings
 from scanner.scan import Progress as ScanProgress
-from scanner.scan import ScanFault, ScanRun, ScanSettings
 from scanner.scan_recording import ScanRecorder
 from scanner.stop import StopRequest, stop_signals
 from scanner.storage import ScanStore, ViewRecord
@@ -320,6 +322,11 @@ def scan_stage(
         subject(inputs, say),
         on_generator_sent=lambda body, t_s: commands.append((t_s, body)),
     )
+    try:
+        maps = panel_maps(inputs, backend, model, plan.q[0], panel, say)
+    except BaseException:
+        _close(backend)
+        raise
     truth = (lambda: simulated.detector.true_views[-1].matrix) if simulated else (lambda: None)
     recorder = ScanRecorder(study, plan.joint_names, panel.pixel_pitch_mm, stage)
     on_view = recorder.view
@@ -345,6 +352,7 @@ def scan_stage(
         truth=truth,
         close_backend=False,
         stop=stop,
+        maps=maps,
     )
     sessions = study.manifest.setdefault("sessions", [])
     sessions.append({"stage": stage, "backend": inputs.backend.model_dump(mode="json")})
@@ -390,6 +398,57 @@ def scan_stage(
             raise
         _close(backend)
         finish_records()
+
+
+SIM_CALIBRATION_FRAMES = 8
+"""Darks and floods of the simulated panel's calibration at the start of a session."""
+
+
+def panel_maps(
+    inputs: SessionInputs,
+    backend: Backend,
+    model: ScannerModel,
+    start_q: np.ndarray,
+    panel: DetectorSpec,
+    say: Say,
+) -> PanelMaps:
+    """The maps the scan corrects its frames with: from the backend config's
+    ``detector_maps`` folder, for the connected panel's serial number and mode (refused when
+    older than ``max_map_age_days``); with no folder on the simulated backend, the simulated
+    panel is calibrated now (:func:`scanner.detector_calibration.calibrate_detector` on a
+    fault-free twin of the session's devices, beam clear)."""
+    spec = inputs.backend
+    e = inputs.protocol.exposure
+    if spec.detector_maps is not None:
+        backend.detector.connect(ScanSettings().device_timeout_s)
+        detector = backend.detector
+        try:
+            maps = find_maps(
+                Path(spec.detector_maps), detector.serial, detector.mode, spec.max_map_age_days
+            )
+        except MapsError as err:
+            raise PreflightError(str(err)) from err
+        say(f"detector maps of {maps.serial} ({maps.mode}) made {maps.made}")
+        return maps
+    if not isinstance(spec, SimBackendSpec):
+        raise PreflightError(
+            f"the {inputs.backend_kind} backend config names no detector_maps folder: run "
+            "`cbct detector-calibrate` and set detector_maps to its output"
+        )
+    twin = spec.model_copy(update={"faults": SimFaults(), "event_log": None, "start_pose": None})
+    sdd = inputs.protocol.orbit.sdd_mm
+    devices, _ = open_backend(twin, model, start_q, panel, sdd, _beam_clear(panel))
+    try:
+        maps = calibrate_detector(
+            devices, Technique(e.tube_kv, e.tube_ma, e.pulse_ms), SIM_CALIBRATION_FRAMES
+        )
+    finally:
+        _close(devices)
+    say(
+        f"simulated panel calibrated: {int(maps.defects.sum())} defective pixels, lag "
+        f"{maps.lag:.3f}"
+    )
+    return maps
 
 
 def _write_generator_commands(
@@ -503,6 +562,11 @@ def move_session(
             )
         finally:
             _close(backend)
+
+
+def _beam_clear(panel: DetectorSpec) -> Callable[[View], np.ndarray]:
+    """Nothing in the beam: zero line integrals on every pixel."""
+    return lambda _view: np.zeros((panel.rows, panel.cols))
 
 
 def _no_exposure(view: View) -> np.ndarray:

@@ -24,6 +24,7 @@ from pathlib import Path
 
 MANIFEST = "study.json"
 STAGES = (
+    "detector",
     "plan",
     "calibration_scan",
     "calibration",

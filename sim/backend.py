@@ -26,6 +26,7 @@ from recon.volume import Volume
 from sim.arms import GROUPS, MockArm, SimWorld, VirtualClock
 from sim.detector import SimDetector
 from sim.generator import MockGenerator
+from sim.panel import SimPanelSpec
 from sim.vibration import VibrationSpec, vibrate_at
 from trajectories.model import ScannerModel
 from trajectories.plan import view_at
@@ -82,6 +83,13 @@ class SimBackendSpec(BaseModel):
         None,
         description="file the device events are appended to as they happen (sim.arms.SimWorld)",
     )
+    panel: SimPanelSpec = SimPanelSpec()
+    detector_maps: str | None = Field(
+        None,
+        description="folder of the panel's maps (cbct detector-calibrate); None: the simulated "
+        "panel is calibrated at the start of each session",
+    )
+    max_map_age_days: float = Field(7.0, gt=0.0, description="oldest detector maps a scan uses")
 
 
 def volume_subject(volume: Volume) -> Callable[[View], np.ndarray]:
@@ -154,6 +162,7 @@ def simulated_scanner(
         lambda: world.t,
         sdd_mm=sdd_mm,
         seed=spec.seed,
+        sensor=spec.panel,
         drop_frame_at=faults.dropped_frame_at_view,
         log=world.log,
     )

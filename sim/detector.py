@@ -1,12 +1,14 @@
 """The simulated flat panel: each exposure rendered from the geometry of its instant.
 
-When the generator delivers a pulse (:meth:`SimDetector.exposed`, the mock generator's
-exposure callback) the panel takes the TRUE view of that instant (the arms' true joints through
-the scanner's kinematics, then the structure's vibration, which no encoder sees) and the
-technique; :meth:`SimDetector.read_frame` renders the subject through that view and turns it
-into counts with Poisson quantum noise and Gaussian readout noise (sim.scan's photon model).
-Noise is seeded by the seed and the true view of the pulse: the same motion gives the same
-frames, also when a scan is resumed in a new session.
+:meth:`SimDetector.arm` opens an integration window. When the generator delivers a pulse in it
+(:meth:`SimDetector.exposed`, the mock generator's exposure callback) the panel takes the TRUE
+view of that instant (the arms' true joints through the scanner's kinematics, then the
+structure's vibration, which no encoder sees) and the technique; :meth:`SimDetector.read_frame`
+renders the subject through that view, draws the photons' Poisson noise (sim.scan's photon
+model) and reads them out through the panel's sensor (:class:`sim.panel.PanelSensor`: offset,
+gain, defects, lag, read-out noise; raw uint16 counts). A window without a pulse reads a dark
+frame. Quantum noise is seeded by the seed and the true view of the pulse: the same motion
+gives the same photons, also when a scan is resumed in a new session.
 """
 
 from __future__ import annotations
@@ -20,7 +22,12 @@ import numpy as np
 
 from recon.config import ExposureSpec
 from recon.geometry import DetectorSpec, View
-from sim.scan import detected_counts, photons_per_pixel
+from sim.panel import PanelSensor, SimPanelSpec
+from sim.scan import photons_per_pixel
+
+REFERENCE_TECHNIQUE = ExposureSpec(tube_kv=110.0, tube_ma=51.0, pulse_ms=15.0)
+"""The technique at which an unattenuated pixel reads the panel's ``flood_adu`` (every read-out
+mode's conversion gain is set from it at the nominal source-detector distance)."""
 
 
 class SimFrame(NamedTuple):
@@ -31,7 +38,7 @@ class SimFrame(NamedTuple):
 
 
 class FrameTimeout(TimeoutError):
-    """No frame arrived (nothing exposed, or a dropped frame)."""
+    """No frame arrived (the panel was not armed, or a dropped frame)."""
 
 
 class SimDetector:
@@ -42,12 +49,13 @@ class SimDetector:
         true_view: the view the scanner really realises now.
         subject: line integrals of the imaged object through a view, (rows, cols).
         now: the clock (frame time stamps).
-        sdd_mm: nominal source-detector distance of the flood calibration.
-        seed: noise seed.
-
-    ``true_views`` keeps the view of every pulse (ground truth).
+        sdd_mm: nominal source-detector distance, mm (the conversion gain's reference).
+        seed: noise seed (also the panel's defects).
+        sensor: the panel's imperfections (default: :class:`sim.panel.SimPanelSpec`'s).
         drop_frame_at: exposure number (0-based) whose frame never arrives (fault injection).
         log: event log callback (device, event).
+
+    ``true_views`` keeps the view of every pulse (ground truth).
     """
 
     def __init__(
@@ -59,6 +67,7 @@ class SimDetector:
         *,
         sdd_mm: float,
         seed: int = 0,
+        sensor: SimPanelSpec | None = None,
         drop_frame_at: int | None = None,
         log: Callable[[str, str], None] | None = None,
     ) -> None:
@@ -77,6 +86,12 @@ class SimDetector:
         self.exposures = 0
         self.true_views: list[View] = []
         self.connected = False
+        spec = sensor or SimPanelSpec()
+        reference = photons_per_pixel(REFERENCE_TECHNIQUE, panel, sdd_mm)
+        self.sensor = PanelSensor(spec, panel.rows, panel.cols, spec.flood_adu / reference, seed)
+        self.serial = spec.serial
+        self.mode = f"{panel.cols}x{panel.rows} Mono16"
+        self._darks = 0
 
     def connect(self, timeout_s: float) -> None:
         self.connected = True
@@ -104,23 +119,22 @@ class SimDetector:
     def read_frame(self, timeout_s: float) -> SimFrame:
         with self._lock:
             pending, self._pending = self._pending, None
+            armed, self._armed = self._armed, False
         if pending is None:
-            raise FrameTimeout(f"detector: no exposure integrated within {timeout_s} s")
+            if not armed:
+                raise FrameTimeout(f"detector: not armed, no frame within {timeout_s} s")
+            self._darks += 1
+            rng = np.random.default_rng([self.seed, 1, self._darks])
+            return SimFrame(self.sensor.read(None, rng), self._now())
         view, technique, number = pending
         if number == self.drop_frame_at:
             self._log("detector", f"dropped frame {number}")
             raise FrameTimeout(f"detector: frame of exposure {number} lost (injected fault)")
-        line_integrals = self._subject(view)
+        line_integrals = np.asarray(self._subject(view), dtype=np.float64)
         photons = photons_per_pixel(technique, self.panel, view.sdd_mm)
         rng = np.random.default_rng([self.seed, zlib.crc32(view.matrix.tobytes())])
-        counts = detected_counts(np.asarray(line_integrals), photons, rng)
-        return SimFrame(counts, self._now())
-
-    def flood_counts(self, technique) -> np.ndarray:
-        """Mean unattenuated counts per pixel at ``technique`` (kv, ma, ms attributes)."""
-        spec = ExposureSpec(tube_kv=technique.kv, tube_ma=technique.ma, pulse_ms=technique.ms)
-        value = photons_per_pixel(spec, self.panel, self.sdd_mm)
-        return np.full((self.rows, self.cols), value, dtype=np.float32)
+        detected = rng.poisson(photons * np.exp(-line_integrals))
+        return SimFrame(self.sensor.read(detected, rng), self._now())
 
     def close(self) -> None:
         self.connected = False

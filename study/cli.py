@@ -406,6 +406,60 @@ def move(
     )
 
 
+@app.command("detector-calibrate")
+def detector_calibrate(
+    protocol: Annotated[Path, typer.Option(help="scan protocol YAML: its panel mode and kV")],
+    out: Annotated[Path, typer.Option(help="maps folder (maps go to OUT/SERIAL/MODE.npz)")],
+    backend: Annotated[str, typer.Option(help="sim or ur")] = "sim",
+    backend_config: Annotated[
+        Path | None, typer.Option(help="backend YAML (default configs/backends/BACKEND.yaml)")
+    ] = None,
+    scanner: Annotated[Path, typer.Option(help="scanner hardware YAML")] = CONFIGS / "scanner.yaml",
+    frames: Annotated[int, typer.Option(help="dark and flood frames to average, each")] = 16,
+    yes: Annotated[bool, typer.Option("--yes", help="answer yes to the confirmation")] = False,
+) -> None:
+    """Calibrate the flat panel: FRAMES dark frames (X-ray off), FRAMES flood frames (nothing
+    in the beam, at the protocol's technique: confirmed first), then darks again; offset,
+    gain, defect and lag maps derived and stored with the panel's serial number, mode and date.
+    A scan uses them when its backend config's detector_maps names OUT, and refuses maps of
+    another panel, mode or kV, or older than max_map_age_days."""
+    from scanner.detector_calibration import MAX_FRAMES, MIN_FRAMES, calibrate_session
+    from scanner.scan import OperatorDeclined
+    from scanner.session import read_inputs
+
+    check_range("--frames", frames, MIN_FRAMES, MAX_FRAMES, "frames")
+    config = backend_config or CONFIGS / "backends" / f"{backend}.yaml"
+    try:
+        inputs = read_inputs(protocol, scanner, backend, config, CONFIGS / "phantoms" / "knee.yaml")
+    except (ValueError, OSError) as err:
+        fail(str(err))
+    with views_progress() as bar:
+        try:
+            maps, path = calibrate_session(
+                inputs,
+                out,
+                frames,
+                confirm=_confirmation(yes),
+                progress=views_done(bar, "dark and flood frames", "frames"),
+                say=lambda msg: console.print(msg, highlight=False),
+            )
+        except OperatorDeclined as err:
+            fail(str(err))
+        except (ValueError, OSError, RuntimeError) as err:
+            fail(str(err))
+        except KeyboardInterrupt as err:
+            fail(f"{err or 'interrupted'}: X-ray off, nothing written")
+    s = maps.summary()
+    console.print(
+        f"[green]maps written[/]: {path}\n  offset {s['offset_adu_median']:.0f} ADU, flood "
+        f"{s['flood_adu_median']:.0f} ADU above it, dark noise {s['dark_noise_adu']:.2f} ADU, "
+        f"lag {s['lag']:.3f}\n  {s['defective_pixels']} defective pixels; defective rows "
+        f"{s['defective_rows']}, columns {s['defective_cols']}",
+        soft_wrap=True,
+        highlight=False,
+    )
+
+
 def _confirmation(yes: bool):
     """The operator's yes/no: asked on the console, or answered yes by --yes (and said)."""
 

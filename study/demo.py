@@ -1,21 +1,24 @@
 """``cbct demo``: the main job on the simulated scanner, in one study folder (docs/design.md).
 
-1. plan the knee reverse spiral on the scanner (IK, clearance, timing), then scan the
+1. calibrate the flat panel in the knee scan's and the calibration scan's read-out modes
+   (darks and floods: offset, gain, defect and lag maps, which every scanned frame is
+   corrected with);
+2. plan the knee reverse spiral on the scanner (IK, clearance, timing), then scan the
    steel-ball phantom on the vibrating mock arms;
-2. calibrate every view;
-3. scan the standing knee phantom on the same plan, reconstructing while it acquires (the
-   volume is written as stage 5 when the last view is in);
-4. simulate lateral fluoroscopy of a flexion-extension with a varus imbalance mid-motion, and
+3. calibrate every view;
+4. scan the standing knee phantom on the same plan, reconstructing while it acquires (the
+   volume is written as stage 6 when the last view is in);
+5. simulate lateral fluoroscopy of a flexion-extension with a varus imbalance mid-motion, and
    one exposure of the dewarp grid (the panel's distortion);
-5. weighted FDK with the calibrated geometry (NIfTI, MetaImage, DICOM series, preview):
-   written by stage 3, or made from the stored scan when a resumed demo lacks it;
-6. segment femur, tibia-fibula and patella (labels, meshes);
-7. dewarp the frames, track the bones with BoneAxis-Reg, scored against the simulation's
+6. weighted FDK with the calibrated geometry (NIfTI, MetaImage, DICOM series, preview):
+   written by stage 4, or made from the stored scan when a resumed demo lacks it;
+7. segment femur, tibia-fibula and patella (labels, meshes);
+8. dewarp the frames, track the bones with BoneAxis-Reg, scored against the simulation's
    truth;
-8. assess the registered motion (report, plots, metrics, 4D series);
-9. merge every stage's rerun recording into ``recording.rrd``.
+9. assess the registered motion (report, plots, metrics, 4D series);
+10. merge every stage's rerun recording into ``recording.rrd``.
 
-Stages 1-4 are the simulated acquisitions (:func:`acquire`, also used to make cohorts), 5-8
+Stages 1-5 are the simulated acquisitions (:func:`acquire`, also used to make cohorts), 6-9
 the derived stages of ``study.stages`` that ``cbct batch`` runs too.
 
 Each stage is marked in ``study.json`` when complete, with its files' checksums; a stage
@@ -39,6 +42,7 @@ from recon.config import ScanProtocol, load_config, load_protocol
 from recon.fdk import Progress
 from recon.io import read_projections, write_projections
 from registration.boneaxis import Settings
+from scanner.detector_calibration import calibrate_session
 from scanner.scan_files import Status
 from scanner.session import SessionInputs, read_inputs, scan_stage
 from scanner.study import Study, StudyError
@@ -89,6 +93,8 @@ QUICK = {
     "frames": 8,
     "max_flexion_deg": 40.0,
 }
+DETECTOR_FRAMES = 16
+"""Dark and flood frames of the demo's panel calibration, each."""
 VARUS_DEG = 3.0
 """Varus tilt built into the fluoroscopy motion (frames 40-60 % of the way through)."""
 FLUORO_PANEL_MM = 307.2
@@ -97,6 +103,7 @@ FLUORO_NATIVE_PIXELS = 1024
 """The dewarp grid is imaged unbinned: its 2 mm balls need the native 0.3 mm pixels, and the
 warp (in mm) serves every read-out of the panel."""
 STAGES = (
+    "detector",
     "calibration_scan",
     "calibration",
     "scan",
@@ -147,7 +154,8 @@ def acquire(
     knee = load_config(configs / "phantoms" / "knee.yaml", KneePhantomSpec)
     bb = load_config(configs / "phantoms" / "bb_helix.yaml", BBPhantomSpec)
     backend = load_config(configs / "backends" / "sim.yaml", SimBackendSpec)
-    backend = backend.model_copy(update={"seed": seed})
+    maps = study.path / "detector"
+    backend = backend.model_copy(update={"seed": seed, "detector_maps": str(maps)})
 
     def inputs(p: ScanProtocol, phantom: str) -> SessionInputs:
         base = read_inputs(
@@ -180,6 +188,21 @@ def acquire(
             progress=lambda p: counts(p.views_done, p.views),
         )
 
+    def detector(folder: Path) -> dict:
+        found = {}
+        for p in (cal_protocol, protocol):
+            done = _bar(bars, f"detector: {p.detector.cols}x{p.detector.rows} frames", "frames")
+            made, _ = calibrate_session(inputs(p, "knee"), folder, DETECTOR_FRAMES, progress=done)
+            s = made.summary()
+            found[made.mode] = {k: s[k] for k in ("defective_pixels", "lag", "dark_noise_adu")}
+        return found
+
+    run_stage(
+        study,
+        "detector",
+        lambda: derived_folder(study, "detector", detector),
+        stage("detector", "calibrate the panel: darks and floods in both read-out modes"),
+    )
     run_stage(
         study,
         "calibration_scan",
@@ -318,19 +341,19 @@ def run(
         study,
         size["recon_voxel_mm"],
         _bar(bars, "recon: views backprojected", "views"),
-        stage(5, "recon", "weighted FDK with the calibrated geometry"),
+        stage(6, "recon", "weighted FDK with the calibrated geometry"),
     )
-    segmentation_stage(study, stage(6, "segmentation", "bones from the reconstruction"))
+    segmentation_stage(study, stage(7, "segmentation", "bones from the reconstruction"))
     registration_stage(
         study,
         settings,
-        stage(7, "registration", "BoneAxis-Reg tracking"),
+        stage(8, "registration", "BoneAxis-Reg tracking"),
         _bar(bars, "registration: frames tracked", "frames"),
     )
     assessment_stage(
         study,
         "Demo: registered weight-bearing flexion-extension",
-        stage(8, "assessment", "knee kinematics report"),
+        stage(9, "assessment", "knee kinematics report"),
     )
 
     def recording() -> None:
@@ -345,7 +368,7 @@ def run(
         merge_recordings(parts, out / "recording.rrd")
         study.adopt("recording.rrd")
 
-    run_stage(study, "recording", recording, stage(9, "recording", "one recording of every stage"))
+    run_stage(study, "recording", recording, stage(10, "recording", "one recording of every stage"))
     return _summary(study, out, time.perf_counter() - started)
 
 

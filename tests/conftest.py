@@ -224,6 +224,7 @@ REALTIME = (
     "scanner/test_ur.py",
     "scanner/test_ur_move.py",
     "scanner/test_ur_scan.py",
+    "scanner/test_gige_realtime.py",
     "test_bench_soak.py",
 )
 """Tests (folders or files under tests/) that drive devices on real clocks and bound their
@@ -290,3 +291,32 @@ def measured(request, seed):
             assert value > above, f"{name} = {value:.6g}, not above {above:g}"
 
     return check
+
+
+@pytest.fixture(scope="session")
+def panel_maps(tmp_path_factory) -> Callable[..., Path]:
+    """``panel_maps(protocol)``: a folder holding the simulated panel's maps in ``protocol``'s
+    read-out mode, made once per mode by ``cbct detector-calibrate``'s code on the simulated
+    backend (the UR backend's simulated panel is the same panel: same serial number)."""
+    from scanner.cli import CONFIGS
+    from scanner.detector_calibration import calibrate_session
+    from scanner.session import read_inputs
+
+    folder = tmp_path_factory.mktemp("detector-maps")
+    made: set[tuple[int, int]] = set()
+
+    def maps_for(protocol) -> Path:
+        mode = (protocol.detector.rows, protocol.detector.cols)
+        if mode not in made:
+            inputs = read_inputs(
+                protocol,
+                CONFIGS / "scanner.yaml",
+                "sim",
+                CONFIGS / "backends" / "sim.yaml",
+                CONFIGS / "phantoms" / "knee.yaml",
+            )
+            calibrate_session(inputs, folder, 8)
+            made.add(mode)
+        return folder
+
+    return maps_for

@@ -8,6 +8,7 @@ import os
 import signal
 import threading
 import time
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +20,7 @@ from recon.config import ScanProtocol, load_config
 from recon.geometry import DetectorSpec
 from scanner.backends import open_backend
 from scanner.cli import CONFIGS
+from scanner.corrections import PanelMaps
 from scanner.move import MoveFault, move_scanner
 from scanner.scan import OperatorDeclined, PreflightError, ScanFault, ScanRun, ScanSettings
 from scanner.session import read_inputs, run_session
@@ -96,7 +98,21 @@ def test_random_pose_moves_to_the_start_and_the_scan_preflight_accepts(scanner, 
         panel = DetectorSpec(rows=d.rows, cols=d.cols, pixel_pitch_mm=d.pixel_pitch_mm)
         study = Study.create(tmp_path / "study", {})
         store = ScanStore(study, panel, plan.joint_names, 30, plan.achieved)
-        run = ScanRun(backend, model, plan, protocol, store, close_backend=False)
+        e, shape = protocol.exposure, (d.rows, d.cols)
+        maps = PanelMaps(  # maps of this panel and mode (their values do not matter here)
+            serial=backend.detector.serial,
+            mode=backend.detector.mode,
+            offset=np.zeros(shape),
+            gain=np.ones(shape),
+            defects=np.zeros(shape, bool),
+            lag=0.0,
+            kv=e.tube_kv,
+            mas=e.mas,
+            frames=8,
+            made=datetime.now(UTC).isoformat(),
+            noise_adu=1.0,
+        )
+        run = ScanRun(backend, model, plan, protocol, store, close_backend=False, maps=maps)
         assert run.preflight().views_to_acquire == 30
     finally:
         backend.close()

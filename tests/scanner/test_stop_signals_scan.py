@@ -169,7 +169,7 @@ def test_stop_signals_at_random_moments_of_a_scan_stop_it_at_once(tmp_path):
     assert done.stage("scan")["views"] == views
 
 
-def test_a_stop_signal_while_a_ur_call_waits_on_its_worker(tmp_path):
+def test_a_stop_signal_while_a_ur_call_waits_on_its_worker(tmp_path, panel_maps):
     """The source arm's controller is frozen (SIGSTOP) for 40 ms: the exposure loop's next call
     to it waits on its ur-rtde worker. SIGINT 10 ms into the freeze: X-ray off and every group
     stopped within the bound all the same (the frozen arm's stop follows the call under way),
@@ -209,6 +209,7 @@ def test_a_stop_signal_while_a_ur_call_waits_on_its_worker(tmp_path):
                     "detector_host": UR_HOSTS[1],
                     "stage_port": stage.port,
                     "generator_port": gen.port,
+                    "detector_maps": str(panel_maps(ScanProtocol.model_validate(data))),
                 }
             )
         )

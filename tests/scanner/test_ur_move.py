@@ -25,7 +25,7 @@ pytest.importorskip("rtde_control")
 pytestmark = pytest.mark.timeout(120)
 
 
-def test_ur_backend_moves_from_a_random_pose_to_the_start(tmp_path):
+def test_ur_backend_moves_from_a_random_pose_to_the_start(tmp_path, panel_maps):
     scanner = load_config(CONFIGS / "scanner.yaml", ScannerConfig)
     model = ScannerModel(scanner)
     # small offsets: this move runs on the wall clock
@@ -52,6 +52,7 @@ def test_ur_backend_moves_from_a_random_pose_to_the_start(tmp_path):
                     "detector_host": "127.0.0.3",
                     "stage_port": stage.port,
                     "generator_port": generator.port,
+                    "detector_maps": str(panel_maps(tiny_protocol())),
                 }
             )
         )

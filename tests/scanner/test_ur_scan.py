@@ -12,6 +12,7 @@ from recon.config import ScanProtocol, load_config
 from recon.io import read_projections, read_stack_header
 from recon.rtk_xml import read_rtk_geometry
 from scanner.cli import CONFIGS
+from scanner.detector_calibration import calibrate_session
 from scanner.scan import ScanSettings
 from scanner.session import read_inputs, run_session
 from scanner.study import Study
@@ -21,6 +22,8 @@ from sim.ur_controller import FakeURController
 from trajectories.config import ScannerConfig
 from trajectories.model import ScannerModel
 from trajectories.plan import plan_scan
+
+CALIBRATION_FRAMES = 4
 
 
 def tiny_protocol() -> ScanProtocol:
@@ -33,7 +36,10 @@ def tiny_protocol() -> ScanProtocol:
 
 
 def scan(tmp: Path, kind: str, config: dict) -> Path:
+    """Scan on ``kind``'s backend; the UR one's panel first calibrated over its devices."""
     path = tmp / f"{kind}.yaml"
+    if kind == "ur":
+        config = config | {"detector_maps": str(tmp / "maps")}
     path.write_text(yaml.safe_dump(config))
     inputs = read_inputs(
         tiny_protocol(),
@@ -43,6 +49,8 @@ def scan(tmp: Path, kind: str, config: dict) -> Path:
         CONFIGS / "phantoms" / "knee.yaml",
         phantom_voxel_mm=2.0,
     )
+    if kind == "ur":
+        calibrate_session(inputs, tmp / "maps", CALIBRATION_FRAMES)
     run_session(tmp / kind, inputs, settings=ScanSettings(device_timeout_s=2.0))
     return tmp / kind
 
@@ -66,7 +74,7 @@ def test_ur_backend_scans_like_the_simulated_one(tmp_path):
                 "generator_port": generator.port,
             },
         )
-        assert generator.exposures == 16
+        assert generator.exposures == CALIBRATION_FRAMES + 16  # the floods, then the views
     sim = scan(tmp_path, "sim", {})
     for study in (ur, sim):
         done = Study.open(study)
