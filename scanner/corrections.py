@@ -249,19 +249,37 @@ def derive_maps(
 
 
 def fill_defects(image: np.ndarray, defects: np.ndarray) -> np.ndarray:
-    """``image`` with each defective pixel replaced by the mean of its good neighbours (the
-    3 x 3 neighbourhood, widened to 7 x 7 where that has none); in place, returned."""
+    """``image`` with its defective pixels filled from good neighbours; in place, returned.
+
+    A pixel whose two good neighbours on each side along its row (along its column when its
+    row is defective as a whole) are good takes their cubic interpolation,
+    ``(-a + 4 b + 4 c - d) / 6``: exact for a cubic, so that a dead column leaves no ring of
+    the projection's curvature. The others take the mean of their good 3 x 3 neighbours,
+    widened to 7 x 7 where that has none."""
     if not defects.any():
         return image
+    defects = defects.copy()
+    lines = defects.all(axis=1)
+    for axis, where in ((1, defects & ~lines[:, None]), (0, defects & lines[:, None])):
+        good = ~np.pad(defects, 2, constant_values=True)
+        values = np.pad(image, 2, mode="edge")
+        shifted = {k: np.roll(values, -k, axis=axis)[2:-2, 2:-2] for k in (-2, -1, 1, 2)}
+        usable = where.copy()
+        for k in (-2, -1, 1, 2):
+            usable &= np.roll(good, -k, axis=axis)[2:-2, 2:-2]
+        cubic = (-shifted[-2] + 4 * shifted[-1] + 4 * shifted[1] - shifted[2]) / 6.0
+        image[usable] = cubic[usable]
+        defects &= ~usable
     good = (~defects).astype(np.float64)
     for size in (3, 7):
+        if not defects.any():
+            break
         total = ndimage.uniform_filter(np.where(defects, 0.0, image), size, mode="nearest")
         weight = ndimage.uniform_filter(good, size, mode="nearest")
         fill = defects & (weight > 1e-9)
         image[fill] = total[fill] / weight[fill]
         defects = defects & ~fill
-        if not defects.any():
-            break
+        good[fill] = 1.0
     return image
 
 
@@ -292,7 +310,7 @@ class Corrector:
         """``-ln(I / I0)`` of one raw frame exposed at ``kv`` / ``mas``, float32 (rows, cols)."""
         m = self.maps
         ratio = self.signal(raw) / m.gain  # I / I_flood
-        fill_defects(ratio, m.defects.copy())
+        fill_defects(ratio, m.defects)
         expected = mas / m.mas  # the flood's output, scaled by the tube load
         scale = self.i0_ratio(ratio, expected)
         if scale is None:
