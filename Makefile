@@ -11,8 +11,13 @@ $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
+# the GigE Vision panel driver (scanner.gige) and its fake (sim.gige_panel) use Aravis through
+# Debian's GObject introspection (python3-gi, gir1.2-aravis-0.8): Debian's gi is linked into the
+# venv when it is there and the venv's Python is 3.11 (without it the GigE tests skip)
 $(STAMP): $(BIN)/python pyproject.toml
 	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	if [ -d /usr/lib/python3/dist-packages/gi ] && [ -d $(VENV)/lib/python3.11/site-packages ]; then \
+		ln -sfn /usr/lib/python3/dist-packages/gi $(VENV)/lib/python3.11/site-packages/gi; fi
 	touch $(STAMP)
 
 demo: $(STAMP)
