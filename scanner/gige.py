@@ -155,6 +155,9 @@ class GigEPanel:
             exposure line opens the window; arm only drains late frames).
         n_buffers: the stream's buffer pool (at least 2 frames in flight, see the module).
         clock: the time base of :attr:`Frame.t_s`, s.
+        frame_timeout_s: the longest an arm or a read waits, s, whatever timeout its caller
+            gives (None: the caller's): a dead camera is found within it, so set it to a
+            few frame periods (more than the window and the frame's transfer).
 
     Attributes:
         serial: the camera's serial number (DeviceSerialNumber, or DeviceID where that is
@@ -174,6 +177,7 @@ class GigEPanel:
         trigger: Literal["software", "line0"] = "software",
         n_buffers: int = 8,
         clock: Callable[[], float] = time.monotonic,
+        frame_timeout_s: float | None = None,
     ) -> None:
         if trigger not in TRIGGER_SOURCES:
             raise ValueError(f"trigger must be one of {sorted(TRIGGER_SOURCES)}, got {trigger!r}")
@@ -184,6 +188,11 @@ class GigEPanel:
         self.window_ms = window_ms
         self.trigger = trigger
         self.n_buffers = n_buffers
+        if frame_timeout_s is not None and frame_timeout_s <= window_ms * 1e-3:
+            raise ValueError(
+                f"frame_timeout_s {frame_timeout_s} s must exceed the window, {window_ms} ms"
+            )
+        self.frame_timeout_s = frame_timeout_s
         self._clock = clock
         self.serial = ""
         self.mode = f"{cols}x{rows} Mono16"
@@ -225,6 +234,7 @@ class GigEPanel:
         """Open the integration window of the next frame: drain late frames, then (software
         trigger) execute TriggerSoftware; the window lasts ``window_ms``."""
         self._usable("arm")
+        timeout_s = self._capped(timeout_s)
         self._drain()
         if self.trigger == "software":
             self._call("TriggerSoftware", self._camera.software_trigger, timeout_s)
@@ -233,6 +243,7 @@ class GigEPanel:
         """The window's frame, counts uint16 [row, col]; raises DeviceTimeout when none
         arrives within ``timeout_s``, DeviceError when it is lost, late or incomplete."""
         self._usable("read_frame")
+        timeout_s = self._capped(timeout_s)
         deadline = time.monotonic() + timeout_s
         while (buffer := self._stream.timeout_pop_buffer(self._slice_us(deadline))) is None:
             if self._control_lost.is_set():
@@ -424,6 +435,11 @@ class GigEPanel:
 
     def _name(self) -> str:
         return f"GigE panel {self.serial or self.device}"
+
+    def _capped(self, timeout_s: float) -> float:
+        """The caller's timeout, capped at :attr:`frame_timeout_s`."""
+        cap = self.frame_timeout_s
+        return timeout_s if cap is None else min(timeout_s, cap)
 
     def _usable(self, call: str) -> None:
         if self._camera is None:

@@ -83,6 +83,7 @@ class SimDetector:
         self._lock = threading.Lock()
         self._pending: tuple[View, ExposureSpec, int] | None = None
         self._armed = False
+        self._pulsed = threading.Event()
         self.exposures = 0
         self.true_views: list[View] = []
         self.connected = False
@@ -114,7 +115,22 @@ class SimDetector:
                 technique = ExposureSpec(tube_kv=kv, tube_ma=ma, pulse_ms=ms)
                 self._pending = (view, technique, number)
                 self._armed = False
+                self._pulsed.set()
         self._log("detector", f"integrated exposure {number}")
+
+    def integrate(self, window_s: float) -> np.ndarray:
+        """The sensor behind a read-out of its own (the fake GigE Vision panel's): the frame of
+        the first pulse that arrives within ``window_s`` s, else a dark frame, raw uint16. The
+        sensor stays armed between calls: the trigger that asks for a frame travels through
+        the camera while the generator may already be firing, and that pulse is the frame's."""
+        if not self._pulsed.wait(window_s):
+            with self._lock:
+                self._armed = True  # a dark frame
+        frame = self.read_frame(window_s)
+        with self._lock:
+            self._pulsed.clear()
+            self._armed = True
+        return np.asarray(frame.counts)
 
     def read_frame(self, timeout_s: float) -> SimFrame:
         with self._lock:
