@@ -82,6 +82,13 @@ Stage (lift + rotary)
 
 A protective stop halts the stage, sets ``pstop`` and refuses ``MOVE`` and ``SERVO`` with
 ``PSTOP`` until it is cleared at the controller (there is no host command for it).
+
+Other framings
+--------------
+:class:`SerialLink` takes the framing as an object (:class:`Framing`: the text of a request,
+its bytes, where a received frame ends, its :class:`Reply`); :class:`LineFraming`, the framing
+above, is the default. ``scanner.spellman`` gives it Spellman's ``<STX>CMD,ARG,...,<CSUM><ETX>``
+frames; request, reply, timeout, the urgent command and the error messages are the same.
 """
 
 from __future__ import annotations
@@ -93,6 +100,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Protocol
 
 import serial
 
@@ -188,6 +196,71 @@ def format_number(value: float) -> str:
     return "0" if text in ("", "-0") else text
 
 
+class Framing(Protocol):
+    """How requests and replies are framed on the wire (one instance serves any number of
+    links: it keeps no state).
+
+    Attributes:
+        unit: what a frame is called in messages ("line", "frame").
+        end: what ends a frame, in messages ("a line end", "ETX").
+        max_frame_bytes: longest reply frame accepted, its end included.
+    """
+
+    unit: str
+    end: str
+    max_frame_bytes: int
+
+    def request_text(self, command: str, args: tuple[object, ...]) -> str:
+        """The request as text (in messages, the audit and :attr:`Reply.request`); raises
+        ValueError for a command or argument the framing cannot carry."""
+        ...
+
+    def encode(self, text: str) -> bytes:
+        """The bytes of the request :meth:`request_text` gave."""
+        ...
+
+    def frame_end(self, buffer: bytes | bytearray) -> int:
+        """The length of the first complete frame at the start of ``buffer`` (junk before it
+        included), or -1 while none is complete."""
+        ...
+
+    def decode(self, frame: bytes, request: str) -> Reply:
+        """The reply one frame carries (``request``: the text it answers); raises FrameError
+        for a frame that is not a valid reply."""
+        ...
+
+
+class LineFraming:
+    """The line framing of this module: ``<body>*XX\\r\\n``, ``OK``/``ERR`` replies."""
+
+    unit = "line"
+    end = "a line end"
+    max_frame_bytes = MAX_LINE_BYTES
+
+    def request_text(self, command: str, args: tuple[object, ...]) -> str:
+        """``command`` and ``args`` separated by single spaces."""
+        if not command or any(c.isspace() for c in command):
+            raise ValueError(f"not a command word: {command!r}")
+        return " ".join([command, *(str(a) for a in args)])
+
+    def encode(self, text: str) -> bytes:
+        """``<text>*XX\\r\\n``."""
+        return encode_frame(text)
+
+    def frame_end(self, buffer: bytes | bytearray) -> int:
+        """Up to and including the first ``\\n``."""
+        end = buffer.find(b"\n")
+        return -1 if end < 0 else end + 1
+
+    def decode(self, frame: bytes, request: str) -> Reply:
+        """The ``OK``/``ERR`` reply of one line."""
+        return parse_reply(decode_frame(frame), request=request)
+
+
+LINE_FRAMING = LineFraming()
+"""The default framing of :class:`SerialLink`."""
+
+
 class SerialLink:
     """Request/response over one serial port, thread-safe (one request at a time).
 
@@ -202,6 +275,7 @@ class SerialLink:
         on_sent: called with each frame's body and the ``time.monotonic()`` taken just before
             its last check (a request's ``gate``) and write, once it is written: an audit of
             what was commanded when.
+        framing: how frames are made and read (default: the line framing of this module).
     """
 
     def __init__(
@@ -212,8 +286,10 @@ class SerialLink:
         baudrate: int = DEFAULT_BAUDRATE,
         write_timeout_s: float = 1.0,
         on_sent: Callable[[str, float], None] | None = None,
+        framing: Framing = LINE_FRAMING,
     ) -> None:
         self.port = port
+        self.framing = framing
         self.device = device
         self.baudrate = baudrate
         self.write_timeout_s = write_timeout_s
@@ -275,7 +351,7 @@ class SerialLink:
         try:
             self._ensure_open(body)
             self._discard_input(body)
-            self._write(encode_frame(body), body, gate)
+            self._write(self.framing.encode(body), body, gate)
             return self._read_reply(command, body, deadline, timeout_s)
         finally:
             self._lock.release()
@@ -287,7 +363,7 @@ class SerialLink:
         other commands, and the command is resent when a garbled line may have been its reply.
         """
         body = self._body(command, args)
-        frame = encode_frame(body)
+        frame = self.framing.encode(body)
         deadline = time.monotonic() + timeout_s
         if self._lock.acquire(blocking=False):
             try:
@@ -347,10 +423,7 @@ class SerialLink:
     # -- internals -------------------------------------------------------------------------
 
     def _body(self, command: str, args: tuple[object, ...]) -> str:
-        if not command or any(c.isspace() for c in command):
-            raise ValueError(f"not a command word: {command!r}")
-        words = [command, *(str(a) for a in args)]
-        return " ".join(words)
+        return self.framing.request_text(command, args)
 
     def _ensure_open(self, body: str) -> None:
         if self.is_open:
@@ -371,16 +444,20 @@ class SerialLink:
         return DeviceError(f"{self.device}: {body!r}: port {self.port} failed: {exc}")
 
     def _discard_input(self, body: str) -> None:
+        # the check and the discard under the urgent lock, which an urgent command takes to
+        # register before it is written: its reply cannot come in between and be discarded
         with self._urgent_lock:
             if self._urgent_waiting:  # an urgent reply may be in the input already
                 return
-        self._buffer.clear()
-        port = self._serial
-        assert port is not None
-        try:
-            port.reset_input_buffer()
-        except (OSError, serial.SerialException) as exc:
-            raise self._port_error(body, exc) from exc
+            self._buffer.clear()
+            port = self._serial
+            assert port is not None
+            try:
+                port.reset_input_buffer()
+                return
+            except (OSError, serial.SerialException) as exc:
+                failure = exc
+        raise self._port_error(body, failure) from failure
 
     def _write(self, frame: bytes, body: str, gate: Callable[[], None] | None = None) -> None:
         with self._write_lock:
@@ -401,24 +478,27 @@ class SerialLink:
         if self.on_sent is not None:
             self.on_sent(body, t_s)
 
-    def _read_line(self, body: str, deadline: float, timeout_s: float) -> bytes:
+    def _read_frame(self, body: str, deadline: float, timeout_s: float) -> bytes:
         port = self._serial
         assert port is not None
+        framing = self.framing
         while True:
-            end = self._buffer.find(b"\n")
+            end = framing.frame_end(self._buffer)
             if end >= 0:
-                line = bytes(self._buffer[: end + 1])
-                del self._buffer[: end + 1]
-                return line
-            if len(self._buffer) > MAX_LINE_BYTES:
+                frame = bytes(self._buffer[:end])
+                del self._buffer[:end]
+                return frame
+            if len(self._buffer) > framing.max_frame_bytes:
                 junk = bytes(self._buffer[:64])
                 self._buffer.clear()
                 raise DeviceError(
-                    f"{self.device}: reply to {body!r}: over {MAX_LINE_BYTES} bytes without a "
-                    f"line end: {junk!r}..."
+                    f"{self.device}: reply to {body!r}: over {framing.max_frame_bytes} bytes "
+                    f"without {framing.end}: {junk!r}..."
                 )
             if time.monotonic() >= deadline:
-                got = f"partial line {bytes(self._buffer)!r}" if self._buffer else "nothing"
+                got = "nothing"
+                if self._buffer:
+                    got = f"partial {framing.unit} {bytes(self._buffer)!r}"
                 self._buffer.clear()
                 raise DeviceTimeout(
                     f"{self.device}: no reply to {body!r} within {timeout_s:.3g} s (received {got})"
@@ -438,17 +518,17 @@ class SerialLink:
         resend: bytes | None = None,
     ) -> Reply:
         """The reply to ``command``; ``resend`` (urgent mode) skips other replies and resends
-        the frame after a garbled line."""
+        the frame after a garbled one."""
         while True:
-            line = self._read_line(body, deadline, timeout_s)
+            frame = self._read_frame(body, deadline, timeout_s)
             try:
-                reply = parse_reply(decode_frame(line), request=body)
+                reply = self.framing.decode(frame, body)
             except FrameError as exc:
                 if resend is not None:
                     self._write(resend, body)
                     continue
                 raise DeviceError(
-                    f"{self.device}: bad reply to {body!r}: {exc}: {line!r}"
+                    f"{self.device}: bad reply to {body!r}: {exc}: {frame!r}"
                 ) from None
             if reply.command == command:
                 return reply

@@ -1,11 +1,13 @@
-"""A mock serial device: a line protocol served on the master side of a pseudo-terminal.
+"""A mock serial device: a request/reply protocol served on the master side of a pseudo-terminal.
 
 The host opens :attr:`PtyDevice.port` (the pty's slave, e.g. ``/dev/pts/7``) with pyserial
-exactly as it opens a real device. Frames are ``<body>*XX\\r\\n`` with ``XX`` the sum of the
-body's bytes modulo 256 as two upper-case hex digits; replies are ``OK <CMD> ...`` or ``ERR
-<CMD> <CODE> <message>`` (the command set is specified in ``scanner/serial_link.py``; this is an
-independent implementation, sim imports nothing from scanner). A daemon thread reads requests
-and answers them; subclasses implement :meth:`PtyDevice._handle`.
+exactly as it opens a real device. A daemon thread reads requests and answers them; subclasses
+implement :meth:`PtyDevice._handle`. How frames look is a :class:`DeviceFraming` object; the
+default, :class:`LineFraming`, is the project's line protocol: frames ``<body>*XX\\r\\n`` with
+``XX`` the sum of the body's bytes modulo 256 as two upper-case hex digits, replies ``OK <CMD>
+...`` or ``ERR <CMD> <CODE> <message>`` (the command set is specified in
+``scanner/serial_link.py``; this is an independent implementation, sim imports nothing from
+scanner). ``sim.spellman`` frames Spellman's protocol.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ import threading
 import time
 import tty
 from collections.abc import Callable
-from typing import Any, NamedTuple, Self
+from typing import Any, NamedTuple, Protocol, Self
 
 MAX_LINE_BYTES = 256
 """Longest request line accepted, terminator included."""
@@ -53,6 +55,94 @@ class Refusal(Exception):
         self.message = message
 
 
+class FrameRejected(Exception):
+    """Raised by :meth:`DeviceFraming.decode`: the frame is not served; it is answered with a
+    refusal (``answer``) or ignored (no reply)."""
+
+    def __init__(self, command: str, code: str, message: str, *, answer: bool = True) -> None:
+        super().__init__(message)
+        self.command = command
+        self.code = code
+        self.message = message
+        self.answer = answer
+
+
+class DeviceFraming(Protocol):
+    """How a mock device reads requests and frames its replies (stateless, shareable).
+
+    Attributes:
+        max_frame_bytes: longest request frame accepted, its end included.
+        internal_error: the refusal code a mock's internal error is answered with.
+        overflow_reply: the reply body to a frame over ``max_frame_bytes`` (None: dropped).
+    """
+
+    max_frame_bytes: int
+    internal_error: str
+    overflow_reply: str | None
+
+    def frame_end(self, pending: bytes | bytearray) -> int:
+        """The length of the first complete frame at the start of ``pending`` (junk before it
+        included), or -1 while none is complete."""
+        ...
+
+    def decode(self, frame: bytes) -> tuple[str, list[str]]:
+        """The command and arguments of one request frame; raises :class:`FrameRejected`."""
+        ...
+
+    def encode(self, body: str) -> bytes:
+        """One reply frame around ``body``."""
+        ...
+
+    def refusal(self, command: str, code: str, message: str) -> str:
+        """The reply body refusing ``command``."""
+        ...
+
+
+class LineFraming:
+    """The line protocol: ``<body>*XX\\r\\n``; a bad frame is answered ``ERR``."""
+
+    max_frame_bytes = MAX_LINE_BYTES
+    internal_error = "FAULT"
+    overflow_reply = "ERR ? SYNTAX line too long"
+
+    def frame_end(self, pending: bytes | bytearray) -> int:
+        """Up to and including the first ``\\n``."""
+        end = pending.find(b"\n")
+        return -1 if end < 0 else end + 1
+
+    def decode(self, frame: bytes) -> tuple[str, list[str]]:
+        """The words of one line: checksum, then printable words."""
+        stripped = frame.rstrip(b"\r\n")
+        star = stripped.rfind(b"*")
+        body = stripped[:star] if star >= 0 else stripped
+        first = body.split(b" ", 1)[0]
+        printable = all(0x20 <= c <= 0x7E for c in body)
+        command = first.decode("ascii") if first and all(0x21 <= c <= 0x7E for c in first) else "?"
+        digits = stripped[star + 1 :] if star >= 0 else b""
+        if len(digits) != 2 or not all(chr(c) in "0123456789ABCDEFabcdef" for c in digits):
+            raise FrameRejected(command, "CHECKSUM", "missing '*XX' checksum")
+        if int(digits, 16) != frame_checksum(body):
+            raise FrameRejected(
+                command, "CHECKSUM", f"checksum {digits.decode()} != {frame_checksum(body):02X}"
+            )
+        words = body.decode("ascii").split() if printable else []
+        if not words:
+            raise FrameRejected(command, "SYNTAX", "empty or non-printable request")
+        return words[0], words[1:]
+
+    def encode(self, body: str) -> bytes:
+        """``<body>*XX\\r\\n``."""
+        return make_frame(body)
+
+    def refusal(self, command: str, code: str, message: str) -> str:
+        """``ERR <CMD> <CODE> <message>``."""
+        return f"ERR {command} {code} {message}"
+
+
+LINE_FRAMING = LineFraming()
+"""The default framing of :class:`PtyDevice`."""
+
+
 class Event(NamedTuple):
     """One logged event: monotonic sequence number, time since start (s), name, details."""
 
@@ -68,14 +158,21 @@ class PtyDevice:
     Args:
         name: device name (thread name, logs).
         on_event: ``on_event(name, info)`` for every logged event.
+        framing: how requests and replies are framed (default: the line protocol).
     """
 
     MODEL = "MOCK"
     VERSION = "1.0"
 
-    def __init__(self, name: str, on_event: EventCallback | None = None) -> None:
+    def __init__(
+        self,
+        name: str,
+        on_event: EventCallback | None = None,
+        framing: DeviceFraming = LINE_FRAMING,
+    ) -> None:
         self.name = name
         self.on_event = on_event
+        self.framing = framing
         self.port: str | None = None
         self._lock = threading.RLock()  # device state; held while handling and replying
         self._events: list[Event] = []
@@ -169,7 +266,7 @@ class PtyDevice:
     def _send(self, body: str) -> None:
         """Write one reply frame (call with the lock held)."""
         try:
-            os.write(self._master, make_frame(body))
+            os.write(self._master, self.framing.encode(body))
         except OSError:  # nobody reading and the pty buffer full, or closed: drop it
             pass
 
@@ -194,54 +291,44 @@ class PtyDevice:
                     pass
                 except OSError:
                     return
-                while (end := pending.find(b"\n")) >= 0:
-                    line = bytes(pending[: end + 1])
-                    del pending[: end + 1]
-                    self._receive(line)
-                if len(pending) > MAX_LINE_BYTES:
+                while (end := self.framing.frame_end(pending)) >= 0:
+                    frame = bytes(pending[:end])
+                    del pending[:end]
+                    self._receive(frame)
+                if len(pending) > self.framing.max_frame_bytes:
                     pending.clear()
-                    with self._lock:
-                        self._send("ERR ? SYNTAX line too long")
+                    overflow = self.framing.overflow_reply
+                    if overflow is not None:
+                        with self._lock:
+                            self._send(overflow)
             with self._lock:
                 self._tick(time.monotonic())
 
-    def _receive(self, line: bytes) -> None:
-        stripped = line.rstrip(b"\r\n")
-        star = stripped.rfind(b"*")
-        body = stripped[:star] if star >= 0 else stripped
-        first = body.split(b" ", 1)[0]
-        printable = all(0x20 <= c <= 0x7E for c in body)
-        command = first.decode("ascii") if first and all(0x21 <= c <= 0x7E for c in first) else "?"
-        digits = stripped[star + 1 :] if star >= 0 else b""
+    def _receive(self, frame: bytes) -> None:
         with self._lock:
-            if len(digits) != 2 or not all(chr(c) in "0123456789ABCDEFabcdef" for c in digits):
-                self._refused(command, "CHECKSUM", "missing '*XX' checksum")
-                return
-            if int(digits, 16) != frame_checksum(body):
-                self._refused(
-                    command,
-                    "CHECKSUM",
-                    f"checksum {digits.decode()} != {frame_checksum(body):02X}",
-                )
-                return
-            words = body.decode("ascii").split() if printable else []
-            if not words:
-                self._refused(command, "SYNTAX", "empty or non-printable request")
+            try:
+                command, args = self.framing.decode(frame)
+            except FrameRejected as rejected:
+                if rejected.answer:
+                    self._refused(rejected.command, rejected.code, rejected.message)
+                else:
+                    self._event("ignored", command=rejected.command, reason=rejected.message)
                 return
             try:
-                reply = self._handle(words[0], words[1:], time.monotonic())
+                reply = self._handle(command, args, time.monotonic())
             except Refusal as refusal:
-                self._refused(words[0], refusal.code, refusal.message)
+                self._refused(command, refusal.code, refusal.message)
                 return
             except Exception as exc:  # a bug in the mock: answer and keep serving
-                self._refused(words[0], "FAULT", f"internal error {type(exc).__name__}: {exc}")
+                message = f"internal error {type(exc).__name__}: {exc}"
+                self._refused(command, self.framing.internal_error, message)
                 return
             if reply is not None:
                 self._send(reply)
 
     def _refused(self, command: str, code: str, message: str) -> None:
         self._event("refused", command=command, code=code, message=message)
-        self._send(f"ERR {command} {code} {message}")
+        self._send(self.framing.refusal(command, code, message))
 
 
 def parse_floats(command: str, args: list[str], count: int) -> list[float]:
