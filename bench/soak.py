@@ -7,6 +7,9 @@ a random view of its own session; after each fault the scan is continued with ``
 
 - ``protective_stop``, ``generator_timeout``, ``dropped_frame``, ``interlock``: the simulated
   backend's hooks (``sim.backend.SimFaults``);
+- ``camera_gone``: with ``--gige-interface``, the simulated scans' panel is served as a GigE
+  Vision camera (``sim.gige_panel``) and read by the GigE Vision driver; this fault SIGKILLs
+  the camera's process when a view's frame is asked for (``camera_gone_at_view``);
 - ``controller_silent``: such a scan runs on the UR backend against two fake UR controllers
   (``sim.ur_controller``), the stage and the generator served over ptys by this process; one
   controller stops answering at a random set-point (``--silent-after-servo``). The scan's
@@ -34,8 +37,11 @@ Measured (printed as one JSON object):
 - ``exp_after_stop``: ``EXP`` commands sent after a stop signal, whether or not the generator
   fired (after its ABORT it refuses); ``pulses_in_flight_at_stop``: pulses whose ``EXP`` went
   out before the signal and whose X-ray came on after it (not counted above);
-  ``max_kill_call_ms``: the longest ``os.kill`` call, from the time before it (time to SAFE
-  runs from there) to its return (commands are judged against that);
+  ``pulses_in_flight_at_camera_gone``: a camera that dies while a frame's window is open
+  leaves that frame's pulse to fire (nothing can know before the frame timeout, from which
+  on pulses count as after the fault); ``max_kill_call_ms``: the longest ``os.kill`` call,
+  from the time before it (time to SAFE runs from there) to its return (commands are judged
+  against that);
 - ``max_time_to_safe_ms``: from a fault to X-ray off (the generator's ABORT) and every joint
   group stopped (a protective stop stops its arm; a silent controller cannot be stopped and is
   left out), over the faults the software is told of at once; faults found by a deadline
@@ -47,7 +53,8 @@ Each scan runs on a backend drawn from ``--backends`` (a ``controller_silent`` s
 backend, a ``dropped_frame`` one on the simulated backend, whose hook it is).
 
 Usage: ``python bench/soak.py [--scans 20] [--seed 0] [--views 24] [--kinds a,b,...]
-[--backends sim,ur]``.
+[--backends sim,ur] [--gige-interface 127.0.0.5]`` (without ``--gige-interface`` the
+``camera_gone`` kind is left out).
 """
 
 from __future__ import annotations
@@ -77,6 +84,7 @@ sys.path.insert(0, str(ROOT))
 
 from recon.config import ScanProtocol, load_config  # noqa: E402
 from recon.io import read_projections  # noqa: E402
+from scanner.backends import SIM_GIGE_FRAME_TIMEOUT_S  # noqa: E402
 from scanner.scan import ScanSettings  # noqa: E402
 from scanner.study import Study, sha256  # noqa: E402
 from scanner.ur import SILENCE_S  # noqa: E402
@@ -100,6 +108,7 @@ KINDS = (
     "sigquit",
     "sigkill",
     "disk_full",
+    "camera_gone",
 )
 BACKENDS = ("sim", "ur")
 SIM_HOOKS = {
@@ -107,7 +116,10 @@ SIM_HOOKS = {
     "generator_timeout": "generator_timeout_at_view",
     "dropped_frame": "dropped_frame_at_view",
     "interlock": "interlock_open_at_view",
+    "camera_gone": "camera_gone_at_view",
 }
+SIM_ONLY = ("dropped_frame", "camera_gone")
+"""Faults of the simulated backend's own hooks."""
 STOP_SIGNALS = {
     "sigint": signal.SIGINT,
     "sigterm": signal.SIGTERM,
@@ -121,8 +133,10 @@ DEVICE_TIMEOUT_S = ScanSettings().device_timeout_s
 BOUNDS_MS = {
     "generator_timeout": DEVICE_TIMEOUT_S * 1e3 + SIGNALLED_BOUND_MS,
     "controller_silent": (SILENCE_S + SAMPLE_DT_S) * 1e3 + SIGNALLED_BOUND_MS,
+    "camera_gone": SIM_GIGE_FRAME_TIMEOUT_S * 1e3 + SIGNALLED_BOUND_MS,
 }
-"""Faults found by a deadline: the deadline, then as fast as a signalled fault. A full disk on
+"""Faults found by a deadline: the deadline (a dead GigE Vision camera: the frame timeout), then
+as fast as a signalled fault. A full disk on
 the UR backend (wall clock) is found when the next view is about to be exposed (nothing is
 written between views): the plan's longest gap between views, then as fast
 (:meth:`Soak.bound_ms`); on the simulated backend's virtual clock views follow at once."""
@@ -162,7 +176,8 @@ class FaultRecord:
     time_to_safe_ms: float | None = None
     xray_after: int = 0
     exp_after: int = 0  # EXP commands sent after a stop signal
-    in_flight: int = 0  # pulses on after a stop signal whose EXP went out before it
+    in_flight: int = 0  # pulses on after a stop signal whose EXP went out before it, or
+    # after a camera died before its frame timeout
     note: str = ""
 
 
@@ -321,6 +336,7 @@ def injection_time(kind: str, events: list[Event]) -> float | None:
         "dropped_frame": lambda who, what: who == "detector" and what.startswith("dropped frame"),
         "interlock": lambda who, what: who == "generator" and what == "interlock",
         "controller_silent": lambda who, what: what == "silent",
+        "camera_gone": lambda who, what: who == "detector" and what == "camera gone",
     }[kind]
     times = [t for t, who, what in events if marks(who, what)]
     return min(times) if times else None
@@ -434,8 +450,10 @@ class Soak:
         seed: int,
         kinds: tuple[str, ...],
         backends: tuple[str, ...] = BACKENDS,
+        gige_interface: str | None = None,
     ) -> None:
         self.work, self.views, self.kinds, self.backends = work, views, kinds, backends
+        self.gige_interface = gige_interface
         self.rng = np.random.default_rng(seed)
         self.protocol_path = work / "protocol.yaml"
         data = protocol_data(views)
@@ -456,16 +474,16 @@ class Soak:
 
     def draw(self) -> list[str]:
         kinds = list(self.rng.choice(self.kinds, size=int(self.rng.integers(1, 3))))
-        if "controller_silent" in kinds:  # the UR backend's panel has no dropped-frame hook
-            kinds = [k for k in kinds if k != "dropped_frame"] or ["controller_silent"]
+        if "controller_silent" in kinds:  # the UR backend's panel has no such hooks
+            kinds = [k for k in kinds if k not in SIM_ONLY] or ["controller_silent"]
         return [str(k) for k in kinds]
 
     def backend_for(self, kinds: list[str]) -> str:
         """The scan's backend: the UR backend for a silent controller, the simulated one for
-        a dropped frame (their hooks), else drawn from ``backends``."""
+        a dropped frame or a camera gone (their hooks), else drawn from ``backends``."""
         if "controller_silent" in kinds:
             return "ur"
-        if "dropped_frame" in kinds:
+        if set(kinds) & set(SIM_ONLY):
             return "sim"
         return str(self.rng.choice(self.backends))
 
@@ -579,6 +597,8 @@ class Soak:
             faults[SIM_HOOKS[fault.kind]] = fault.view
         config = folder.parent / f"{folder.name}-session{session}-sim.yaml"
         spec = {"seed": 3, "faults": faults, "event_log": str(events_path)}
+        if self.gige_interface is not None:
+            spec["panel_gige_interface"] = self.gige_interface
         config.write_text(yaml.safe_dump(spec), encoding="utf-8")
         logs = set((study / "scan").glob("generator_commands-*.csv"))
         code = self.run_child(self.command("sim", study, config, session > 1), study, fault, log)
@@ -586,6 +606,15 @@ class Soak:
             events = read_sim_events(events_path)
             if fault.kind in SIM_HOOKS:
                 fault.injected_s = injection_time(fault.kind, events)
+            if fault.kind == "camera_gone" and fault.injected_s is not None:
+                # the camera died with a frame's window open (its trigger answered): that
+                # frame's pulse is in flight; nothing can know before the frame timeout
+                fault.certain_s = fault.injected_s + SIM_GIGE_FRAME_TIMEOUT_S
+                fault.in_flight = sum(
+                    fault.injected_s <= t < fault.certain_s
+                    for t, who, what in events
+                    if who == "generator" and what == "xray_on"
+                )
             exempt = {}
             time_to_safe(fault, events, exempt)
             command_log = new_command_log(study, logs)
@@ -689,8 +718,10 @@ def soak(
     kinds: tuple[str, ...] = KINDS,
     work: Path | None = None,
     backends: tuple[str, ...] = BACKENDS,
+    gige_interface: str | None = None,
 ) -> dict:
-    """Run the soak; the benchmark's JSON object."""
+    """Run the soak; the benchmark's JSON object. ``gige_interface``: the simulated scans'
+    panel served over GigE Vision on that address (the camera_gone fault needs it)."""
     unknown = sorted(set(kinds) - set(KINDS))
     if unknown:
         raise ValueError(f"unknown fault kinds {unknown}; kinds are {KINDS}")
@@ -698,8 +729,11 @@ def soak(
         raise ValueError(f"backends must be some of {BACKENDS}, got {backends}")
     if "controller_silent" in kinds and "ur" not in backends:
         raise ValueError("the controller_silent fault needs the ur backend in backends")
-    if "dropped_frame" in kinds and "sim" not in backends:
-        raise ValueError("the dropped_frame fault needs the sim backend in backends")
+    for kind in SIM_ONLY:
+        if kind in kinds and "sim" not in backends:
+            raise ValueError(f"the {kind} fault needs the sim backend in backends")
+    if "camera_gone" in kinds and gige_interface is None:
+        raise ValueError("the camera_gone fault needs --gige-interface (the panel over GigE)")
     if not 8 <= views <= 360:
         raise ValueError(f"views must be in [8, 360], got {views}")
     started = time.perf_counter()
@@ -707,7 +741,7 @@ def soak(
         if work is None:
             work = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="soak-")))
         work.mkdir(parents=True, exist_ok=True)
-        state = Soak(work, views, seed, kinds, backends)
+        state = Soak(work, views, seed, kinds, backends, gige_interface)
         for index in range(scans):
             state.scan(index)
     totals = state.totals
@@ -742,6 +776,7 @@ def soak(
         "scans_complete": totals.complete,
         "views_per_scan": views,
         "seed": seed,
+        "panel_over_gige": gige_interface,
         "faults": len(injected),
         "faults_by_kind": dict(sorted(Counter(f.kind for f in injected).items())),
         "faults_not_injected": len(totals.faults) - len(injected),
@@ -752,6 +787,9 @@ def soak(
         "x_ray_on_after_fault_by_kind": {k: v for k, v in sorted(xray_by_kind.items()) if v},
         "exp_after_stop": exp_after,
         "pulses_in_flight_at_stop": sum(f.in_flight for f in stops),
+        "pulses_in_flight_at_camera_gone": sum(
+            f.in_flight for f in injected if f.kind == "camera_gone"
+        ),
         "stop_signals_by_backend": dict(sorted(Counter(f.backend for f in stops).items())),
         "max_kill_call_ms": round(
             max((f.certain_s - f.injected_s for f in stops), default=0) * 1e3, 2
@@ -808,12 +846,23 @@ def main() -> None:
     parser.add_argument(
         "--backends", default=",".join(BACKENDS), help="backends the scans are drawn from"
     )
+    parser.add_argument(
+        "--gige-interface",
+        default=None,
+        help="serve the simulated scans' panel over GigE Vision on this address (127.0.0.5; "
+        "the camera_gone fault needs it)",
+    )
     args = parser.parse_args()
     if args.work is not None and args.work.exists() and any(args.work.iterdir()):
         parser.error(f"--work {args.work} exists and is not empty")
     kinds = tuple(k for k in args.kinds.split(",") if k)
     backends = tuple(b for b in args.backends.split(",") if b)
-    print(json.dumps(soak(args.scans, args.seed, args.views, kinds, args.work, backends)))
+    if args.gige_interface is None and "camera_gone" in kinds:
+        kinds = tuple(k for k in kinds if k != "camera_gone")  # no camera to lose
+    result = soak(
+        args.scans, args.seed, args.views, kinds, args.work, backends, args.gige_interface
+    )
+    print(json.dumps(result))
 
 
 if __name__ == "__main__":

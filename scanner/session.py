@@ -416,7 +416,8 @@ def panel_maps(
     ``detector_maps`` folder, for the connected panel's serial number and mode (refused when
     older than ``max_map_age_days``); with no folder on the simulated backend, the simulated
     panel is calibrated now (:func:`scanner.detector_calibration.calibrate_detector` on a
-    fault-free twin of the session's devices, beam clear)."""
+    fault-free twin of the session's devices, beam clear, its panel read directly: the
+    session's own already serves it over GigE Vision when asked to)."""
     spec = inputs.backend
     e = inputs.protocol.exposure
     if spec.detector_maps is not None:
@@ -435,7 +436,8 @@ def panel_maps(
             f"the {inputs.backend_kind} backend config names no detector_maps folder: run "
             "`cbct detector-calibrate` and set detector_maps to its output"
         )
-    twin = spec.model_copy(update={"faults": SimFaults(), "event_log": None, "start_pose": None})
+    quiet = {"faults": SimFaults(), "event_log": None, "start_pose": None}
+    twin = spec.model_copy(update=quiet | {"panel_gige_interface": None})  # its camera is open
     sdd = inputs.protocol.orbit.sdd_mm
     devices, _ = open_backend(twin, model, start_q, panel, sdd, _beam_clear(panel))
     try:

@@ -3,10 +3,11 @@
 :func:`simulated_scanner` builds every simulated device of one scan session from a
 :class:`SimBackendSpec` (``configs/backends/sim.yaml``): the arms start at the plan's first
 configuration (or at the spec's ``start_pose``), the generator is served over a pty (the
-scanner drives it with its real serial driver), and the panel renders the subject through the
-view the arms truly realise at each pulse, vibration included. Faults are injected from the
-spec: a protective stop, a generator that stops answering, a dropped frame, an interlock that
-opens, each at a given view (the number of views acquired before it happens, counted in this
+scanner drives it with its real serial driver; ``generator_protocol: spellman`` serves a mock
+Spellman supply instead), and the panel renders the subject through the view the arms truly
+realise at each pulse, vibration included. Faults are injected from the spec: a protective
+stop, a generator that stops answering, a dropped frame, an interlock that opens, each at a
+given view (the number of views acquired before it happens, counted in this
 session). ``event_log`` streams the device events to a file as they happen, with wall-clock
 times (bench/soak.py times the way to SAFE from it).
 """
@@ -16,9 +17,10 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from recon.geometry import DetectorSpec, Geometry, View
 from recon.project import JosephProjector
@@ -27,6 +29,7 @@ from sim.arms import GROUPS, MockArm, SimWorld, VirtualClock
 from sim.detector import SimDetector
 from sim.generator import MockGenerator
 from sim.panel import SimPanelSpec
+from sim.spellman import MockSpellman
 from sim.vibration import VibrationSpec, vibrate_at
 from trajectories.model import ScannerModel
 from trajectories.plan import view_at
@@ -43,6 +46,9 @@ class SimFaults(BaseModel):
     generator_timeout_at_view: int | None = Field(None, ge=0)
     dropped_frame_at_view: int | None = Field(None, ge=0)
     interlock_open_at_view: int | None = Field(None, ge=0)
+    camera_gone_at_view: int | None = Field(
+        None, ge=0, description="the GigE Vision panel's process killed (panel_gige_interface)"
+    )
 
 
 class SimStartPose(BaseModel):
@@ -74,6 +80,15 @@ class SimBackendSpec(BaseModel):
     )
     vibration: VibrationSpec = VibrationSpec(source_mm=0.3, detector_mm=0.3, detector_deg=0.05)
     warmup_s: float = Field(0.05, ge=0.0, le=60.0, description="generator warm-up, s")
+    generator_protocol: Literal["line", "spellman"] = Field(
+        "line", description="the generator's serial protocol: ours, or Spellman's (MockSpellman)"
+    )
+    generator_kv_full_scale: float = Field(
+        150.0, gt=0.0, description="Spellman: kV at set-point count 4095, kVp"
+    )
+    generator_ma_full_scale: float = Field(
+        100.0, gt=0.0, description="Spellman: mA at set-point count 4095, mA"
+    )
     seed: int = 0
     faults: SimFaults = SimFaults()
     start_pose: SimStartPose | None = Field(
@@ -84,12 +99,27 @@ class SimBackendSpec(BaseModel):
         description="file the device events are appended to as they happen (sim.arms.SimWorld)",
     )
     panel: SimPanelSpec = SimPanelSpec()
+    panel_gige_interface: str | None = Field(
+        None,
+        description="serve the simulated panel as a GigE Vision camera on this address (an "
+        "interface's own, e.g. 127.0.0.4) and read it with the GigE Vision driver; None: read "
+        "it directly",
+    )
     detector_maps: str | None = Field(
         None,
         description="folder of the panel's maps (cbct detector-calibrate); None: the simulated "
         "panel is calibrated at the start of each session",
     )
     max_map_age_days: float = Field(7.0, gt=0.0, description="oldest detector maps a scan uses")
+
+    @model_validator(mode="after")
+    def _camera_gone_needs_the_camera(self) -> SimBackendSpec:
+        if self.faults.camera_gone_at_view is not None and self.panel_gige_interface is None:
+            raise ValueError(
+                "faults.camera_gone_at_view needs panel_gige_interface (the panel served over "
+                "GigE Vision)"
+            )
+        return self
 
 
 def volume_subject(volume: Volume) -> Callable[[View], np.ndarray]:
@@ -112,7 +142,7 @@ class SimulatedScanner:
     stage: MockArm
     source_arm: MockArm
     detector_arm: MockArm
-    generator: MockGenerator
+    generator: MockGenerator | MockSpellman
     detector: SimDetector
 
     def close(self) -> None:
@@ -175,14 +205,20 @@ def simulated_scanner(
     def one_based(view: int | None) -> int | None:
         return None if view is None else view + 1
 
-    generator = MockGenerator(
-        warmup_s=spec.warmup_s,
-        time_scale=0.0,
-        timeout_at_exposure=one_based(faults.generator_timeout_at_view),
-        interlock_open_at_exposure=one_based(faults.interlock_open_at_view),
-        on_event=lambda name, info: world.log("generator", name),
-        on_exposure=exposed,
-    )
+    generator_faults = {
+        "timeout_at_exposure": one_based(faults.generator_timeout_at_view),
+        "interlock_open_at_exposure": one_based(faults.interlock_open_at_view),
+        "on_event": lambda name, info: world.log("generator", name),
+        "on_exposure": exposed,
+    }
+    if spec.generator_protocol == "spellman":  # no warm-up; the host times the pulses
+        generator: MockGenerator | MockSpellman = MockSpellman(
+            kv_full_scale=spec.generator_kv_full_scale,
+            ma_full_scale=spec.generator_ma_full_scale,
+            **generator_faults,
+        )
+    else:
+        generator = MockGenerator(warmup_s=spec.warmup_s, time_scale=0.0, **generator_faults)
     generator.start()
     return SimulatedScanner(
         world,

@@ -225,6 +225,8 @@ REALTIME = (
     "scanner/test_ur_move.py",
     "scanner/test_ur_scan.py",
     "scanner/test_gige_realtime.py",
+    "scanner/test_gige_scan.py",
+    "scanner/test_spellman.py",
     "test_bench_soak.py",
 )
 """Tests (folders or files under tests/) that drive devices on real clocks and bound their
