@@ -41,6 +41,18 @@ FULL: dict[str, list[str]] = {"registration": ["--ablation-sequences", "1"]}
 """Arguments of the full runs (the ones docs/benchmarks.md publishes); others run without any."""
 QUICK: dict[str, list[str]] = {
     "calibration": ["--views", "90"],
+    "detector": [
+        "--frames",
+        "60",
+        "--gone-trials",
+        "2",
+        "--views",
+        "90",
+        "--panel",
+        "128",
+        "--voxel-mm",
+        "2",
+    ],
     "recon": ["--small"],
     "registration": ["--quick"],
     "scan": ["--small"],

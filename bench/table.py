@@ -300,6 +300,7 @@ DEADLINE_BOUNDS = {
     "generator_timeout": "generator_timeout",
     "controller_silent": "controller_silent",
     "disk_full": "disk_full_ur_backend",
+    "camera_gone": "camera_gone",
 }
 """Faults found by a deadline, and the key of their bound in ``time_to_safe_bound_ms``."""
 
@@ -343,8 +344,40 @@ def soak_table(r: dict) -> str:
     return table(header, [row])
 
 
+def detector_table(r: dict) -> str:
+    """Two rows: the panel over GigE Vision (frames, lost, rate, a dead camera's time to the
+    error), and the corrections (RMSE and rings of the demo knee)."""
+    gige = (
+        ""
+        if "gige_skipped" in r
+        else (
+            f"{r['gige_frames']}/{r['gige_frames_requested']} frames, {r['gige_lost']} lost, "
+            f"{fixed(r['gige_fps'], 0)} frames/s; camera gone -> error in "
+            f"{fixed(r['gige_camera_gone_to_error_s'] * 1e3, 0)} ms = "
+            f"{fixed(r['gige_camera_gone_frame_periods'], 1)} frame periods at "
+            f"{fixed(r['gige_camera_gone_fps'], 0)} frames/s (target <= 3)"
+        )
+    )
+    rows = [("GigE Vision, 512² Mono16 on loopback", gige or r.get("gige_skipped", ""))]
+    if "rmse_ideal_panel" in r:
+        rows.append(
+            (
+                f"demo knee, {r['recon']['views']} views of {r['recon']['pixels']}², "
+                f"{r['recon']['voxel_mm']} mm voxels",
+                f"RMSE ideal / corrected / uncorrected {sig(r['rmse_ideal_panel'], 4)} / "
+                f"{sig(r['rmse_corrected'], 4)} / {sig(r['rmse_uncorrected'], 4)} /mm "
+                f"(corrected {fixed(100 * (r['rmse_corrected_over_ideal'] - 1), 2)} % above "
+                f"ideal, target 2 %); rings {fixed(r['ring_amplitude_ideal_panel'], 2)} / "
+                f"{fixed(r['ring_amplitude_corrected'], 2)} / "
+                f"{fixed(r['ring_amplitude_uncorrected'], 0)} noise SDs (target < 1)",
+            )
+        )
+    return table(("case", "measured"), rows)
+
+
 TABLES: dict[str, Callable[[dict], str]] = {
     "calibration": calibration_table,
+    "detector": detector_table,
     "plan": plan_table,
     "recon": recon_table,
     "registration": registration_table,

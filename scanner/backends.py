@@ -12,6 +12,7 @@ against the fake UR controllers without a panel.
 
 from __future__ import annotations
 
+import itertools
 import shutil
 import tempfile
 import time
@@ -268,9 +269,10 @@ def _panel_over_gige(
     sensor.arm(0.0)
     gone_at = spec.faults.camera_gone_at_view
     camera = None
+    frames = itertools.count()  # frames asked for in this session: one per view
 
     def integrate(window_s: float) -> np.ndarray:
-        if gone_at is not None and camera is not None and sensor.exposures == gone_at:
+        if next(frames) == gone_at and camera is not None:
             simulated.world.log("detector", "camera gone")
             camera.kill()
         return sensor.integrate(window_s)
