@@ -11,7 +11,8 @@ serving our sensor's frames, on a loopback address):
   ``gige_frame_period_ms`` (median) and ``gige_frame_period_p99_ms`` the arm-to-arm period;
   ``gige_stream_*`` Aravis's stream counters (missing and resent packets, underruns).
 - ``gige_camera_gone_to_error_s``: an acquisition paced at ``--gone-fps`` frames/s whose arm
-  and read wait at most two frame periods (``gige_frame_timeout_s``), the fake panel SIGKILLed
+  and read wait at most two frame periods (``gige_frame_timeout_s``; one warm-up frame read
+  when it connects: the first after the stream starts is late), the fake panel SIGKILLed
   at a random moment (``--gone-trials`` times, a new panel each); the time from the kill to
   the driver's error (DeviceError or DeviceTimeout from arm or read_frame), the worst trial
   (``..._median_s`` the median, ``..._each_s`` each), ``gige_camera_gone_frame_periods`` the
@@ -137,7 +138,7 @@ def _one_kill(interface: str, period_s: float, delay_s: float) -> tuple[float, s
     with fake_panel_with_sensor(interface, SERIAL, ROWS, COLS, sensor) as (fake, _):
         panel = GigEPanel(
             interface, ROWS, COLS, PIXEL_PITCH_MM, window_ms=WINDOW_MS,
-            frame_timeout_s=2 * period_s,
+            frame_timeout_s=2 * period_s, warmup_frames=1,
         )  # fmt: skip
         panel.connect(5.0)
         killer = threading.Timer(delay_s, fake.kill)
