@@ -85,7 +85,9 @@ sys.path.insert(0, str(ROOT))
 from recon.config import ScanProtocol, load_config  # noqa: E402
 from recon.io import read_projections  # noqa: E402
 from scanner.backends import SIM_GIGE_FRAME_TIMEOUT_S  # noqa: E402
+from scanner.detector_calibration import calibrate_session  # noqa: E402
 from scanner.scan import ScanSettings  # noqa: E402
+from scanner.session import read_inputs  # noqa: E402
 from scanner.study import Study, sha256  # noqa: E402
 from scanner.ur import SILENCE_S  # noqa: E402
 from sim.generator import MockGenerator  # noqa: E402
@@ -464,10 +466,27 @@ class Soak:
         self.disk_full_method = "tmpfs"
         self.view_gap_ms = float(np.diff(self.plan.view_times_s).max()) * 1e3
 
+    def panel_maps(self) -> Path:
+        """The UR scans' panel maps, made once by ``cbct detector-calibrate``'s code on the
+        simulated backend: the UR backend's simulated panel is the same panel (serial, mode)."""
+        folder = self.work / "detector-maps"
+        if not folder.is_dir():
+            inputs = read_inputs(
+                self.protocol_path,
+                CONFIGS / "scanner.yaml",
+                "sim",
+                CONFIGS / "backends" / "sim.yaml",
+                CONFIGS / "phantoms" / "knee.yaml",
+            )
+            calibrate_session(inputs, folder, 16)
+        return folder
+
     def bound_ms(self, fault: FaultRecord) -> float:
         """The time to SAFE the fault is held to."""
         if fault.kind == "disk_full" and fault.backend == "ur":
             return self.view_gap_ms + SIGNALLED_BOUND_MS
+        if fault.kind == "dropped_frame" and self.gige_interface is not None:
+            return BOUNDS_MS["camera_gone"]  # over GigE Vision: found at the frame timeout
         return BOUNDS_MS.get(fault.kind, SIGNALLED_BOUND_MS)
 
     # one scan ---------------------------------------------------------------------------
@@ -681,6 +700,7 @@ class Soak:
                 "detector_host": UR_HOSTS[1],
                 "stage_port": stage.port,
                 "generator_port": generator.port,
+                "detector_maps": str(self.panel_maps()),
             }
             config.write_text(yaml.safe_dump(spec), encoding="utf-8")
             logs = set((study / "scan").glob("generator_commands-*.csv"))
@@ -802,6 +822,7 @@ def soak(
             "signalled": SIGNALLED_BOUND_MS,
             **{k: round(v, 1) for k, v in BOUNDS_MS.items()},
             "disk_full_ur_backend": round(state.view_gap_ms + SIGNALLED_BOUND_MS, 1),
+            **({"dropped_frame_over_gige": BOUNDS_MS["camera_gone"]} if gige_interface else {}),
         },
         "silent_controller_bound_ms": round(BOUNDS_MS["controller_silent"], 1),
         "silence_s": SILENCE_S,

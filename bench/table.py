@@ -301,6 +301,7 @@ DEADLINE_BOUNDS = {
     "controller_silent": "controller_silent",
     "disk_full": "disk_full_ur_backend",
     "camera_gone": "camera_gone",
+    "dropped_frame": "dropped_frame_over_gige",
 }
 """Faults found by a deadline, and the key of their bound in ``time_to_safe_bound_ms``."""
 

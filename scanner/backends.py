@@ -31,7 +31,7 @@ from scanner.serial_link import DEFAULT_BAUDRATE
 from scanner.spellman import SpellmanGenerator
 from scanner.stage import SerialStage
 from sim.backend import ARM_JOINTS, SimBackendSpec, simulated_scanner
-from sim.detector import SimDetector
+from sim.detector import FrameTimeout, SimDetector
 from sim.vibration import vibrate_at
 from trajectories.model import ScannerModel
 from trajectories.plan import view_at
@@ -260,7 +260,7 @@ def _panel_over_gige(
     (:mod:`sim.gige_panel`, its sensor the simulated panel's :meth:`SimDetector.integrate`),
     and the GigE Vision driver that reads it; with what stops the camera. The camera-gone
     fault kills the camera's process when the frame of view ``camera_gone_at_view`` is asked
-    for."""
+    for; a dropped frame (``dropped_frame_at_view``) comes after the driver's frame timeout."""
     from scanner.gige import GigEPanel
     from sim.gige_panel import serve_sensor, start_fake_panel
 
@@ -275,7 +275,11 @@ def _panel_over_gige(
         if next(frames) == gone_at and camera is not None:
             simulated.world.log("detector", "camera gone")
             camera.kill()
-        return sensor.integrate(window_s)
+        try:
+            return sensor.integrate(window_s)
+        except FrameTimeout:  # the dropped-frame fault: the frame comes after the host gave up
+            time.sleep(SIM_GIGE_FRAME_TIMEOUT_S + SIM_GIGE_WINDOW_MS * 1e-3)
+            raise
 
     folder = Path(tempfile.mkdtemp(prefix="cbct-panel-"))
     server = serve_sensor(integrate, folder / "sensor.sock")

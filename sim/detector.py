@@ -126,11 +126,12 @@ class SimDetector:
         if not self._pulsed.wait(window_s):
             with self._lock:
                 self._armed = True  # a dark frame
-        frame = self.read_frame(window_s)
-        with self._lock:
-            self._pulsed.clear()
-            self._armed = True
-        return np.asarray(frame.counts)
+        try:
+            return np.asarray(self.read_frame(window_s).counts)
+        finally:
+            with self._lock:
+                self._pulsed.clear()
+                self._armed = True
 
     def read_frame(self, timeout_s: float) -> SimFrame:
         with self._lock:
