@@ -193,6 +193,12 @@ class Settings(BaseModel):
         description="patellofemoral prior: (mm, deg) of the patella's medial-lateral shift and "
         "out-of-plane tilt relative to the femur since the static scan; None turns it off",
     )
+    depth_step_sigma_mm: PositiveFloat | None = Field(
+        None,
+        description="depth prior: sigma of a body's move along the view's axis (its depth) "
+        "from the frame before, mm; None turns it off (a lateral view's knee moves across "
+        "the beam, and its depth is the least seen of its six degrees of freedom)",
+    )
     prior_weight: float = Field(
         0.005, ge=0.0, description="prior cost in NCC units per sigma squared"
     )
@@ -544,6 +550,7 @@ class Tracker:
         """Per bone: its rotation when its blur was estimated (the static scan's, identity,
         for a blur given in the settings). The blur is the CBCT's, so it turns with the bone."""
         self._last_ncc: dict[str, float] = {}
+        self._before: dict[str, np.ndarray] = {}  # the frame before's poses (the depth prior)
         self._outside: dict[int, np.ndarray] = {}
         """Per pyramid level: the pixels outside the exposed field (:meth:`_outside_field`)."""
         self._extensions: dict[int, np.ndarray] = {}
@@ -723,10 +730,20 @@ class Tracker:
         return self._split[knee, name]
 
     def _prior(self, name: str, poses: dict[str, np.ndarray]) -> Callable | None:
-        """The patellofemoral prior of a carried bone (the patella, :data:`CARRIER`) against
-        its carrier's estimate (the femur), else None: a function of the pose whose squared
-        norm is the prior's cost (its shift and the three components of its tilt, each
-        scaled, so a least-squares residual stays smooth at zero)."""
+        """The priors of bone ``name`` as a function of its pose whose squared norm is their
+        cost (each term scaled, so a least-squares residual stays smooth at zero), or None:
+        the patellofemoral prior of a carried bone (the patella, :data:`CARRIER`) against its
+        carrier's estimate (the femur), and the depth prior against the frame before."""
+        terms = [t for t in (self._patellofemoral(name, poses), self._depth(name)) if t]
+        if not terms:
+            return None
+        if len(terms) == 1:
+            return terms[0]
+        return lambda T: np.concatenate([term(T) for term in terms])
+
+    def _patellofemoral(self, name: str, poses: dict[str, np.ndarray]) -> Callable | None:
+        """The patellofemoral prior's terms: the patella's shift and the three components of
+        its tilt relative to the femur's estimate; None for other bones."""
         s = self.settings
         carrier = CARRIER.get(name)
         if carrier not in poses or s.patellofemoral_sigma is None:
@@ -741,6 +758,21 @@ class Tracker:
             return scale * patellofemoral_offsets(T_femur, T, center, axis)
 
         return prior
+
+    def _depth(self, name: str) -> Callable | None:
+        """The depth prior's term: the move of the bone's centroid along the view's axis from
+        the frame before, over ``depth_step_sigma_mm``; None on the first frame or when off."""
+        s = self.settings
+        if s.depth_step_sigma_mm is None or name not in self._before:
+            return None
+        view, center = self.view, np.append(self.bones[name].centroid_mm, 1.0)
+        scale = math.sqrt(s.prior_weight) / s.depth_step_sigma_mm
+
+        def depth_mm(T: np.ndarray) -> float:
+            return float(view.depth((T @ center)[:3])[0]) * view.sdd_mm
+
+        before = depth_mm(self._before[name])
+        return lambda T: np.array([scale * (depth_mm(T) - before)])
 
     def _refine(
         self,
@@ -979,6 +1011,7 @@ class Tracker:
         self._split.clear()
         self._targets = {k: t for k, t in self._targets.items() if k[0] == frame}
         self._blurred = {k: b for k, b in self._blurred.items() if k[0] == frame}
+        self._before = history[-1] if history else {}
         if s.kpm and len(history) >= 2:  # every bone at its constant-velocity prediction first
             poses = {
                 b: predict(history[-2][b], history[-1][b], self.bones[b].centroid_mm)

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from registration.boneaxis import Settings, Tracker
 from registration.implants import MATERIALS, implant_model, ray_lengths, read_mesh, voxelize
 from registration.jointtrack import camera_view, read_calibration, read_poses
 
@@ -179,3 +180,30 @@ def test_real_frames_meet_the_issues_targets_from_a_far_start(seed, measured):
         measured(f"{name}_in_plane_mm", entry[name]["in_plane_mm_median"], below=0.5)
         measured(f"{name}_depth_mm", entry[name]["depth_mm_median"], below=2.0)
         measured(f"{name}_rotation_deg", entry[name]["rotation_deg_median"], below=1.0)
+
+
+def test_the_depth_prior_weighs_a_move_along_the_view_axis_only():
+    """The depth prior's residual, against the frame before: zero at that pose and for any
+    move across the beam (the depth w is linear in the point), sqrt(prior_weight) per
+    ``depth_step_sigma_mm`` of move along the view's axis; nothing on the first frame."""
+    view = camera_view(1198.0, 0.0, 0.0, 0.373, 64, 64)
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=10.0)
+    model = implant_model("femur", ball, MATERIALS["CoCr"])
+    settings = Settings(depth_step_sigma_mm=4.0, prior_weight=0.005)
+    tracker = Tracker(view, np.zeros((1, 64, 64)), {"femur": model}, settings)
+    assert tracker._prior("femur", {}) is None  # no frame before
+    before = np.eye(4)
+    before[:3, 3] = (0.0, 0.0, -900.0)
+    tracker._before = {"femur": before}
+    prior = tracker._prior("femur", {"femur": before})
+
+    def moved(offset_mm: np.ndarray) -> np.ndarray:
+        T = before.copy()
+        T[:3, 3] += offset_mm
+        return T
+
+    assert prior(before) == pytest.approx([0.0], abs=1e-9)
+    across = np.cross(view.normal, (1.0, 0.0, 0.0))
+    assert prior(moved(7.0 * across / np.linalg.norm(across))) == pytest.approx([0.0], abs=1e-9)
+    step = prior(moved(8.0 * view.normal))  # two sigmas along the axis
+    assert np.abs(step) == pytest.approx([2.0 * np.sqrt(0.005)], rel=1e-9)
