@@ -193,11 +193,11 @@ class Settings(BaseModel):
         description="patellofemoral prior: (mm, deg) of the patella's medial-lateral shift and "
         "out-of-plane tilt relative to the femur since the static scan; None turns it off",
     )
-    depth_step_sigma_mm: PositiveFloat | None = Field(
-        None,
-        description="depth prior: sigma of a body's move along the view's axis (its depth) "
-        "from the frame before, mm; None turns it off (a lateral view's knee moves across "
-        "the beam, and its depth is the least seen of its six degrees of freedom)",
+    depth_step_sigma_mm: dict[str, PositiveFloat] = Field(
+        default_factory=dict,
+        description="depth prior, by body: sigma of its move along the view's axis (its depth) "
+        "from the frame before, mm; a body not named has none (a lateral view's knee moves "
+        "across the beam, and its depth is the least seen of its six degrees of freedom)",
     )
     prior_weight: float = Field(
         0.005, ge=0.0, description="prior cost in NCC units per sigma squared"
@@ -761,12 +761,14 @@ class Tracker:
 
     def _depth(self, name: str) -> Callable | None:
         """The depth prior's term: the move of the bone's centroid along the view's axis from
-        the frame before, over ``depth_step_sigma_mm``; None on the first frame or when off."""
+        the frame before, over its ``depth_step_sigma_mm``; None on the first frame or for a
+        bone without one."""
         s = self.settings
-        if s.depth_step_sigma_mm is None or name not in self._before:
+        sigma_mm = s.depth_step_sigma_mm.get(name)
+        if sigma_mm is None or name not in self._before:
             return None
         view, center = self.view, np.append(self.bones[name].centroid_mm, 1.0)
-        scale = math.sqrt(s.prior_weight) / s.depth_step_sigma_mm
+        scale = math.sqrt(s.prior_weight) / sigma_mm
 
         def depth_mm(T: np.ndarray) -> float:
             return float(view.depth((T @ center)[:3])[0]) * view.sdd_mm

@@ -185,11 +185,12 @@ def test_real_frames_meet_the_issues_targets_from_a_far_start(seed, measured):
 def test_the_depth_prior_weighs_a_move_along_the_view_axis_only():
     """The depth prior's residual, against the frame before: zero at that pose and for any
     move across the beam (the depth w is linear in the point), sqrt(prior_weight) per
-    ``depth_step_sigma_mm`` of move along the view's axis; nothing on the first frame."""
+    ``depth_step_sigma_mm`` of move along the view's axis; nothing on the first frame, nor
+    for a body it does not name."""
     view = camera_view(1198.0, 0.0, 0.0, 0.373, 64, 64)
     ball = trimesh.creation.icosphere(subdivisions=2, radius=10.0)
     model = implant_model("femur", ball, MATERIALS["CoCr"])
-    settings = Settings(depth_step_sigma_mm=4.0, prior_weight=0.005)
+    settings = Settings(depth_step_sigma_mm={"femur": 4.0}, prior_weight=0.005)
     tracker = Tracker(view, np.zeros((1, 64, 64)), {"femur": model}, settings)
     assert tracker._prior("femur", {}) is None  # no frame before
     before = np.eye(4)
@@ -207,3 +208,7 @@ def test_the_depth_prior_weighs_a_move_along_the_view_axis_only():
     assert prior(moved(7.0 * across / np.linalg.norm(across))) == pytest.approx([0.0], abs=1e-9)
     step = prior(moved(8.0 * view.normal))  # two sigmas along the axis
     assert np.abs(step) == pytest.approx([2.0 * np.sqrt(0.005)], rel=1e-9)
+    unnamed = Settings(depth_step_sigma_mm={"tibia_fibula": 4.0})
+    other = Tracker(view, np.zeros((1, 64, 64)), {"femur": model}, unnamed)
+    other._before = {"femur": before}
+    assert other._prior("femur", {"femur": before}) is None
