@@ -34,7 +34,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy import ndimage
 
 DEFECT_SIGMAS = 8.0
 """A pixel whose dark mean, dark noise or gain lies this many robust standard deviations from
@@ -248,39 +247,69 @@ def derive_maps(
     )
 
 
-def fill_defects(image: np.ndarray, defects: np.ndarray) -> np.ndarray:
-    """``image`` with its defective pixels filled from good neighbours; in place, returned.
+CUBIC = np.array([-1.0, 4.0, 4.0, -1.0]) / 6.0
+"""Weights of the two good neighbours each side that fill a pixel (exact for a cubic)."""
 
-    A pixel whose two good neighbours on each side along its row (along its column when its
-    row is defective as a whole) are good takes their cubic interpolation,
-    ``(-a + 4 b + 4 c - d) / 6``: exact for a cubic, so that a dead column leaves no ring of
-    the projection's curvature. The others take the mean of their good 3 x 3 neighbours,
-    widened to 7 x 7 where that has none."""
-    if not defects.any():
+
+class DefectFill:
+    """Fills a panel's defective pixels from good neighbours, planned once per defect map.
+
+    A pixel whose two neighbours on each side along its row (along its column when its row
+    is defective as a whole) are good takes their cubic interpolation, ``(-a + 4 b + 4 c -
+    d) / 6``: exact for a cubic, so that a dead column leaves no ring of the projection's
+    curvature. The others take the mean of their good 3 x 3 neighbours (edges replicated),
+    widened to 7 x 7 where that has none. Pixels filled in a step are good for the next. The
+    plan (which pixels, from which, with what weights) depends on the map alone, so a frame
+    costs a gather over the defects, not filters over the whole panel.
+
+    Args:
+        defects: the defect map, bool (rows, cols).
+    """
+
+    def __init__(self, defects: np.ndarray) -> None:
+        rows, cols = defects.shape
+        bad = np.asarray(defects, dtype=bool).copy()
+        self._steps: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        lines = bad.all(axis=1)
+        r, c = np.nonzero(bad & ~lines[:, None])
+        self._cubic(bad, r, c, (r[:, None], c[:, None] + np.array([-2, -1, 1, 2])))
+        r, c = np.nonzero(bad & lines[:, None])
+        self._cubic(bad, r, c, (r[:, None] + np.array([-2, -1, 1, 2]), c[:, None]))
+        for half in (1, 3):
+            r, c = np.nonzero(bad)
+            if not len(r):
+                break
+            dr, dc = (a.ravel() for a in np.mgrid[-half : half + 1, -half : half + 1])
+            nr = np.clip(r[:, None] + dr, 0, rows - 1)  # edges replicated
+            nc = np.clip(c[:, None] + dc, 0, cols - 1)
+            weight = (~bad[nr, nc]).astype(np.float64)
+            total = weight.sum(axis=1)
+            fill = total > 0
+            weight = weight[fill] / total[fill, None]
+            targets = np.ravel_multi_index((r[fill], c[fill]), bad.shape)
+            sources = np.ravel_multi_index((nr[fill], nc[fill]), bad.shape)
+            self._steps.append((targets, sources, weight))
+            bad[r[fill], c[fill]] = False
+
+    def _cubic(self, bad: np.ndarray, r: np.ndarray, c: np.ndarray, near: tuple) -> None:
+        """Plan the cubic step of the pixels (r, c) whose four neighbours ``near`` are inside
+        the panel and good; they are good from then on."""
+        nr, nc = near
+        nr, nc = np.broadcast_arrays(nr, nc)
+        inside = (nr >= 0) & (nr < bad.shape[0]) & (nc >= 0) & (nc < bad.shape[1])
+        usable = inside.all(axis=1)
+        usable[usable] = ~bad[nr[usable], nc[usable]].any(axis=1)
+        targets = np.ravel_multi_index((r[usable], c[usable]), bad.shape)
+        sources = np.ravel_multi_index((nr[usable], nc[usable]), bad.shape)
+        self._steps.append((targets, sources, np.broadcast_to(CUBIC, sources.shape)))
+        bad[r[usable], c[usable]] = False
+
+    def __call__(self, image: np.ndarray) -> np.ndarray:
+        """``image`` with its defective pixels filled; in place, returned."""
+        flat = image.reshape(-1)
+        for targets, sources, weights in self._steps:
+            flat[targets] = (flat[sources] * weights).sum(axis=1)
         return image
-    defects = defects.copy()
-    lines = defects.all(axis=1)
-    for axis, where in ((1, defects & ~lines[:, None]), (0, defects & lines[:, None])):
-        good = ~np.pad(defects, 2, constant_values=True)
-        values = np.pad(image, 2, mode="edge")
-        shifted = {k: np.roll(values, -k, axis=axis)[2:-2, 2:-2] for k in (-2, -1, 1, 2)}
-        usable = where.copy()
-        for k in (-2, -1, 1, 2):
-            usable &= np.roll(good, -k, axis=axis)[2:-2, 2:-2]
-        cubic = (-shifted[-2] + 4 * shifted[-1] + 4 * shifted[1] - shifted[2]) / 6.0
-        image[usable] = cubic[usable]
-        defects &= ~usable
-    good = (~defects).astype(np.float64)
-    for size in (3, 7):
-        if not defects.any():
-            break
-        total = ndimage.uniform_filter(np.where(defects, 0.0, image), size, mode="nearest")
-        weight = ndimage.uniform_filter(good, size, mode="nearest")
-        fill = defects & (weight > 1e-9)
-        image[fill] = total[fill] / weight[fill]
-        defects = defects & ~fill
-        good[fill] = 1.0
-    return image
 
 
 class Corrector:
@@ -292,6 +321,7 @@ class Corrector:
 
     def __init__(self, maps: PanelMaps) -> None:
         self.maps = maps
+        self._fill = DefectFill(maps.defects)
         self._previous: np.ndarray | None = None  # the last frame's signal, ADU
         self.air_views = 0
         self.flood_views = 0
@@ -310,7 +340,7 @@ class Corrector:
         """``-ln(I / I0)`` of one raw frame exposed at ``kv`` / ``mas``, float32 (rows, cols)."""
         m = self.maps
         ratio = self.signal(raw) / m.gain  # I / I_flood
-        fill_defects(ratio, m.defects)
+        self._fill(ratio)
         expected = mas / m.mas  # the flood's output, scaled by the tube load
         scale = self.i0_ratio(ratio, expected)
         if scale is None:
