@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from recon.geometry import DetectorSpec
+from recon.geometry import DetectorSpec, View
 from scanner.backends import open_backend
 from scanner.corrections import MapsError, PanelMaps, derive_maps, maps_path
 from scanner.hardware import Backend, DeviceError, Technique
@@ -119,6 +119,13 @@ def calibrate_detector(
     )
 
 
+def beam_clear(panel: DetectorSpec) -> Callable[[View], np.ndarray]:
+    """Nothing in the beam: zero line integrals on every pixel of ``panel`` (the simulated
+    panel's subject while it is calibrated)."""
+    clear = np.zeros((panel.rows, panel.cols))
+    return lambda _view: clear
+
+
 def calibrate_session(
     inputs: SessionInputs,
     out: Path,
@@ -138,8 +145,9 @@ def calibrate_session(
     if not MIN_FRAMES <= frames <= MAX_FRAMES:
         raise ValueError(f"frames must be in [{MIN_FRAMES}, {MAX_FRAMES}], got {frames}")
     sdd = inputs.protocol.orbit.sdd_mm
-    clear = np.zeros((panel.rows, panel.cols))
-    backend, _ = open_backend(inputs.backend, model, park_pose(model), panel, sdd, lambda _v: clear)
+    backend, _ = open_backend(
+        inputs.backend, model, park_pose(model), panel, sdd, beam_clear(panel)
+    )
     stop = StopRequest()
     try:
         with stop_signals(stop):

@@ -26,7 +26,7 @@ from recon.geometry import DetectorSpec, Geometry, View
 from recon.volume import Volume
 from scanner.backends import BACKEND_SPECS, load_backend_spec, open_backend
 from scanner.corrections import MapsError, PanelMaps, find_maps
-from scanner.detector_calibration import calibrate_detector
+from scanner.detector_calibration import beam_clear, calibrate_detector
 from scanner.hardware import Backend, Technique
 from scanner.move import MoveResult, move_scanner
 from scanner.scan import PreflightError, ScanFault, ScanRun, ScanSettings
@@ -439,7 +439,7 @@ def panel_maps(
     quiet = {"faults": SimFaults(), "event_log": None, "start_pose": None}
     twin = spec.model_copy(update=quiet | {"panel_gige_interface": None})  # its camera is open
     sdd = inputs.protocol.orbit.sdd_mm
-    devices, _ = open_backend(twin, model, start_q, panel, sdd, _beam_clear(panel))
+    devices, _ = open_backend(twin, model, start_q, panel, sdd, beam_clear(panel))
     try:
         maps = calibrate_detector(
             devices, Technique(e.tube_kv, e.tube_ma, e.pulse_ms), SIM_CALIBRATION_FRAMES
@@ -564,11 +564,6 @@ def move_session(
             )
         finally:
             _close(backend)
-
-
-def _beam_clear(panel: DetectorSpec) -> Callable[[View], np.ndarray]:
-    """Nothing in the beam: zero line integrals on every pixel."""
-    return lambda _view: np.zeros((panel.rows, panel.cols))
 
 
 def _no_exposure(view: View) -> np.ndarray:

@@ -18,7 +18,6 @@ import pytest
 import serial
 import yaml
 
-from recon.config import load_protocol
 from scanner.cli import CONFIGS
 from scanner.hardware import DeviceError, DeviceTimeout, Technique, XrayGenerator
 from scanner.scan import ScanFault, ScanSettings
@@ -30,6 +29,7 @@ from scanner.study import Study
 from sim.spellman import MockSpellman
 from sim.spellman import SpellmanFraming as MockFraming
 from sim.spellman import spellman_checksum as mock_checksum
+from tests.scanner.test_ur_scan import tiny_protocol
 
 LOAD_MARGIN_S = 0.05
 """Scheduling delay a waiting thread may see on a loaded 2-core machine, s."""
@@ -272,9 +272,10 @@ def test_local_mode_and_faults_refuse(devices: ExitStack) -> None:
     assert "xray_on" in mock.event_names()
 
 
-@pytest.mark.parametrize("cause", ["interlock", "fault"])
-def test_an_interlock_or_fault_mid_pulse_cuts_it(devices: ExitStack, cause: str) -> None:
-    mock, gen = prepared(devices, Technique(110.0, 10.0, 1000.0), poll_s=0.005)
+def pulse_running(devices: ExitStack, **options):
+    """A 1 s pulse exposing in a thread for 50 ms already: (mock, driver, the link's round trip,
+    the list the exposure's error goes to, the thread)."""
+    mock, gen = prepared(devices, Technique(110.0, 10.0, 1000.0), **options)
     rt = round_trip(gen)
     outcome: list[BaseException] = []
     thread = threading.Thread(target=lambda: _expose_into(gen, outcome))
@@ -282,6 +283,12 @@ def test_an_interlock_or_fault_mid_pulse_cuts_it(devices: ExitStack, cause: str)
     while not mock.xray_on:
         time.sleep(0.002)
     time.sleep(0.05)
+    return mock, gen, rt, outcome, thread
+
+
+@pytest.mark.parametrize("cause", ["interlock", "fault"])
+def test_an_interlock_or_fault_mid_pulse_cuts_it(devices: ExitStack, cause: str) -> None:
+    mock, gen, rt, outcome, thread = pulse_running(devices, poll_s=0.005)
     t_cut = time.monotonic()
     if cause == "interlock":
         mock.set_interlock(False)
@@ -311,14 +318,7 @@ def _expose_into(gen: SpellmanGenerator, outcome: list[BaseException]) -> None:
 
 
 def test_abort_from_another_thread_cuts_a_long_pulse(devices: ExitStack) -> None:
-    mock, gen = prepared(devices, Technique(110.0, 10.0, 1000.0))
-    rt = round_trip(gen)
-    outcome: list[BaseException] = []
-    thread = threading.Thread(target=lambda: _expose_into(gen, outcome))
-    thread.start()
-    while not mock.xray_on:
-        time.sleep(0.002)
-    time.sleep(0.05)
+    mock, gen, rt, outcome, thread = pulse_running(devices)
     t0 = time.monotonic()
     gen.abort(timeout_s=0.5)  # written at once, even while the pulse's poll waits for a reply
     assert time.monotonic() - t0 < 2 * rt + LOAD_MARGIN_S and not mock.xray_on
@@ -373,21 +373,12 @@ def test_permit_refusal_sends_nothing_and_abort_needs_no_state(devices: ExitStac
 # -- a simulated scan on the Spellman protocol -------------------------------------------------
 
 
-def small_protocol():
-    """The demo knee protocol with 16 views of 64^2 (the panel binned 4x more)."""
-    protocol = load_protocol(CONFIGS / "protocols" / "demo_knee.yaml")
-    d = protocol.detector
-    panel = d.model_copy(update={"rows": 64, "cols": 64, "pixel_pitch_mm": 4 * d.pixel_pitch_mm})
-    orbit = protocol.orbit.model_copy(update={"views": 16})
-    return protocol.model_copy(update={"detector": panel, "orbit": orbit, "name": "tiny"})
-
-
 def spellman_inputs(tmp: Path, **faults):
     path = tmp / "sim-spellman.yaml"
     spec = {"seed": 3, "generator_protocol": "spellman", "faults": faults}
     path.write_text(yaml.safe_dump(spec))
     return read_inputs(
-        small_protocol(),
+        tiny_protocol(),  # 16 views of 64^2
         CONFIGS / "scanner.yaml",
         "sim",
         path,

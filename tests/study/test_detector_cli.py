@@ -22,7 +22,7 @@ def calibrate(*args: str, answers: str | None = None):
 
 
 def maps_config(tmp: Path, maps: Path, **fields) -> Path:
-    path = tmp / "sim-maps.yaml"
+    path = tmp / f"sim-maps{''.join(f'-{k}' for k in fields)}.yaml"
     path.write_text(yaml.safe_dump({"detector_maps": str(maps), **fields}))
     return path
 
@@ -58,36 +58,38 @@ def test_a_scan_refuses_maps_of_another_mode_kv_or_age_before_anything_moves(tmp
     protocol, maps = tiny_protocol(tmp_path), tmp_path / "maps"
     assert calibrate("--protocol", str(protocol), "--out", str(maps), "--yes").exit_code == 0
 
-    other_mode = yaml.safe_load(protocol.read_text())
-    other_mode["detector"] = {"rows": 96, "cols": 96, "pixel_pitch_mm": 6.4}
-    path = tmp_path / "other-mode.yaml"
-    path.write_text(yaml.safe_dump(other_mode))
-    refused = scan(
-        "--study", str(tmp_path / "a"), "--yes", "--protocol", str(path),
-        "--backend-config", str(maps_config(tmp_path, maps)),
-    )  # fmt: skip
-    assert refused.exit_code == 2, refused.output
-    assert "mode '96x96 Mono16'" in refused.output and "64x64_Mono16.npz" in refused.output
+    def edited(name: str, section: str, values: dict) -> Path:
+        data = yaml.safe_load(protocol.read_text())
+        data[section] = {**data[section], **values}
+        path = tmp_path / f"{name}.yaml"
+        path.write_text(yaml.safe_dump(data))
+        return path
 
-    other_kv = yaml.safe_load(protocol.read_text())
-    other_kv["exposure"]["tube_kv"] = 90
-    path = tmp_path / "other-kv.yaml"
-    path.write_text(yaml.safe_dump(other_kv))
-    refused = scan(
-        "--study", str(tmp_path / "b"), "--yes", "--protocol", str(path),
-        "--backend-config", str(maps_config(tmp_path, maps)),
-    )  # fmt: skip
-    assert refused.exit_code == 2, refused.output
-    assert "made at 110 kV, the protocol exposes at 90 kV" in refused.output
-
-    refused = scan(
-        "--study", str(tmp_path / "c"), "--yes", "--protocol", str(protocol),
-        "--backend-config", str(maps_config(tmp_path, maps, max_map_age_days=1e-9)),
-    )  # fmt: skip
-    assert refused.exit_code == 2, refused.output
-    assert "days old, the limit is 1e-09 days" in refused.output
-    for name in "abc":
-        started = tmp_path / name / "scan" / "views"
+    cases = {  # study: (protocol, backend config, what the refusal says)
+        "mode": (
+            edited("mode", "detector", {"rows": 96, "cols": 96, "pixel_pitch_mm": 6.4}),
+            maps_config(tmp_path, maps),
+            ("mode '96x96 Mono16'", "64x64_Mono16.npz"),
+        ),
+        "kv": (
+            edited("kv", "exposure", {"tube_kv": 90}),
+            maps_config(tmp_path, maps),
+            ("made at 110 kV, the protocol exposes at 90 kV",),
+        ),
+        "age": (
+            protocol,
+            maps_config(tmp_path, maps, max_map_age_days=1e-9),
+            ("days old, the limit is 1e-09 days",),
+        ),
+    }
+    for name, (path, config, said) in cases.items():
+        study = tmp_path / name
+        refused = scan(
+            "--study", str(study), "--yes", "--protocol", str(path), "--backend-config", str(config)
+        )
+        assert refused.exit_code == 2, refused.output
+        assert all(words in refused.output for words in said), refused.output
+        started = study / "scan" / "views"
         assert not started.exists() or not list(started.iterdir())  # nothing acquired
 
 
