@@ -145,22 +145,30 @@ def voxelize(
     mesh: trimesh.Trimesh, voxel_mm: float, supersample: int = 4
 ) -> tuple[np.ndarray, VolumeGrid]:
     """The fraction of each voxel inside a closed mesh (mm), float32 [z, y, x], on a grid of
-    ``voxel_mm`` cubes one voxel beyond its bounds.
-
-    Exact along z (the crossings of each column's rays with the surface, integrated over the
-    voxel), sampled on ``supersample`` x ``supersample`` rays per voxel across."""
-    if not voxel_mm > 0 or supersample < 1:
-        raise ValueError(
-            f"voxel_mm must be > 0 and supersample >= 1, got {voxel_mm}, {supersample}"
-        )
+    ``voxel_mm`` cubes one voxel beyond its bounds (:func:`inside_fraction`)."""
+    if not voxel_mm > 0:
+        raise ValueError(f"voxel_mm must be > 0, got {voxel_mm}")
     low = mesh.bounds[0] - voxel_mm
     shape_xyz = np.ceil((mesh.bounds[1] - mesh.bounds[0]) / voxel_mm).astype(int) + 3
     grid = VolumeGrid(tuple(int(n) for n in shape_xyz[::-1]), (voxel_mm,) * 3, tuple(low))
-    triangles = (np.asarray(mesh.triangles, dtype=np.float64) - low) / voxel_mm  # index coords
-    nx, ny, nz = (int(n) for n in shape_xyz)
+    return inside_fraction(mesh, grid, supersample), grid
+
+
+def inside_fraction(mesh: trimesh.Trimesh, grid: VolumeGrid, supersample: int = 4) -> np.ndarray:
+    """The fraction of each voxel of ``grid`` (cubic voxels) inside a closed mesh (mm),
+    float32 [z, y, x].
+
+    Exact along z (the crossings of each column's rays with the surface, integrated over the
+    voxel), sampled on ``supersample`` x ``supersample`` rays per voxel across."""
+    if supersample < 1:
+        raise ValueError(f"supersample must be >= 1, got {supersample}")
+    if len(set(grid.spacing_mm)) != 1:
+        raise ValueError(f"inside_fraction needs cubic voxels, got {grid.spacing_mm} mm")
+    low, pitch = np.asarray(grid.origin_mm), grid.spacing_mm[0]
+    triangles = (np.asarray(mesh.triangles, dtype=np.float64) - low) / pitch  # index coords
+    nz, ny, nx = grid.shape
     steps = _crossings(triangles, nx, ny, nz, supersample)
-    fraction = np.cumsum(steps, axis=0)[:nz] / supersample**2
-    return np.clip(fraction, 0.0, 1.0).astype(np.float32), grid
+    return np.clip(np.cumsum(steps, axis=0)[:nz] / supersample**2, 0.0, 1.0).astype(np.float32)
 
 
 @numba.njit(cache=True)

@@ -154,6 +154,13 @@ def recon(
             "scan/planned_geometry.xml); default: the geometry's own"
         ),
     ] = None,
+    mar: Annotated[
+        bool,
+        typer.Option(
+            help="normalised metal artefact reduction (an implant in the scan); the metal "
+            "mask is written beside the volume as *_metal"
+        ),
+    ] = False,
 ) -> None:
     """Reconstruct RTK-format projections with weighted FDK."""
     from recon.io import VOLUME_SUFFIXES
@@ -185,6 +192,8 @@ def recon(
                 calibration=calibration,
                 protocol_path=protocol,
                 orbit_path=orbit,
+                mar=mar,
+                say=lambda m: console.print(f"  MAR: {m}", highlight=False),
             )
     except (ValueError, OSError) as err:
         fail(str(err))

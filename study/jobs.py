@@ -7,6 +7,8 @@ outputs go to new files or to a folder that does not exist yet (or is empty).
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +29,7 @@ from recon.distortion import Distortion
 from recon.fdk import FDKResult, Progress, check_axis_on_panel, default_grid, fdk_reconstruct
 from recon.geometry import Geometry
 from recon.io import read_projections, read_volume, write_volume
+from recon.mar import nmar
 from recon.preview import save_orthogonal_slices
 from recon.rtk_xml import read_rtk_geometry
 from recon.static_volume import StaticUnit, read_attenuation
@@ -91,13 +94,16 @@ def reconstruct_files(
     calibration: Path | None = None,
     protocol_path: Path | None = None,
     orbit_path: Path | None = None,
+    mar: bool = False,
+    say: Callable[[str], None] = lambda _m: None,
 ) -> FDKResult:
     """Reconstruct an RTK projection stack + geometry XML into a volume file (and a PNG).
 
     The grid defaults to the orbit's field of view (recon.fdk.default_grid); ``origin_mm``
     needs ``size_xyz``. ``orbit_path`` (RTK XML, e.g. a scan's planned views) sets FDK's
-    angular weights instead of the geometry's own orbit. Nothing is written if any input is
-    wrong.
+    angular weights instead of the geometry's own orbit. ``mar``: normalised metal artefact
+    reduction (recon.mar; its metal mask is written beside the volume as ``*_metal``).
+    Nothing is written if any input is wrong.
     """
     for path in (out, preview):
         if path is not None and path.exists():
@@ -132,15 +138,29 @@ def reconstruct_files(
     grid = default_grid(geometry, spacing_mm, size_xyz)
     if origin_mm is not None:
         grid = VolumeGrid(grid.shape, grid.spacing_mm, origin_mm)
-    result = fdk_reconstruct(
-        stack.data,
-        geometry,
-        grid,
-        window=window,
-        min_coverage_deg=min_coverage_deg,
-        orbit_geometry=orbit,
-        progress=progress,
-    )
+    base, dot, suffixes = out.name.partition(".")
+    metal_path = out.with_name(f"{base}_metal{dot}{suffixes}")
+    if mar and metal_path.exists():
+        raise FileExistsError(f"{metal_path} exists: nothing is overwritten")
+
+    def fdk(projections: np.ndarray, on: VolumeGrid) -> FDKResult:
+        return fdk_reconstruct(
+            projections,
+            geometry,
+            on,
+            window=window,
+            min_coverage_deg=min_coverage_deg,
+            orbit_geometry=orbit,
+            progress=progress,
+        )
+
+    metal = None
+    if mar:
+        reduced = nmar(stack.data, geometry, grid, fdk=fdk, say=say)
+        result = replace(reduced.fdk, volume=reduced.volume)
+        metal = Volume(reduced.metal.astype(np.uint8), grid, "label")
+    else:
+        result = fdk(stack.data, grid)
     if not result.mask.any():
         raise ValueError(
             f"every voxel is seen over less than {min_coverage_deg:g} degrees of the orbit "
@@ -148,6 +168,8 @@ def reconstruct_files(
             "--min-coverage-deg"
         )
     write_volume(out, result.volume)
+    if metal is not None:
+        write_volume(metal_path, metal)
     if preview is not None:
         save_orthogonal_slices(
             result.volume, preview, title=f"weighted FDK of {projections_path.name}"

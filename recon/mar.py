@@ -1,0 +1,276 @@
+"""Metal artefact reduction: normalised MAR (NMAR; Meyer et al., Med. Phys. 37, 2010).
+
+1. Reconstruct the projections as they are (weighted FDK).
+2. Segment the metal: voxels above :data:`METAL_SEED` x the soft tissue's level, grown through
+   those above :data:`METAL_GROW` x it, in regions of at least :data:`MIN_METAL_MM3`.
+3. A prior free of metal: the first volume smoothed, air set to 0, soft tissue to its level,
+   bone kept, the metal set to soft tissue.
+4. Project the metal (its trace on the panel) and the prior. Divide the projections by the
+   prior's, interpolate the quotient linearly along each detector row across the trace,
+   multiply back: the shadow of the metal is filled with the anatomy the prior predicts there,
+   at the level its edges measure.
+5. Reconstruct the corrected projections and put the metal of step 2 back in.
+
+A shadow too wide to interpolate (the metal's trace covering more than
+:data:`MAX_TRACE_SHARE` of the object's shadow in some view) is refused, naming the view and
+the share measured.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+from scipy import ndimage
+
+from recon.fdk import FDKResult, default_grid, fdk_reconstruct
+from recon.geometry import Geometry
+from recon.project import JosephProjector
+from recon.volume import Volume, VolumeGrid
+
+METAL_SEED = 8.0
+"""Metal certainly: above this many times the soft tissue's attenuation (bone is under 3)."""
+METAL_GROW = 4.0
+"""Metal's extent: above this many times the soft tissue's, connected to a seed."""
+MIN_METAL_MM3 = 50.0
+"""A metal region smaller than this is a streak's peak, not an implant, mm^3."""
+AIR_SHARE = 0.5
+"""In the prior, a voxel below this share of the soft tissue's level is air."""
+BONE_SHARE = 1.35
+"""In the prior, a voxel above this share of the soft tissue's level keeps its value (bone)."""
+PRIOR_SIGMA_VOXELS = 1.0
+"""The prior is the first volume smoothed by a Gaussian of this sigma (its streaks' grain)."""
+TRACE_DILATION_VOXELS = 1
+"""The metal is grown by this many voxels before its trace is projected: its blurred edge in
+the first volume falls below the threshold, its shadow does not."""
+TRACE_LENGTH_MM = 0.05
+"""A pixel is in the metal's trace where its ray crosses at least this much metal, mm."""
+SHADOW_LINE_INTEGRAL = 0.1
+"""A pixel is in the object's shadow where its line integral is above this."""
+MAX_TRACE_SHARE = 0.6
+"""The largest share of a view's object shadow the metal's trace may cover."""
+METAL_AS_CORTEX = 2.5
+"""The metal's stand-in level for bone segmentation, in multiples of the soft tissue's (a
+cortex's: registration.segment finds bone through its cortex)."""
+OFFSET = 0.05
+"""Added to both projections before they are divided (a ray through air has none)."""
+
+
+@dataclass(frozen=True)
+class MarResult:
+    """A metal-reduced reconstruction.
+
+    Attributes:
+        volume: The corrected volume with the metal put back, 1/mm.
+        uncorrected: The first reconstruction (step 1), 1/mm.
+        metal: The metal's voxels, bool [z, y, x].
+        soft_tissue_per_mm: The soft tissue's level the thresholds scale with, 1/mm.
+        trace_share: Per view, the share of the object's shadow in the metal's trace (V,).
+        fdk: The corrected reconstruction's FDK result (coverage, mask).
+    """
+
+    volume: Volume
+    uncorrected: Volume
+    metal: np.ndarray
+    soft_tissue_per_mm: float
+    trace_share: np.ndarray
+    fdk: FDKResult
+
+    def for_segmentation(self) -> Volume:
+        """The corrected volume with the metal, and the voxels touching it, at
+        :data:`METAL_AS_CORTEX` x the soft tissue's level: bone fixed to an implant is closed
+        by it as by its own cortex, where the reconstruction next to the metal is weakest
+        (its labels there are then taken off: :meth:`bone_labels`)."""
+        data = np.asarray(self.volume.data, dtype=np.float32).copy()
+        data[self.near_metal] = METAL_AS_CORTEX * self.soft_tissue_per_mm
+        return Volume(data, self.volume.grid, "1/mm")
+
+    @property
+    def near_metal(self) -> np.ndarray:
+        """The metal and the voxels touching it, bool [z, y, x]."""
+        return ndimage.binary_dilation(self.metal)
+
+    def bone_labels(self, labels: Volume, metal_label: int) -> Volume:
+        """A segmentation of :meth:`for_segmentation` with the metal and the voxels touching
+        it labelled ``metal_label``."""
+        data = np.asarray(labels.data).copy()
+        data[self.near_metal] = metal_label
+        return Volume(data, labels.grid, labels.unit)
+
+    @property
+    def metal_mm3(self) -> float:
+        """The metal's volume, mm^3."""
+        return float(self.metal.sum()) * self.volume.grid.voxel_volume_mm3
+
+
+def soft_tissue_level(data: np.ndarray) -> float:
+    """The soft tissue's attenuation in a knee volume: the mode of the voxels above a tenth
+    of their 90th percentile (air left out), 1/mm."""
+    sample = data[::2, ::2, ::2]
+    tissue = sample[sample > 0.1 * np.percentile(sample, 90)]
+    if tissue.size == 0 or not np.percentile(tissue, 90) > 0.0:
+        raise ValueError("MAR: the volume has no tissue (nothing above air)")
+    counts, edges = np.histogram(tissue, bins=256, range=(0.0, float(np.percentile(tissue, 90))))
+    peak = int(np.argmax(ndimage.gaussian_filter1d(counts.astype(np.float64), 2.0)))
+    return 0.5 * float(edges[peak] + edges[peak + 1])
+
+
+def segment_metal(volume: np.ndarray, soft: float, voxel_mm3: float) -> np.ndarray:
+    """The metal's voxels (bool [z, y, x]): seeds above :data:`METAL_SEED` x ``soft`` grown
+    through voxels above :data:`METAL_GROW` x it, in regions of :data:`MIN_METAL_MM3` or more;
+    each region then kept above half its own median (its surface at half its level: a voxel
+    a fifth full of metal is still far above bone)."""
+    grown = ndimage.binary_propagation(volume > METAL_SEED * soft, mask=volume > METAL_GROW * soft)
+    regions, n = ndimage.label(grown)
+    if n == 0:
+        return grown
+    index = np.arange(1, n + 1)
+    sizes = ndimage.sum_labels(grown, regions, index) * voxel_mm3
+    level = ndimage.median(volume, regions, index)
+    keep = np.concatenate(([False], sizes >= MIN_METAL_MM3))
+    half = np.concatenate(([np.inf], 0.5 * np.asarray(level)))
+    return keep[regions] & (volume >= half[regions])
+
+
+def metal_free_prior(volume: np.ndarray, metal: np.ndarray, soft: float) -> np.ndarray:
+    """Step 3's prior (float32 [z, y, x], 1/mm)."""
+    prior = ndimage.gaussian_filter(np.where(metal, soft, volume), PRIOR_SIGMA_VOXELS)
+    prior = np.where(prior < AIR_SHARE * soft, 0.0, prior)
+    prior = np.where((prior >= AIR_SHARE * soft) & (prior < BONE_SHARE * soft), soft, prior)
+    prior[metal] = soft
+    return prior.astype(np.float32)
+
+
+@numba.njit(parallel=True, cache=True)
+def _fill_rows(values, trace):  # pragma: no cover
+    """Linear interpolation along each row (last axis) of ``values`` across its ``trace``
+    runs, from the nearest pixel outside each side (the edge value where a run reaches the
+    row's end), in place."""
+    rows = values.shape[0]
+    n = values.shape[1]
+    for r in numba.prange(rows):
+        c = 0
+        while c < n:
+            if not trace[r, c]:
+                c += 1
+                continue
+            start = c
+            while c < n and trace[r, c]:
+                c += 1
+            left = start - 1
+            right = c
+            if left < 0 and right >= n:
+                continue
+            a = values[r, left] if left >= 0 else values[r, right]
+            b = values[r, right] if right < n else values[r, left]
+            for k in range(start, c):
+                t = (k - left) / (right - left)
+                values[r, k] = a + t * (b - a)
+
+
+def interpolate_trace(projections: np.ndarray, prior: np.ndarray, trace: np.ndarray) -> np.ndarray:
+    """Step 4: the projections with the trace filled by the normalised interpolation
+    (float32 (views, rows, cols))."""
+    quotient = (projections + OFFSET) / (prior + OFFSET)
+    flat = np.ascontiguousarray(quotient.reshape(-1, quotient.shape[-1]), dtype=np.float64)
+    _fill_rows(flat, np.ascontiguousarray(trace.reshape(flat.shape)))
+    filled = flat.reshape(projections.shape) * (prior + OFFSET) - OFFSET
+    return np.where(trace, filled, projections).astype(np.float32)
+
+
+def nmar(
+    projections: np.ndarray,
+    geometry: Geometry,
+    grid: VolumeGrid,
+    *,
+    fdk: Callable[[np.ndarray, VolumeGrid], FDKResult] | None = None,
+    say: Callable[[str], None] = lambda _m: None,
+) -> MarResult:
+    """Reconstruct with normalised metal artefact reduction (the module's steps).
+
+    Args:
+        projections: Line integrals, float32 (views, rows, cols).
+        geometry: One view per projection.
+        grid: The volume's grid. The metal is segmented and projected on it extended along
+            its z axis over all the views see (metal beyond the grid shadows them too).
+        fdk: Reconstructs projections on a grid; default weighted FDK with its defaults.
+        say: Takes a line per step.
+
+    Returns:
+        The corrected volume, the first one and the metal.
+
+    Raises:
+        ValueError: no metal found, or a trace too wide to interpolate (naming the view and
+            the share).
+    """
+    seen = _seen_along_z(grid, geometry)
+    inner = tuple(
+        slice(k, k + n) for k, n in zip(_offset_voxels(seen, grid), grid.shape, strict=True)
+    )
+    fdk = fdk or (lambda p, g: fdk_reconstruct(p, geometry, g))
+    first = fdk(projections, seen)
+    data = np.asarray(first.volume.data, dtype=np.float32)
+    soft = soft_tissue_level(data)
+    metal = segment_metal(data, soft, seen.voxel_volume_mm3)
+    if not metal.any():
+        raise ValueError(
+            f"MAR: no metal in the volume (nothing above {METAL_SEED:g} x the soft tissue's "
+            f"{soft:.4g} 1/mm in a region of {MIN_METAL_MM3:g} mm^3 or more)"
+        )
+    say(
+        f"metal: {metal.sum() * seen.voxel_volume_mm3 / 1000:.1f} cm^3 "
+        f"(soft tissue {soft:.4g} 1/mm)"
+    )
+    shadowing = ndimage.binary_dilation(metal, iterations=TRACE_DILATION_VOXELS)
+    trace = JosephProjector(shadowing.astype(np.float32), seen).project(geometry) > TRACE_LENGTH_MM
+    shadow = projections > SHADOW_LINE_INTEGRAL
+    share = (trace & shadow).sum(axis=(1, 2)) / np.maximum(shadow.sum(axis=(1, 2)), 1)
+    worst = int(np.argmax(share))
+    if share[worst] > MAX_TRACE_SHARE:
+        raise ValueError(
+            f"MAR: the metal's shadow covers {100 * share[worst]:.0f} % of the object's in view "
+            f"{worst} (at most {100 * MAX_TRACE_SHARE:.0f} % can be interpolated): too much metal"
+        )
+    say(f"metal trace: {100 * share.mean():.1f} % of the object's shadow on average")
+    projections = np.asarray(projections, np.float32)
+    linear = fdk(interpolate_trace(projections, np.zeros_like(projections), trace), seen)
+    prior_volume = metal_free_prior(np.asarray(linear.volume.data, np.float32), metal, soft)
+    prior = JosephProjector(prior_volume, seen).project(geometry)
+    corrected = fdk(interpolate_trace(projections, prior, trace), grid)
+    volume = np.asarray(corrected.volume.data, dtype=np.float32).copy()
+    metal, data = metal[inner], data[inner]
+    volume[metal] = data[metal]
+    return MarResult(
+        Volume(volume, grid, "1/mm"),
+        Volume(data, grid, "1/mm"),
+        metal,
+        soft,
+        share,
+        corrected,
+    )
+
+
+def _seen_along_z(grid: VolumeGrid, geometry: Geometry) -> VolumeGrid:
+    """``grid`` extended along z, in whole voxels, over the height the views see."""
+    full = default_grid(geometry, spacing_mm=grid.spacing_mm[2])
+    dz = grid.spacing_mm[2]
+    low = min(grid.origin_mm[2], full.origin_mm[2])
+    high = max(
+        grid.origin_mm[2] + dz * (grid.shape[0] - 1), full.origin_mm[2] + dz * (full.shape[0] - 1)
+    )
+    below = math.ceil((grid.origin_mm[2] - low) / dz - 1e-9)
+    above = math.ceil((high - grid.origin_mm[2]) / dz - 1e-9) - (grid.shape[0] - 1)
+    origin = (grid.origin_mm[0], grid.origin_mm[1], grid.origin_mm[2] - below * dz)
+    return VolumeGrid(
+        (grid.shape[0] + below + max(above, 0), *grid.shape[1:]), grid.spacing_mm, origin
+    )
+
+
+def _offset_voxels(outer: VolumeGrid, inner: VolumeGrid) -> tuple[int, int, int]:
+    """Where ``inner``'s first voxel sits in ``outer`` (z, y, x)."""
+    return tuple(
+        round((inner.origin_mm[i] - outer.origin_mm[i]) / outer.spacing_mm[i]) for i in (2, 1, 0)
+    )

@@ -1,0 +1,303 @@
+"""The knee replacement on the simulated CBCT: the grand-challenge subject standing in the
+scanner, projected polychromatically, so that its metal streaks as on a real scan.
+
+Each view's pixel sees, along ``supersample`` x ``supersample`` rays, the length through every
+part's mesh (sim.tka's parts at the stance's pose) and through the leg's soft tissue (a
+vertical cylinder of water about the knee, less the parts in it). The tube's spectrum
+(sim.spectrum) is attenuated along each ray by every material at every energy, so the metal
+hardens the beam and starves the panel of photons (the simulated panel draws the photons'
+Poisson noise from the signal left). The projection is ``-ln`` of the transmitted share.
+
+:func:`tka_truth` rasterises the same scene on a volume grid: labels (the bones' as the knee
+phantom's, the insert :data:`assessment.knee.INSERT_LABEL`, metal :data:`METAL_LABEL`) and the
+attenuation a reconstruction of this beam shows, to first order (each material's attenuation
+averaged over the spectrum behind the leg).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import trimesh
+from pydantic import BaseModel, ConfigDict, Field
+from scipy import ndimage
+
+from assessment.knee import INSERT_LABEL
+from recon.geometry import View
+from recon.volume import VolumeGrid
+from registration.implants import inside_fraction, ray_lengths
+from registration.labels import LABELS
+from sim.spectrum import COMPOSITIONS, Spectrum, tube_spectrum
+from sim.tka import load_tka, part_poses, read_gait, tka_motion
+
+DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "grand-challenge-tka"
+"""Where the grand-challenge knee replacement is: ``../shared/data`` beside the repository."""
+METAL_LABEL = 7
+"""Label of a metal component in :func:`tka_truth`'s labels."""
+PART_LABELS = {
+    "femur": LABELS["femur"],
+    "tibia": LABELS["tibia"],
+    "fibula": LABELS["fibula"],
+    "patella": LABELS["patella"],
+    "tibial_insert": INSERT_LABEL,
+    "patellar_button": INSERT_LABEL,
+}
+"""The truth label of each non-metal part (a metal part's is :data:`METAL_LABEL`)."""
+CORTEX_MM = 1.5
+"""A bone's cortex: the shell within this of its surface (its mesh moved inward along its
+vertex normals), mm; inside, cancellous bone."""
+KNEE_HALF_HEIGHT_MM = 40.0
+"""The knee's cross-section, centred on the scanner's axis, is that of its parts within this
+of the joint's height, mm."""
+LEG_FILTRATION_MM = 120.0
+"""The water a knee's rays cross on average: the spectrum behind it sets the truth's
+attenuation (:func:`tka_truth`), mm."""
+
+
+class TkaPhantomSpec(BaseModel):
+    """The knee replacement as the simulated scanner images it (configs/phantoms/tka.yaml)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    data: str = Field(
+        str(DEFAULT_DATA),
+        description="the grand-challenge-tka folder (meshes/, DM.osim, kinematics/)",
+    )
+    joint_height_mm: float = Field(
+        480.0, ge=200.0, le=1000.0, description="the knee joint centre's height, mm"
+    )
+    gait_sample: int = Field(
+        0, ge=0, le=100, description="the gait file's sample the subject stands in (0: heel strike)"
+    )
+    leg_radius_mm: float = Field(
+        68.0, ge=45.0, le=120.0, description="the leg's soft tissue: a water cylinder, mm"
+    )
+    metal: bool = Field(
+        True,
+        description="the components are metal; false: cancellous bone in their place (a reference)",
+    )
+    supersample: int = Field(2, ge=1, le=4, description="rays per pixel along each axis")
+
+    @property
+    def center_mm(self) -> np.ndarray:
+        """The knee's axis point at the joint's height (its cross-section's centre), mm."""
+        return np.array([0.0, 0.0, self.joint_height_mm])
+
+
+@dataclass(frozen=True)
+class Layer:
+    """A closed surface of the scene and what lies inside it.
+
+    Attributes:
+        part: The knee's part it belongs to (sim.tka.PARTS).
+        vertices_mm: Its vertices in the world (V, 3), mm.
+        faces: Its triangles (T, 3), outward by their winding.
+        materials: Composition (sim.spectrum.COMPOSITIONS) -> the length it adds per length
+            inside (a bone's outer surface adds cortex, its inner one turns cortex into
+            cancellous bone: +1 cancellous, -1 cortex).
+    """
+
+    part: str
+    vertices_mm: np.ndarray
+    faces: np.ndarray
+    materials: dict[str, float]
+
+    @property
+    def displaces(self) -> float:
+        """The soft tissue it displaces per length inside (1 for a part's outer surface)."""
+        return sum(self.materials.values())
+
+
+@dataclass(frozen=True)
+class TkaScene:
+    """The knee replacement standing: its parts' surfaces in the world, and their materials.
+
+    Attributes:
+        spec: What it was made from.
+        layers: Every surface: each part's outer one, and each bone's cortex's inner one.
+    """
+
+    spec: TkaPhantomSpec
+    layers: tuple[Layer, ...]
+
+    def line_integrals(self, view: View, spectrum: Spectrum) -> np.ndarray:
+        """``-ln`` of the signal's transmitted share per pixel (rows, cols), float64: the
+        polychromatic beam along every ray of the pixel, averaged over them."""
+        s = self.spec.supersample
+        fine = _finer(view, s)
+        lengths: dict[str, np.ndarray] = {}
+        inside = np.zeros((fine.rows, fine.cols))
+        for layer in self.layers:
+            length = ray_lengths(fine, layer.vertices_mm, layer.faces, np.eye(4)).astype(float)
+            for material, amount in layer.materials.items():
+                lengths[material] = lengths.get(material, 0.0) + amount * length
+            inside += layer.displaces * length
+        leg = _cylinder_chords(fine, self.spec.center_mm, self.spec.leg_radius_mm)
+        lengths["water"] = lengths.get("water", 0.0) + np.maximum(leg - inside, 0.0)
+        mu = np.stack([COMPOSITIONS[n].mu_per_mm(spectrum.energies_kev) for n in lengths])
+        shown = spectrum.transmission(mu, np.maximum(np.stack(list(lengths.values())), 0.0))
+        shown = shown.reshape(view.rows, s, view.cols, s).mean(axis=(1, 3))
+        return -np.log(np.maximum(shown, 1e-300))
+
+
+def _finer(view: View, s: int) -> View:
+    """The view with every pixel split into ``s`` x ``s`` (their centres)."""
+    if s == 1:
+        return view
+    shift = 0.5 * (1.0 / s - 1.0) * (view.pitch_u_mm * view.e_u + view.pitch_v_mm * view.e_v)
+    return View(
+        view.source_mm,
+        view.detector_origin_mm + shift,
+        view.e_u,
+        view.e_v,
+        view.pitch_u_mm / s,
+        view.pitch_v_mm / s,
+        view.rows * s,
+        view.cols * s,
+    )
+
+
+def _cylinder_chords(view: View, center_mm: np.ndarray, radius_mm: float) -> np.ndarray:
+    """Each pixel centre's ray length through a vertical cylinder about ``center_mm``, mm."""
+    v, u = np.mgrid[: view.rows, : view.cols].astype(np.float64)
+    d = view.pixel_to_world(u, v) - view.source_mm
+    s = view.source_mm[:2] - center_mm[:2]
+    a = d[..., 0] ** 2 + d[..., 1] ** 2
+    b = 2.0 * (d[..., 0] * s[0] + d[..., 1] * s[1])
+    c = s @ s - radius_mm**2
+    root = np.sqrt(np.maximum(b * b - 4.0 * a * c, 0.0))
+    t0 = np.clip((-b - root) / (2.0 * a), 0.0, 1.0)
+    t1 = np.clip((-b + root) / (2.0 * a), 0.0, 1.0)
+    return (t1 - t0) * np.linalg.norm(d, axis=-1)
+
+
+def tka_scene(spec: TkaPhantomSpec) -> TkaScene:
+    """The knee replacement of ``spec`` standing in the scanner.
+
+    Raises:
+        FileNotFoundError: no grand-challenge data at ``spec.data``.
+    """
+    folder = Path(spec.data)
+    gait_path = folder / "kinematics" / "fluoroscopic_gait.sto"
+    if not gait_path.is_file():
+        raise FileNotFoundError(
+            f"phantom data {folder}: no kinematics/fluoroscopic_gait.sto (the grand-challenge-tka "
+            "folder of ../shared/data)"
+        )
+    knee = load_tka(folder)
+    gait = read_gait(gait_path)
+    samples = len(gait["time"])
+    if spec.gait_sample >= samples:
+        raise ValueError(f"gait_sample {spec.gait_sample}: the gait file has {samples} samples")
+    one = {k: v[spec.gait_sample : spec.gait_sample + 1] for k, v in gait.items()}
+    motion = tka_motion(knee, one, 1, spec.center_mm)
+    poses = {part: part_poses(knee, motion, part)[0] for part in knee.meshes}
+    near = np.concatenate(
+        [m.vertices @ poses[p][:3, :3].T + poses[p][:3, 3] for p, m in knee.meshes.items()]
+    )
+    near = near[np.abs(near[:, 2] - spec.joint_height_mm) <= KNEE_HALF_HEIGHT_MM]
+    shift = np.eye(4)  # the knee's cross-section centred on the scanner's axis
+    shift[:2, 3] = -0.5 * (near[:, :2].min(axis=0) + near[:, :2].max(axis=0))
+    poses = {part: shift @ pose for part, pose in poses.items()}
+    layers = []
+    for part, mesh in knee.meshes.items():
+        placed = mesh.copy().apply_transform(poses[part])
+        vertices, faces = np.asarray(placed.vertices, float), np.asarray(placed.faces)
+        material = knee.materials[part]
+        if material.name == "bone":
+            layers.append(Layer(part, vertices, faces, {"cortical_bone": 1.0}))
+            inner = vertices - CORTEX_MM * np.asarray(placed.vertex_normals)
+            layers.append(
+                Layer(part, inner, faces, {"cancellous_bone": 1.0, "cortical_bone": -1.0})
+            )
+        else:
+            name = material.name if (spec.metal or not material.radiopaque) else "cancellous_bone"
+            layers.append(Layer(part, vertices, faces, {name: 1.0}))
+    return TkaScene(spec, tuple(layers))
+
+
+def tka_subject(scene: TkaScene, kvp: float) -> Callable[[View], np.ndarray]:
+    """The scene as the simulated panel sees it at ``kvp``: polychromatic line integrals per
+    view (the panel draws the photons' noise)."""
+    spectrum = tube_spectrum(kvp)
+    return lambda view: scene.line_integrals(view, spectrum)
+
+
+def beam_behind_leg(kvp: float) -> Spectrum:
+    """The tube's spectrum behind the leg's mean water path (the truth's)."""
+    return tube_spectrum(kvp).hardened("water", LEG_FILTRATION_MM)
+
+
+def tka_truth(scene: TkaScene, grid: VolumeGrid, kvp: float) -> tuple[np.ndarray, np.ndarray]:
+    """The scene on ``grid``: labels (uint8, [z, y, x]) and attenuation (float32, 1/mm).
+
+    A voxel takes the part that fills most of it (the soft tissue's inside the leg's cylinder,
+    air outside), and the mean of the parts' attenuations by the share each fills.
+    """
+    beam = beam_behind_leg(kvp)
+    y, x = np.meshgrid(
+        grid.origin_mm[1] + grid.spacing_mm[1] * np.arange(grid.shape[1]),
+        grid.origin_mm[0] + grid.spacing_mm[0] * np.arange(grid.shape[2]),
+        indexing="ij",
+    )
+    centre = scene.spec.center_mm
+    leg = (x - centre[0]) ** 2 + (y - centre[1]) ** 2 <= scene.spec.leg_radius_mm**2
+    leg = np.broadcast_to(leg, grid.shape)
+    water = beam.mean_mu_per_mm("water")
+    mu = np.where(leg, water, 0.0).astype(np.float32)
+    labels = np.where(leg, LABELS["soft_tissue"], LABELS["air"]).astype(np.uint8)
+    best = np.zeros(grid.shape, dtype=np.float32)
+    for layer in scene.layers:
+        surface = trimesh.Trimesh(layer.vertices_mm, layer.faces, process=False)
+        fraction = inside_fraction(surface, grid)
+        for material, amount in layer.materials.items():
+            mu += (amount * fraction * beam.mean_mu_per_mm(material)).astype(np.float32)
+        mu -= (layer.displaces * fraction * water).astype(np.float32)
+        if layer.displaces == 0.0:
+            continue
+        metal = set(layer.materials) & {"CoCr", "Ti6Al4V"}
+        label = METAL_LABEL if metal else PART_LABELS[layer.part]
+        wins = fraction > np.maximum(best, 0.5 - 1e-6)
+        labels[wins] = label
+        best = np.maximum(best, fraction)
+    return labels, mu
+
+
+NEAR_METAL_MM = 20.0
+"""The bone scored next to the implant: within this of the metal, mm."""
+
+
+def near_metal_scores(labels: np.ndarray, truth: np.ndarray, grid: VolumeGrid) -> dict[str, float]:
+    """How a segmentation's bones match the truth's within :data:`NEAR_METAL_MM` of the metal
+    (the metal and the voxels touching it left out: neither tells bone from metal there).
+
+    Args:
+        labels: A segmentation (registration.labels.LABELS), [z, y, x].
+        truth: :func:`tka_truth`'s labels on the same grid.
+        grid: Their grid.
+
+    Returns:
+        The Dice of all bone together (``bone``) and of each bone by name, near the metal.
+    """
+    metal = truth == METAL_LABEL
+    distance = ndimage.distance_transform_edt(~metal, sampling=grid.spacing_mm[::-1])
+    near = (distance <= NEAR_METAL_MM) & ~ndimage.binary_dilation(metal)
+    bones = {name: (LABELS[name],) for name in ("femur", "tibia", "fibula", "patella")}
+    bones["bone"] = tuple(LABELS[name] for name in ("femur", "tibia", "fibula", "patella"))
+    scores = {}
+    for name, values in bones.items():
+        ours, theirs = np.isin(labels, values) & near, np.isin(truth, values) & near
+        total = int(ours.sum() + theirs.sum())
+        scores[name] = 2.0 * float((ours & theirs).sum()) / total if total else float("nan")
+    return scores
+
+
+def rmse_outside_metal(volume: np.ndarray, mu: np.ndarray, truth: np.ndarray) -> float:
+    """The RMSE of a reconstruction against the truth's attenuation in the leg, the metal and
+    the voxels touching it left out, 1/mm."""
+    metal = ndimage.binary_dilation(truth == METAL_LABEL)
+    inside = (truth != LABELS["air"]) & ~metal
+    return float(np.sqrt(np.mean((volume[inside] - mu[inside]) ** 2)))
