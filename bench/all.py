@@ -53,6 +53,7 @@ QUICK: dict[str, list[str]] = {
         "--voxel-mm",
         "2",
     ],
+    "mar": ["--views", "90"],
     "recon": ["--small"],
     "registration": ["--quick"],
     "scan": ["--small"],
