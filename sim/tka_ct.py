@@ -118,10 +118,12 @@ class TkaScene:
     Attributes:
         spec: What it was made from.
         layers: Every surface: each part's outer one, and each bone's cortex's inner one.
+        poses: Each part's ``T_world_part`` (its mesh in sim.tka's body frame, 4x4, mm).
     """
 
     spec: TkaPhantomSpec
     layers: tuple[Layer, ...]
+    poses: dict[str, np.ndarray]
 
     def line_integrals(self, view: View, spectrum: Spectrum) -> np.ndarray:
         """``-ln`` of the signal's transmitted share per pixel (rows, cols), float64: the
@@ -216,7 +218,7 @@ def tka_scene(spec: TkaPhantomSpec) -> TkaScene:
         else:
             name = material.name if (spec.metal or not material.radiopaque) else "cancellous_bone"
             layers.append(Layer(part, vertices, faces, {name: 1.0}))
-    return TkaScene(spec, tuple(layers))
+    return TkaScene(spec, tuple(layers), poses)
 
 
 def tka_subject(scene: TkaScene, kvp: float) -> Callable[[View], np.ndarray]:
