@@ -43,8 +43,6 @@ from sim.tka_ct import (  # noqa: E402
     DEFAULT_DATA,
     METAL_LABEL,
     TkaPhantomSpec,
-    near_metal_scores,
-    rmse_outside_metal,
     tka_scene,
     tka_subject,
     tka_truth,
@@ -97,7 +95,7 @@ def main() -> None:
     grid = recon_grid(protocol, args.voxel_mm)
     kv = protocol.exposure.tube_kv
     scene = tka_scene(TkaPhantomSpec())
-    truth, mu = tka_truth(scene, grid, kv)
+    truth = tka_truth(scene, grid, kv)
     log(f"scanning {args.views} views of {args.panel}^2, metal and metal-free")
     started = time.perf_counter()
     metal = scan(TkaPhantomSpec(), protocol, geometry, args.seed)
@@ -107,7 +105,7 @@ def main() -> None:
     result = nmar(metal, geometry, grid, say=log)
     mar_s = time.perf_counter() - started
     reference = fdk_reconstruct(free, geometry, grid).volume
-    true_metal = truth == METAL_LABEL
+    true_metal = truth.labels == METAL_LABEL
     volumes = {
         "metal_free": reference,
         "uncorrected": result.uncorrected,
@@ -122,11 +120,11 @@ def main() -> None:
     for name, volume in volumes.items():
         log(f"{name}: segmenting the bones")
         labels = bones(segmentable[name])
-        entry = {"rmse_outside_metal_per_mm": rmse_outside_metal(volume.data, mu, truth)}
+        entry = {"rmse_outside_metal_per_mm": truth.rmse_outside_metal(volume.data)}
         if isinstance(labels, str):
             entry["segmentation_failed"] = labels
         else:
-            entry["dice_near_metal"] = near_metal_scores(labels, truth, grid)
+            entry["dice_near_metal"] = truth.near_metal_scores(labels)
         entries[name] = entry
     free_rmse = entries["metal_free"]["rmse_outside_metal_per_mm"]
     for name in ("uncorrected", "mar"):

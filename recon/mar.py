@@ -3,13 +3,15 @@
 1. Reconstruct the projections as they are (weighted FDK).
 2. Segment the metal: voxels above :data:`METAL_SEED` x the soft tissue's level, grown through
    those above :data:`METAL_GROW` x it, in regions of at least :data:`MIN_METAL_MM3`.
-3. A prior free of metal: the first volume smoothed, air set to 0, soft tissue to its level,
-   bone kept, the metal set to soft tissue.
+3. A prior free of metal: a volume without the metal's shadow (first the trace interpolated
+   linearly, then the corrected one of the pass before: :data:`PRIOR_PASSES`) smoothed, air
+   set to 0, soft tissue to its level, bone kept, the metal set to soft tissue.
 4. Project the metal (its trace on the panel) and the prior. Divide the projections by the
    prior's, interpolate the quotient linearly along each detector row across the trace,
    multiply back: the shadow of the metal is filled with the anatomy the prior predicts there,
    at the level its edges measure.
-5. Reconstruct the corrected projections and put the metal of step 2 back in.
+5. Reconstruct the corrected projections and put the metal back in: the voxels of step 2
+   above :data:`METAL_SHOWN` of their region's median (its blurred rim is left corrected).
 
 A shadow too wide to interpolate (the metal's trace covering more than
 :data:`MAX_TRACE_SHARE` of the object's shadow in some view) is refused, naming the view and
@@ -35,6 +37,10 @@ METAL_SEED = 8.0
 """Metal certainly: above this many times the soft tissue's attenuation (bone is under 3)."""
 METAL_GROW = 4.0
 """Metal's extent: above this many times the soft tissue's, connected to a seed."""
+METAL_SHOWN = 0.75
+"""The metal put back in the corrected volume: its voxels above this share of their region's
+median (the blur about the metal, between half and this, is corrected tissue: put back, its
+metal values lay over the bone next to it)."""
 MIN_METAL_MM3 = 50.0
 """A metal region smaller than this is a streak's peak, not an implant, mm^3."""
 AIR_SHARE = 0.5
@@ -55,6 +61,9 @@ MAX_TRACE_SHARE = 0.6
 METAL_AS_CORTEX = 2.5
 """The metal's stand-in level for bone segmentation, in multiples of the soft tissue's (a
 cortex's: registration.segment finds bone through its cortex)."""
+PRIOR_PASSES = 2
+"""Priors made in turn: the first from the linear interpolation's volume, each next from the
+volume the one before corrected (its bone next to the metal is sharper)."""
 OFFSET = 0.05
 """Added to both projections before they are divided (a ray through air has none)."""
 
@@ -66,7 +75,7 @@ class MarResult:
     Attributes:
         volume: The corrected volume with the metal put back, 1/mm.
         uncorrected: The first reconstruction (step 1), 1/mm.
-        metal: The metal's voxels, bool [z, y, x].
+        metal: The metal's voxels put back (:data:`METAL_SHOWN`), bool [z, y, x].
         soft_tissue_per_mm: The soft tissue's level the thresholds scale with, 1/mm.
         trace_share: Per view, the share of the object's shadow in the metal's trace (V,).
         fdk: The corrected reconstruction's FDK result (coverage, mask).
@@ -118,11 +127,14 @@ def soft_tissue_level(data: np.ndarray) -> float:
     return 0.5 * float(edges[peak] + edges[peak + 1])
 
 
-def segment_metal(volume: np.ndarray, soft: float, voxel_mm3: float) -> np.ndarray:
+def segment_metal(
+    volume: np.ndarray, soft: float, voxel_mm3: float, share: float = 0.5
+) -> np.ndarray:
     """The metal's voxels (bool [z, y, x]): seeds above :data:`METAL_SEED` x ``soft`` grown
     through voxels above :data:`METAL_GROW` x it, in regions of :data:`MIN_METAL_MM3` or more;
-    each region then kept above half its own median (its surface at half its level: a voxel
-    a fifth full of metal is still far above bone)."""
+    each region then kept above ``share`` of its own median (0.5: its surface at half its
+    level, where a voxel a fifth full of metal is still far above bone; the metal whose shadow
+    is replaced. :data:`METAL_SHOWN`: the metal put back, without the blur about it)."""
     grown = ndimage.binary_propagation(volume > METAL_SEED * soft, mask=volume > METAL_GROW * soft)
     regions, n = ndimage.label(grown)
     if n == 0:
@@ -131,8 +143,8 @@ def segment_metal(volume: np.ndarray, soft: float, voxel_mm3: float) -> np.ndarr
     sizes = ndimage.sum_labels(grown, regions, index) * voxel_mm3
     level = ndimage.median(volume, regions, index)
     keep = np.concatenate(([False], sizes >= MIN_METAL_MM3))
-    half = np.concatenate(([np.inf], 0.5 * np.asarray(level)))
-    return keep[regions] & (volume >= half[regions])
+    floor = np.concatenate(([np.inf], share * np.asarray(level)))
+    return keep[regions] & (volume >= floor[regions])
 
 
 def metal_free_prior(volume: np.ndarray, metal: np.ndarray, soft: float) -> np.ndarray:
@@ -236,17 +248,21 @@ def nmar(
         )
     say(f"metal trace: {100 * share.mean():.1f} % of the object's shadow on average")
     projections = np.asarray(projections, np.float32)
-    linear = fdk(interpolate_trace(projections, np.zeros_like(projections), trace), seen)
-    prior_volume = metal_free_prior(np.asarray(linear.volume.data, np.float32), metal, soft)
-    prior = JosephProjector(prior_volume, seen).project(geometry)
+    estimate = fdk(interpolate_trace(projections, np.zeros_like(projections), trace), seen)
+    for done in range(1, PRIOR_PASSES + 1):
+        prior_volume = metal_free_prior(np.asarray(estimate.volume.data, np.float32), metal, soft)
+        prior = JosephProjector(prior_volume, seen).project(geometry)
+        if done < PRIOR_PASSES:
+            estimate = fdk(interpolate_trace(projections, prior, trace), seen)
     corrected = fdk(interpolate_trace(projections, prior, trace), grid)
     volume = np.asarray(corrected.volume.data, dtype=np.float32).copy()
-    metal, data = metal[inner], data[inner]
-    volume[metal] = data[metal]
+    shown = segment_metal(data, soft, seen.voxel_volume_mm3, METAL_SHOWN)[inner]
+    data = data[inner]
+    volume[shown] = data[shown]
     return MarResult(
         Volume(volume, grid, "1/mm"),
         Volume(data, grid, "1/mm"),
-        metal,
+        shown,
         soft,
         share,
         corrected,

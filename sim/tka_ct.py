@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -233,12 +234,62 @@ def beam_behind_leg(kvp: float) -> Spectrum:
     return tube_spectrum(kvp).hardened("water", LEG_FILTRATION_MM)
 
 
-def tka_truth(scene: TkaScene, grid: VolumeGrid, kvp: float) -> tuple[np.ndarray, np.ndarray]:
-    """The scene on ``grid``: labels (uint8, [z, y, x]) and attenuation (float32, 1/mm).
+@dataclass(frozen=True)
+class TkaTruth:
+    """The scene on a grid.
 
-    A voxel takes the part that fills most of it (the soft tissue's inside the leg's cylinder,
-    air outside), and the mean of the parts' attenuations by the share each fills.
+    Attributes:
+        grid: The grid.
+        labels: Each voxel's part (the one that fills most of it; soft tissue inside the leg's
+            cylinder, air outside), uint8 [z, y, x].
+        mu: The parts' attenuations by the share each fills, float32 [z, y, x], 1/mm.
+        metal_share: The share of each voxel that is metal, float32 [z, y, x].
     """
+
+    grid: VolumeGrid
+    labels: np.ndarray
+    mu: np.ndarray
+    metal_share: np.ndarray
+
+    @cached_property
+    def metal_zone(self) -> np.ndarray:
+        """Voxels with any metal (a thin fin fills under half of its voxels), and those
+        touching them: where neither bone nor tissue can be scored."""
+        return ndimage.binary_dilation(self.metal_share > METAL_SHARE_SCORED)
+
+    def near_metal_scores(self, labels: np.ndarray) -> dict[str, float]:
+        """How a segmentation's bones match the truth's within :data:`NEAR_METAL_MM` of the
+        metal (outside :attr:`metal_zone`).
+
+        Args:
+            labels: A segmentation (registration.labels.LABELS) on the grid, [z, y, x].
+
+        Returns:
+            The Dice of all bone together (``bone``) and of each bone by name.
+        """
+        distance = ndimage.distance_transform_edt(
+            self.metal_share <= METAL_SHARE_SCORED, sampling=self.grid.spacing_mm[::-1]
+        )
+        near = (distance <= NEAR_METAL_MM) & ~self.metal_zone
+        bones = {name: (LABELS[name],) for name in ("femur", "tibia", "fibula", "patella")}
+        bones["bone"] = tuple(LABELS[name] for name in ("femur", "tibia", "fibula", "patella"))
+        scores = {}
+        for name, values in bones.items():
+            ours, theirs = np.isin(labels, values) & near, np.isin(self.labels, values) & near
+            total = int(ours.sum() + theirs.sum())
+            scores[name] = 2.0 * float((ours & theirs).sum()) / total if total else float("nan")
+        return scores
+
+    def rmse_outside_metal(self, volume: np.ndarray) -> float:
+        """The RMSE of a reconstruction against :attr:`mu` in the leg outside
+        :attr:`metal_zone`, 1/mm."""
+        inside = (self.labels != LABELS["air"]) & ~self.metal_zone
+        return float(np.sqrt(np.mean((np.asarray(volume)[inside] - self.mu[inside]) ** 2)))
+
+
+def tka_truth(scene: TkaScene, grid: VolumeGrid, kvp: float) -> TkaTruth:
+    """The scene on ``grid`` (:class:`TkaTruth`), its attenuation as a scan at ``kvp`` shows
+    it to first order."""
     beam = beam_behind_leg(kvp)
     y, x = np.meshgrid(
         grid.origin_mm[1] + grid.spacing_mm[1] * np.arange(grid.shape[1]),
@@ -251,6 +302,7 @@ def tka_truth(scene: TkaScene, grid: VolumeGrid, kvp: float) -> tuple[np.ndarray
     water = beam.mean_mu_per_mm("water")
     mu = np.where(leg, water, 0.0).astype(np.float32)
     labels = np.where(leg, LABELS["soft_tissue"], LABELS["air"]).astype(np.uint8)
+    metal_share = np.zeros(grid.shape, dtype=np.float32)
     best = np.zeros(grid.shape, dtype=np.float32)
     for layer in scene.layers:
         surface = trimesh.Trimesh(layer.vertices_mm, layer.faces, process=False)
@@ -260,46 +312,17 @@ def tka_truth(scene: TkaScene, grid: VolumeGrid, kvp: float) -> tuple[np.ndarray
         mu -= (layer.displaces * fraction * water).astype(np.float32)
         if layer.displaces == 0.0:
             continue
-        metal = set(layer.materials) & {"CoCr", "Ti6Al4V"}
+        metal = bool(set(layer.materials) & {"CoCr", "Ti6Al4V"})
+        if metal:
+            metal_share += fraction
         label = METAL_LABEL if metal else PART_LABELS[layer.part]
         wins = fraction > np.maximum(best, 0.5 - 1e-6)
         labels[wins] = label
         best = np.maximum(best, fraction)
-    return labels, mu
+    return TkaTruth(grid, labels, mu, metal_share)
 
 
 NEAR_METAL_MM = 20.0
 """The bone scored next to the implant: within this of the metal, mm."""
-
-
-def near_metal_scores(labels: np.ndarray, truth: np.ndarray, grid: VolumeGrid) -> dict[str, float]:
-    """How a segmentation's bones match the truth's within :data:`NEAR_METAL_MM` of the metal
-    (the metal and the voxels touching it left out: neither tells bone from metal there).
-
-    Args:
-        labels: A segmentation (registration.labels.LABELS), [z, y, x].
-        truth: :func:`tka_truth`'s labels on the same grid.
-        grid: Their grid.
-
-    Returns:
-        The Dice of all bone together (``bone``) and of each bone by name, near the metal.
-    """
-    metal = truth == METAL_LABEL
-    distance = ndimage.distance_transform_edt(~metal, sampling=grid.spacing_mm[::-1])
-    near = (distance <= NEAR_METAL_MM) & ~ndimage.binary_dilation(metal)
-    bones = {name: (LABELS[name],) for name in ("femur", "tibia", "fibula", "patella")}
-    bones["bone"] = tuple(LABELS[name] for name in ("femur", "tibia", "fibula", "patella"))
-    scores = {}
-    for name, values in bones.items():
-        ours, theirs = np.isin(labels, values) & near, np.isin(truth, values) & near
-        total = int(ours.sum() + theirs.sum())
-        scores[name] = 2.0 * float((ours & theirs).sum()) / total if total else float("nan")
-    return scores
-
-
-def rmse_outside_metal(volume: np.ndarray, mu: np.ndarray, truth: np.ndarray) -> float:
-    """The RMSE of a reconstruction against the truth's attenuation in the leg, the metal and
-    the voxels touching it left out, 1/mm."""
-    metal = ndimage.binary_dilation(truth == METAL_LABEL)
-    inside = (truth != LABELS["air"]) & ~metal
-    return float(np.sqrt(np.mean((volume[inside] - mu[inside]) ** 2)))
+METAL_SHARE_SCORED = 0.01
+"""A voxel with more metal than this share is metal to the scores."""

@@ -24,7 +24,7 @@ def scanned():
     scene = tka_scene(spec)
     # the box cuts the tray's stem, as the recon box does: metal it does not see is not fitted
     grid = VolumeGrid.centered((140, 140, 200), 0.8, tuple(spec.center_mm - [0, 0, 40]))
-    labels, _ = tka_truth(scene, grid, 110.0)
+    labels = tka_truth(scene, grid, 110.0).labels
     return scene, load_tka(DATA), labels == METAL_LABEL, grid
 
 

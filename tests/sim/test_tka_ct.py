@@ -13,7 +13,7 @@ from recon.geometry import DetectorSpec, circular_orbit
 from recon.volume import VolumeGrid
 from registration.implants import ray_lengths
 from sim.spectrum import COMPOSITIONS, tube_spectrum
-from sim.tka_ct import METAL_LABEL, TkaPhantomSpec, near_metal_scores, tka_scene, tka_truth
+from sim.tka_ct import METAL_LABEL, TkaPhantomSpec, tka_scene, tka_truth
 
 DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "grand-challenge-tka"
 
@@ -37,7 +37,8 @@ def test_the_scene_projects_its_metal_and_its_truth_holds_the_parts() -> None:
     spec = TkaPhantomSpec(data=str(DATA), supersample=1)
     scene = tka_scene(spec)
     grid = VolumeGrid.centered((70, 70, 150), 2.0, tuple(spec.center_mm))  # the stem's too
-    labels, mu = tka_truth(scene, grid, 110.0)
+    truth = tka_truth(scene, grid, 110.0)
+    labels, mu = truth.labels, truth.mu
     metal = labels == METAL_LABEL
     components = [layer for layer in scene.layers if "CoCr" in layer.materials]
     volume = sum(trimesh.Trimesh(c.vertices_mm, c.faces).volume for c in components)
@@ -52,5 +53,5 @@ def test_the_scene_projects_its_metal_and_its_truth_holds_the_parts() -> None:
     shadow = sum(ray_lengths(view, c.vertices_mm, c.faces, np.eye(4)) for c in components) > 0
     assert np.allclose(with_metal[~shadow], without[~shadow])  # only the metal differs
     assert np.all(with_metal[shadow] > without[shadow])
-    scores = near_metal_scores(labels, labels, grid)
+    scores = truth.near_metal_scores(labels)
     assert scores["bone"] == 1.0 and scores["femur"] == 1.0
