@@ -9,8 +9,8 @@ photons' noise, and reconstructed with weighted FDK on the demo's recon box. Thr
 - ``uncorrected``: the knee replacement, reconstructed as it is;
 - ``mar``: the knee replacement through ``recon.mar.nmar``.
 
-For each: the bones segmented (registration.segment; with metal, on
-``recon.mar.MarResult.for_segmentation``: the metal at a cortex's level) and
+For each: the bones segmented (registration.segment; with metal,
+``segment_bones_with_metal``: the metal at a cortex's level) and
 their Dice against the truth within 20 mm of the metal (all bone together, and per bone),
 and the RMSE against the truth's attenuation in the leg outside the metal. Also: the metal
 segmented against the truth's (Dice), and the seconds NMAR takes.
@@ -25,7 +25,6 @@ import argparse
 import json
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -37,7 +36,7 @@ from recon.config import load_protocol  # noqa: E402
 from recon.fdk import fdk_reconstruct  # noqa: E402
 from recon.mar import nmar  # noqa: E402
 from recon.volume import Volume  # noqa: E402
-from registration.segment import segment_bones  # noqa: E402
+from registration.segment import segment_bones, segment_bones_with_metal  # noqa: E402
 from sim.scan import add_noise, photons_per_pixel  # noqa: E402
 from sim.tka_ct import (  # noqa: E402
     DEFAULT_DATA,
@@ -62,10 +61,12 @@ def scan(spec: TkaPhantomSpec, protocol, geometry, seed: int) -> np.ndarray:
     return add_noise(clean, photons, np.random.default_rng(seed))[1]
 
 
-def bones(volume: Volume) -> np.ndarray | str:
-    """The segmentation's labels, or why it failed."""
+def bones(volume: Volume, metal: np.ndarray | None) -> np.ndarray | str:
+    """The segmentation's labels (next to ``metal`` when given), or why it failed."""
     try:
-        return segment_bones(volume, side="right").data
+        if metal is None:
+            return segment_bones(volume, side="right").data
+        return segment_bones_with_metal(volume, metal, METAL_LABEL, side="right").data
     except ValueError as err:
         return str(err)
 
@@ -111,15 +112,11 @@ def main() -> None:
         "uncorrected": result.uncorrected,
         "mar": result.volume,
     }
-    segmentable = {
-        "metal_free": reference,
-        "uncorrected": replace(result, volume=result.uncorrected).for_segmentation(),
-        "mar": result.for_segmentation(),
-    }
+    metal_given = {"metal_free": None, "uncorrected": result.metal, "mar": result.metal}
     entries = {}
     for name, volume in volumes.items():
         log(f"{name}: segmenting the bones")
-        labels = bones(segmentable[name])
+        labels = bones(volume, metal_given[name])
         entry = {"rmse_outside_metal_per_mm": truth.rmse_outside_metal(volume.data)}
         if isinstance(labels, str):
             entry["segmentation_failed"] = labels

@@ -58,9 +58,6 @@ SHADOW_LINE_INTEGRAL = 0.1
 """A pixel is in the object's shadow where its line integral is above this."""
 MAX_TRACE_SHARE = 0.6
 """The largest share of a view's object shadow the metal's trace may cover."""
-METAL_AS_CORTEX = 2.5
-"""The metal's stand-in level for bone segmentation, in multiples of the soft tissue's (a
-cortex's: registration.segment finds bone through its cortex)."""
 PRIOR_PASSES = 2
 """Priors made in turn: the first from the linear interpolation's volume, each next from the
 volume the one before corrected (its bone next to the metal is sharper)."""
@@ -87,27 +84,6 @@ class MarResult:
     soft_tissue_per_mm: float
     trace_share: np.ndarray
     fdk: FDKResult
-
-    def for_segmentation(self) -> Volume:
-        """The corrected volume with the metal, and the voxels touching it, at
-        :data:`METAL_AS_CORTEX` x the soft tissue's level: bone fixed to an implant is closed
-        by it as by its own cortex, where the reconstruction next to the metal is weakest
-        (its labels there are then taken off: :meth:`bone_labels`)."""
-        data = np.asarray(self.volume.data, dtype=np.float32).copy()
-        data[self.near_metal] = METAL_AS_CORTEX * self.soft_tissue_per_mm
-        return Volume(data, self.volume.grid, "1/mm")
-
-    @property
-    def near_metal(self) -> np.ndarray:
-        """The metal and the voxels touching it, bool [z, y, x]."""
-        return ndimage.binary_dilation(self.metal)
-
-    def bone_labels(self, labels: Volume, metal_label: int) -> Volume:
-        """A segmentation of :meth:`for_segmentation` with the metal and the voxels touching
-        it labelled ``metal_label``."""
-        data = np.asarray(labels.data).copy()
-        data[self.near_metal] = metal_label
-        return Volume(data, labels.grid, labels.unit)
 
     @property
     def metal_mm3(self) -> float:

@@ -1,7 +1,7 @@
 """An automatic start for implant components on the first frame, where no start is given.
 
 A metal component is a near-opaque shadow with the component's outline. On the frame
-binned to :data:`BIN` (pixels of a few mm), the component's silhouette is rendered at every
+binned to :data:`BIN_MM` pixels, the component's silhouette is rendered at every
 orientation of a grid (:data:`DIRECTIONS` directions of its axes brought to world z, each turned
 about z in steps of :data:`TURN_DEG`: all of its orientations) at a typical distance
 (:data:`DEPTH_FRACTION` of the way to the panel) and matched to the frame by normalised
@@ -22,8 +22,9 @@ from recon.geometry import View
 from registration.frames import blocks
 from registration.implants import ImplantModel
 
-BIN = 8
-"""Binning of the frame for the search."""
+BIN_MM = 3.0
+"""The search's pixel size: frames are binned to the nearest whole factor of it (8 x 8 for
+JointTrack's 0.373 mm calibration, 2 x 2 for the demo's 1.2 mm fluoroscopy)."""
 DIRECTIONS = 300
 """Viewing directions of the orientation grid (a Fibonacci sphere)."""
 TURN_DEG = 15.0
@@ -50,15 +51,20 @@ def _sphere(n: int) -> np.ndarray:
     )
 
 
+def binning(view: View) -> int:
+    """The binning factor that brings the view's pixels nearest :data:`BIN_MM`."""
+    return max(1, round(BIN_MM / view.pitch_u_mm))
+
+
 def binned_frame(
-    frame: np.ndarray, field: np.ndarray | None, binning: int = BIN
+    frame: np.ndarray, field: np.ndarray | None, factor: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """A frame (its attenuation stand-in, registration.frames) binned, the pixels outside the
     exposed field set to the field's median; and the binned pixels wholly inside the field."""
-    image = blocks(frame, binning).mean(axis=(1, 3)).astype(np.float64)
+    image = blocks(frame, factor).mean(axis=(1, 3)).astype(np.float64)
     inside = np.ones(image.shape, dtype=bool)
     if field is not None:
-        inside = blocks(field, binning).all(axis=(1, 3))
+        inside = blocks(field, factor).all(axis=(1, 3))
         image[~inside] = np.median(image[inside])
     return image, inside
 
@@ -122,8 +128,9 @@ def candidate_poses(
     components of one knee lie close together; dark things elsewhere, a platform's bars, are
     not it); ``placed``: components already placed (model, pose), whose shadows are taken out
     of the frame (the metal they explain is theirs)."""
-    coarse = view.binned(BIN)
-    image, inside = binned_frame(frame, field)
+    factor = binning(view)
+    coarse = view.binned(factor)
+    image, inside = binned_frame(frame, field, factor)
     background = float(np.median(image))
     for other, T_other in placed:
         image[other.silhouette(coarse, T_other)] = background

@@ -55,6 +55,9 @@ from registration.labels import BONE_UNITS, LABELS
 EDGE_CANDIDATES = np.arange(1.30, 1.96, 0.05)
 """Bone edge thresholds tried, in multiples of the soft-tissue level."""
 
+METAL_AS_CORTEX = 2.5
+"""An implant's stand-in level for bone segmentation, in multiples of the soft tissue's (a
+cortex's: bone is found through its cortex)."""
 MIN_MARKER_MM3 = 20.0
 """Smallest bone interior that seeds a region of its own, mm^3."""
 
@@ -138,6 +141,27 @@ def segment_bones(
     bone_labels = value_of_region[regions]
     labels[bone_labels > 0] = bone_labels[bone_labels > 0]
     return Volume(labels, volume.grid, "label")
+
+
+def segment_bones_with_metal(
+    volume: Volume,
+    metal: np.ndarray,
+    metal_label: int,
+    side: Literal["right", "left"] | None = None,
+) -> Volume:
+    """Label the bones of a knee with an implant (:func:`segment_bones`), ``metal`` (bool
+    [z, y, x], recon.mar's) labelled ``metal_label`` with the voxels touching it.
+
+    Those voxels are set to :data:`METAL_AS_CORTEX` x the soft tissue's level first: bone
+    fixed to an implant is closed by it as by its own cortex, where the reconstruction next to
+    the metal is weakest.
+    """
+    near = ndimage.binary_dilation(np.asarray(metal, dtype=bool))
+    data = np.asarray(volume.data, dtype=np.float32).copy()
+    data[near] = METAL_AS_CORTEX * _soft_tissue_level(np.where(near, 0.0, data))
+    labels = segment_bones(Volume(data, volume.grid, "1/mm"), side=side)
+    labels.data[near] = metal_label
+    return labels
 
 
 def bone_surfaces(labels: Volume) -> dict[str, trimesh.Trimesh]:

@@ -38,6 +38,7 @@ from scanner.study import MANIFEST, Study, StudyError
 from sim.backend import SimBackendSpec, SimFaults, volume_subject
 from sim.phantoms.bb import project_bb
 from sim.phantoms.knee import KneePhantomSpec, knee_grid, rasterize_knee
+from sim.tka_ct import TkaPhantomSpec, tka_scene, tka_subject
 from trajectories.config import ScannerConfig
 from trajectories.model import ScannerModel
 from trajectories.move import park_pose
@@ -59,7 +60,7 @@ class ViewSink(Protocol):
     def view(self, record: ViewRecord, image: np.ndarray) -> None: ...
 
 
-PHANTOMS = {"knee": KneePhantomSpec, "bb": BBPhantomSpec}
+PHANTOMS = {"knee": KneePhantomSpec, "bb": BBPhantomSpec, "tka": TkaPhantomSpec}
 LEG_HEIGHT_MM = 480.0
 """Length of leg the simulated panel images, mm, centred on the joint line: more than the cone
 covers at the knee (a leg cut off inside the cone would end in the reconstruction, and in the
@@ -74,7 +75,7 @@ class SessionInputs:
     scanner: ScannerConfig
     backend_kind: str
     backend: object
-    phantom: KneePhantomSpec | BBPhantomSpec
+    phantom: KneePhantomSpec | BBPhantomSpec | TkaPhantomSpec
     phantom_voxel_mm: float
 
     def snapshot(self) -> dict:
@@ -83,7 +84,7 @@ class SessionInputs:
             "scanner": self.scanner.model_dump(mode="json"),
             "backend": {"kind": self.backend_kind, **self.backend.model_dump(mode="json")},
             "phantom": {
-                "kind": "bb" if isinstance(self.phantom, BBPhantomSpec) else "knee",
+                "kind": next(k for k, spec in PHANTOMS.items() if isinstance(self.phantom, spec)),
                 **self.phantom.model_dump(mode="json"),
             },
             "phantom_voxel_mm": self.phantom_voxel_mm,
@@ -187,9 +188,13 @@ def plan_study(
 
 def subject(inputs: SessionInputs, say: Say) -> Callable[[View], np.ndarray]:
     """The phantom as the simulated panel sees it: the steel balls exactly, the knee
-    rasterised and projected."""
+    rasterised and projected, the knee replacement's meshes polychromatically at the
+    protocol's tube voltage."""
     if isinstance(inputs.phantom, BBPhantomSpec):
         return lambda view: project_bb(inputs.phantom, Geometry([view]))[0]
+    if isinstance(inputs.phantom, TkaPhantomSpec):
+        say(f"loading the knee replacement from {inputs.phantom.data}")
+        return tka_subject(tka_scene(inputs.phantom), inputs.protocol.exposure.tube_kv)
     grid = knee_grid(
         inputs.phantom,
         spacing_mm=inputs.phantom_voxel_mm,

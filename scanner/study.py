@@ -31,6 +31,7 @@ STAGES = (
     "scan",
     "recon",
     "segmentation",
+    "placement",
     "fluoro",
     "registration",
     "assessment",

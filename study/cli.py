@@ -880,6 +880,13 @@ def demo(
     seed: Annotated[
         int, typer.Option(help="draws the simulated noise (arms, panels, fluoroscopy)")
     ] = 0,
+    tka: Annotated[
+        bool,
+        typer.Option(
+            help="a knee replacement (../shared/data/grand-challenge-tka): metal artefact "
+            "reduction, the components placed on the metal and tracked through the gait"
+        ),
+    ] = False,
 ) -> None:
     """Run the main job on the simulated scanner, into one study folder: plan, calibrate,
     scan, reconstruct, segment, simulate fluoroscopy, track the bones, assess, record."""
@@ -888,7 +895,7 @@ def demo(
     from study import demo as demo_job
 
     try:
-        prepared = demo_job.open_demo(out, CONFIGS, quick=quick, resume=resume, seed=seed)
+        prepared = demo_job.open_demo(out, CONFIGS, quick=quick, resume=resume, seed=seed, tka=tka)
     except (ValueError, OSError, StudyError) as err:
         fail(str(err))
     try:

@@ -50,6 +50,7 @@ from sim.backend import SimBackendSpec
 from sim.fluoro import lateral_view, save_sequence, simulate_dewarp_grid, simulate_fluoroscopy
 from sim.motion import flexion_extension
 from sim.phantoms.knee import KneePhantomSpec
+from study import tka as tka_stages
 from study.live_recon import LiveRecon
 from study.recording import merge_recordings
 from study.stages import (
@@ -93,6 +94,12 @@ QUICK = {
     "frames": 8,
     "max_flexion_deg": 40.0,
 }
+TKA = {"fluoro_panel": 512, "recon_voxel_mm": 0.8}
+"""What ``--tka`` changes in either size: the knee replacement's fluoroscopy (gait frames on
+the panel read out 512^2, as bench/registration.py's tka regime) and the MAR
+reconstruction's voxels."""
+TKA_FRAMES_AT_LEAST = 12
+"""A gait sampled more coarsely moves the components too far between frames to follow."""
 DETECTOR_FRAMES = 16
 """Dark and flood frames of the demo's panel calibration, each."""
 VARUS_DEG = 3.0
@@ -116,6 +123,12 @@ STAGES = (
 )
 """The demo's stages in order (``plan`` is made by the first scan; ``recording`` merges every
 stage's recording into ``recording.rrd``)."""
+TKA_STAGES = (*STAGES[:7], "placement", *STAGES[7:])
+"""``--tka``'s stages: the components are placed on the metal after the segmentation."""
+
+
+PHANTOM_FILES = {"knee": "knee.yaml", "bb": "bb_helix.yaml", "tka": "tka.yaml"}
+"""Each simulated subject's config in configs/phantoms/."""
 
 
 def _protocols(configs: Path, size: dict) -> tuple[ScanProtocol, ScanProtocol]:
@@ -151,6 +164,9 @@ def acquire(
     the panels' quantum noise and the fluoroscopy's. ``bars(description, unit)`` gives a
     progress callback per long step (views scanned, views fitted)."""
     protocol, cal_protocol = _protocols(configs, size)
+    tka = bool(size.get("tka"))
+    stages = TKA_STAGES if tka else STAGES
+    subject = "tka" if tka else "knee"
     knee = load_config(configs / "phantoms" / "knee.yaml", KneePhantomSpec)
     bb = load_config(configs / "phantoms" / "bb_helix.yaml", BBPhantomSpec)
     backend = load_config(configs / "backends" / "sim.yaml", SimBackendSpec)
@@ -163,16 +179,16 @@ def acquire(
             configs / "scanner.yaml",
             "sim",
             configs / "backends" / "sim.yaml",
-            configs / "phantoms" / ("knee.yaml" if phantom == "knee" else "bb_helix.yaml"),
+            configs / "phantoms" / PHANTOM_FILES[phantom],
             phantom_voxel_mm=size["phantom_voxel_mm"],
             phantom_kind=phantom,
         )
         return replace(base, backend=backend)
 
-    number = iter(range(1, len(STAGES) + 1))
+    number = iter(range(1, len(stages) + 1))
 
     def stage(name: str, title: str) -> Say:
-        say(f"stage {next(number)}/{len(STAGES)} {name}: {title}")
+        say(f"stage {next(number)}/{len(stages)} {name}: {title}")
         return lambda msg: say(f"  {msg}")
 
     def scan(name: str, p: ScanProtocol, phantom: str, sink: LiveRecon | None = None) -> None:
@@ -192,7 +208,7 @@ def acquire(
         found = {}
         for p in (cal_protocol, protocol):
             done = _bar(bars, f"detector: {p.detector.cols}x{p.detector.rows} frames", "frames")
-            made, _ = calibrate_session(inputs(p, "knee"), folder, DETECTOR_FRAMES, progress=done)
+            made, _ = calibrate_session(inputs(p, subject), folder, DETECTOR_FRAMES, progress=done)
             s = made.summary()
             found[made.mode] = {k: s[k] for k in ("defective_pixels", "lag", "dark_noise_adu")}
         return found
@@ -226,11 +242,12 @@ def acquire(
         calibration,
         stage("calibration", "fit every view's projection matrix"),
     )
-    live = LiveRecon(size["recon_voxel_mm"]) if live_recon else None
-    title = "scan the standing knee" + (", reconstructing while it acquires" if live else "")
+    live = LiveRecon(size["recon_voxel_mm"]) if live_recon and not tka else None
+    title = "scan the standing knee" + (" replacement" if tka else "")
+    title += ", reconstructing while it acquires" if live else ""
     say_scan = stage("scan", title)
     try:
-        ran = run_stage(study, "scan", lambda: scan("scan", protocol, "knee", live), say_scan)
+        ran = run_stage(study, "scan", lambda: scan("scan", protocol, subject, live), say_scan)
     except BaseException:
         if live is not None:
             live.close()
@@ -272,6 +289,12 @@ def acquire(
         (folder / "dewarp_grid.yaml").write_text(yaml.safe_dump(grid.model_dump()))
         return {"frames": n, "max_flexion_deg": size["max_flexion_deg"], "varus_deg": varus_deg}
 
+    if tka:
+        title = "lateral fluoroscopy of the knee replacement through the measured gait"
+        tka_stages.fluoro_stage(
+            study, size["frames"], size["fluoro_panel"], seed, stage("fluoro", title)
+        )
+        return
     run_stage(
         study,
         "fluoro",
@@ -291,7 +314,13 @@ class Demo:
 
 
 def open_demo(
-    out: Path, configs: Path, *, quick: bool = False, resume: bool = False, seed: int = 0
+    out: Path,
+    configs: Path,
+    *,
+    quick: bool = False,
+    resume: bool = False,
+    seed: int = 0,
+    tka: bool = False,
 ) -> Demo:
     """The demo's study, before anything runs: new at ``out`` (a new or empty folder), or the
     one to continue (``resume``; its own seed). Raises StudyError or ConfigError.
@@ -302,14 +331,18 @@ def open_demo(
         quick: The small demo (:data:`QUICK`) instead of the full one (:data:`FULL`).
         resume: Continue the study at ``out``: redo only its incomplete stages.
         seed: The noise seed of a new demo (:func:`acquire`).
+        tka: The knee replacement (:data:`TKA_STAGES`) instead of the native knee.
     """
     size = QUICK if quick else FULL
+    if tka:
+        size = {**size, **TKA, "tka": True}
+        size["frames"] = max(size["frames"], TKA_FRAMES_AT_LEAST)
     settings = load_config(configs / "registration.yaml", Settings)
     if resume:
         study = Study.open(out)
         made = study.manifest["config"].get("demo", {})
         if made.get("size") != size:
-            raise StudyError(f"{out} was made with other demo settings (--quick differs)")
+            raise StudyError(f"{out} was made with other demo settings (--quick or --tka differs)")
         return Demo(study, size, made.get("seed", 0), settings)
     demo = {"size": size, "varus_deg": VARUS_DEG, "seed": seed}
     return Demo(Study.create(out, {"demo": demo}), size, seed, settings)
@@ -332,29 +365,50 @@ def run(
     out = study.path
     started = time.perf_counter()
     acquire(study, configs, size, seed=seed, say=say, bars=bars)
+    tka = bool(size.get("tka"))
+    stages = TKA_STAGES if tka else STAGES
+    number = iter(range(STAGES.index("recon") + 1, len(stages) + 1))
 
-    def stage(k: int, name: str, title: str) -> Say:
-        say(f"stage {k}/{len(STAGES)} {name}: {title}")
+    def stage(name: str, title: str) -> Say:
+        say(f"stage {next(number)}/{len(stages)} {name}: {title}")
         return lambda msg: say(f"  {msg}")
 
-    recon_stage(
-        study,
-        size["recon_voxel_mm"],
-        _bar(bars, "recon: views backprojected", "views"),
-        stage(6, "recon", "weighted FDK with the calibrated geometry"),
-    )
-    segmentation_stage(study, stage(7, "segmentation", "bones from the reconstruction"))
-    registration_stage(
-        study,
-        settings,
-        stage(8, "registration", "BoneAxis-Reg tracking"),
-        _bar(bars, "registration: frames tracked", "frames"),
-    )
-    assessment_stage(
-        study,
-        "Demo: registered weight-bearing flexion-extension",
-        stage(9, "assessment", "knee kinematics report"),
-    )
+    if tka:
+        recon_bar = _bar(bars, "recon: views backprojected", "views")
+        tka_stages.recon_stage(
+            study,
+            size["recon_voxel_mm"],
+            recon_bar,
+            stage("recon", "weighted FDK with metal artefact reduction (NMAR)"),
+        )
+        tka_stages.segmentation_stage(study, stage("segmentation", "bones next to the metal"))
+        tka_stages.placement_stage(study, stage("placement", "components on the metal (3D-3D)"))
+        tka_stages.registration_stage(
+            study,
+            None,
+            stage("registration", "the components tracked from their meshes"),
+            _bar(bars, "registration: frames tracked", "frames"),
+        )
+        tka_stages.assessment_stage(study, stage("assessment", "the knee replacement's report"))
+    else:
+        recon_stage(
+            study,
+            size["recon_voxel_mm"],
+            _bar(bars, "recon: views backprojected", "views"),
+            stage("recon", "weighted FDK with the calibrated geometry"),
+        )
+        segmentation_stage(study, stage("segmentation", "bones from the reconstruction"))
+        registration_stage(
+            study,
+            settings,
+            stage("registration", "BoneAxis-Reg tracking"),
+            _bar(bars, "registration: frames tracked", "frames"),
+        )
+        assessment_stage(
+            study,
+            "Demo: registered weight-bearing flexion-extension",
+            stage("assessment", "knee kinematics report"),
+        )
 
     def recording() -> None:
         parts = [
@@ -365,10 +419,12 @@ def run(
             out / "assessment" / "series.rrd",
         ]
         (out / "recording.rrd").unlink(missing_ok=True)  # an interrupted merge: made again
-        merge_recordings(parts, out / "recording.rrd")
+        merge_recordings([p for p in parts if p.exists()], out / "recording.rrd")
         study.adopt("recording.rrd")
 
-    run_stage(study, "recording", recording, stage(10, "recording", "one recording of every stage"))
+    run_stage(study, "recording", recording, stage("recording", "one recording of every stage"))
+    if tka:
+        return _tka_summary(study, out, time.perf_counter() - started)
     return _summary(study, out, time.perf_counter() - started)
 
 
@@ -390,5 +446,30 @@ def _summary(study: Study, out: Path, seconds: float) -> str:
         f"{recon['rmse_true_per_mm']:.5f} true)\n"
         f"  registration: TRE mean {reg['tre_mm']:.2f} mm (median {reg['tre_mm_median']:.2f}), "
         f"RSR {reg['rsr_pct']:.1f} %  ({out}/registration/poses.csv)\n"
+        f"  study:      {out}/study.json (every stage, every file's sha256)"
+    )
+
+
+def _tka_summary(study: Study, out: Path, seconds: float) -> str:
+    stages = study.manifest["stages"]
+    recon, seg = stages["recon"], stages["segmentation"]
+    placed, reg, assess = stages["placement"], stages["registration"], stages["assessment"]
+    placement = ", ".join(
+        f"{body} {p['error_deg']:.2f} deg / {p['error_mm']:.2f} mm"
+        for body, p in placed.items()
+        if isinstance(p, dict) and "error_deg" in p
+    )
+    return (
+        f"[green]demo (knee replacement) finished[/] in {seconds:.0f} s -> {out}\n"
+        f"  report:     {out}/assessment/report.html (max |MLD| "
+        f"{assess['max_abs_mld_mm']:.2f} mm, {len(assess['flagged_frames'])} frames flagged)\n"
+        f"  volume:     {out}/recon/volume.nii.gz with NMAR (metal {out}/recon/metal.nii.gz); "
+        f"RMSE outside the metal {recon['rmse_outside_metal_per_mm']:.5f} /mm "
+        f"({recon['rmse_outside_metal_uncorrected_per_mm']:.5f} without MAR)\n"
+        f"  bones:      Dice within 20 mm of the metal "
+        f"{seg['dice_near_metal']['bone']:.3f} ({out}/segmentation/labels.nii.gz)\n"
+        f"  placement:  {placement} from the truth ({out}/placement/placement.json)\n"
+        f"  tracking:   TRE median {reg['tre_mm_median']:.2f} mm, RSR {reg['rsr_pct']:.1f} %, "
+        f"depth median {reg['depth_mm_median']:.2f} mm ({out}/registration/poses.csv)\n"
         f"  study:      {out}/study.json (every stage, every file's sha256)"
     )

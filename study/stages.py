@@ -87,7 +87,7 @@ def derived_folder(study: Study, name: str, fill: Callable[[Path], dict | None])
     return details
 
 
-def _require(study: Study, *stages: str) -> None:
+def require(study: Study, *stages: str) -> None:
     missing = [s for s in stages if study.stage(s).get("status") != "complete"]
     if missing:
         raise StudyError(f"{study.path}: needs the stage(s) {missing} complete first")
@@ -195,7 +195,7 @@ def recon_stage(
         (folder / "metrics.json").write_text(json.dumps(details, indent=2), encoding="utf-8")
         return details
 
-    _require(study, "scan")
+    require(study, "scan")
     return run_stage(study, "recon", lambda: derived_folder(study, "recon", fill), say)
 
 
@@ -219,7 +219,7 @@ def segmentation_stage(study: Study, say: Say = print) -> bool:
             details["dice"] = dice
         return details
 
-    _require(study, "recon")
+    require(study, "recon")
     return run_stage(
         study, "segmentation", lambda: derived_folder(study, "segmentation", fill), say
     )
@@ -280,7 +280,7 @@ def registration_stage(
         details["tre_mm_max"] = max(row["tre_mm"] for row in metrics["per_frame"])
         return details
 
-    _require(study, "segmentation", "fluoro")
+    require(study, "segmentation", "fluoro")
     return run_stage(study, "registration", work, say)
 
 
@@ -308,7 +308,7 @@ def assessment_stage(study: Study, title: str = "Knee kinematics", say: Say = pr
             "ddv_mm2": kin.ddv_mm2,
         }
 
-    _require(study, "registration", "segmentation")
+    require(study, "registration", "segmentation")
     return run_stage(study, "assessment", lambda: derived_folder(study, "assessment", fill), say)
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from registration.autostart import BIN, candidate_poses
+from registration.autostart import binning, candidate_poses
 from registration.implants import MATERIALS, implant_model
 from registration.jointtrack import camera_view
 from tests.registration.test_register_implants import component
@@ -51,4 +51,4 @@ def test_each_component_is_found_where_it_lies(seed, measured):
             overlaps.append(2 * (ours & true_shadow).sum() / (ours.sum() + true_shadow.sum()))
         measured(f"{name}_best_dice", float(max(overlaps)), above=0.7)
     femur_centre = centre("femur", truth["femur"])
-    assert all(np.hypot(*(centre("tibia", T) - femur_centre)) > 2 * BIN for T in tibia)
+    assert all(np.hypot(*(centre("tibia", T) - femur_centre)) > 2 * binning(view) for T in tibia)

@@ -1,0 +1,306 @@
+"""The knee replacement's stages of ``cbct demo --tka`` (docs/guide/demo.md): its fluoroscopy
+through the measured gait, the static scan reconstructed with metal artefact reduction, the
+bones segmented next to the metal, the components placed on the metal, tracked through the
+frames and assessed.
+
+Each stage is a folder of the study (study.stages' conventions: written into
+``<stage>.partial/``, renamed when done, marked in study.json with its figures); on the
+simulator each is scored against the truth (sim.tka_ct).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from recon.fdk import Progress, fdk_reconstruct
+from recon.geometry import DetectorSpec, Geometry
+from recon.io import read_projections, read_volume, write_projections, write_volume
+from recon.mar import nmar
+from recon.preview import save_orthogonal_slices
+from recon.rtk_xml import read_rtk_geometry, write_rtk_geometry
+from recon.volume import Volume
+from registration.boneaxis import Settings, compose
+from registration.implants import read_mesh
+from registration.placement import place_components
+from registration.poses import BonePose, write_poses
+from registration.segment import bone_surfaces, segment_bones_with_metal
+from registration.track import ImplantSpec, register_files
+from scanner.study import Study
+from sim.tka import TRACKED, load_tka, part_poses, read_gait, simulate_tka_fluoro, tka_motion
+from sim.tka_ct import METAL_LABEL, TkaPhantomSpec, tka_scene, tka_truth
+from study.jobs import assess_files
+from study.recording import record_volume
+from study.stages import (
+    Say,
+    derived_folder,
+    recon_geometry,
+    recon_grid,
+    require,
+    run_stage,
+    scan_protocol,
+)
+
+FLUORO_CENTER_MM = np.array([0.0, 0.0, 490.0])
+"""Where the knee's joint centre stands in the fluoroscope's world, mm."""
+FLUORO_PHOTONS = 2.0e4
+"""Unattenuated photons per pixel of the fluoroscopy (as bench/registration.py's tka regime)."""
+START_OFFSET = (3.0, 3.0)
+"""The first frame's start (an operator's, as JointTrack users place a component by hand): the
+true pose moved by up to this many mm and degrees per axis, seeded."""
+FLUORO_PANEL_MM = 307.2
+"""The fluoroscopy panel's width, mm."""
+COMPONENTS = {
+    "femur": "femoral_component",
+    "tibia": "tibial_tray",
+}
+"""The tracked bodies' components (the femoral component carries the femur's name)."""
+TRACKED_NAME = {"femur": "femur", "tibia": "tibia_fibula"}
+"""The tracker's name of each component's body (its poses')."""
+INSERT = "tibial_insert"
+"""The polyethylene insert: the TKA report's plateau plane (in the tray's frame)."""
+
+
+def tka_phantom(study: Study) -> TkaPhantomSpec:
+    """The knee replacement the study's simulated scan imaged."""
+    phantom = dict(study.manifest["config"]["scan"]["phantom"])
+    if phantom.pop("kind", None) != "tka":
+        raise ValueError(f"{study.path}: its scan did not image the simulated knee replacement")
+    return TkaPhantomSpec.model_validate(phantom)
+
+
+def fluoro_stage(study: Study, frames: int, panel: int, seed: int, say: Say) -> bool:
+    """Lateral fluoroscopy of the knee replacement through the subject's measured gait ->
+    ``fluoro/`` (frames, view, true poses, the first frame's start: ``initial.csv``), with the
+    components' meshes (``components/``, in their bodies' frames, mm: the CAD meshes the
+    tracking and the report take)."""
+
+    def fill(folder: Path) -> dict:
+        spec = tka_phantom(study)
+        knee = load_tka(spec.data)
+        gait = read_gait(Path(spec.data) / "kinematics" / "fluoroscopic_gait.sto")
+        motion = tka_motion(knee, gait, frames, FLUORO_CENTER_MM)
+        detector = DetectorSpec(rows=panel, cols=panel, pixel_pitch_mm=FLUORO_PANEL_MM / panel)
+        say(f"rendering {frames} frames of {panel}^2 through the gait")
+        view, images = simulate_tka_fluoro(
+            knee, motion, detector, FLUORO_CENTER_MM, FLUORO_PHOTONS, seed=seed
+        )
+        write_projections(folder / "frames.mha", images, view.pitch_u_mm)
+        write_rtk_geometry(folder / "view.xml", Geometry([view] * frames))
+        components = folder / "components"
+        components.mkdir()
+        for part in (*COMPONENTS.values(), INSERT):
+            knee.meshes[part].export(components / f"{part}.stl")
+        poses, centroids = [], {}
+        for body, (part, _) in TRACKED.items():
+            moved = part_poses(knee, motion, part)
+            poses += [BonePose(k, body, moved[k]) for k in range(frames)]
+            centroids[body] = np.asarray(knee.meshes[part].centroid)
+        poses.sort(key=lambda p: (p.frame, p.bone))
+        write_poses(folder / "poses.csv", poses, centroids)
+        rng = np.random.default_rng([seed, 35])
+        t, r = START_OFFSET
+        start = [
+            BonePose(
+                0,
+                p.bone,
+                compose(
+                    np.concatenate((rng.uniform(-t, t, 3), rng.uniform(-r, r, 3))),
+                    p.T_world_bone,
+                    centroids[p.bone],
+                ),
+            )
+            for p in poses
+            if p.frame == 0
+        ]
+        write_poses(folder / "initial.csv", start, centroids)
+        flexion = motion.flexion_deg
+        return {
+            "frames": frames,
+            "panel": panel,
+            "flexion_deg": [round(float(flexion.min()), 1), round(float(flexion.max()), 1)],
+        }
+
+    require(study, "scan")
+    return run_stage(study, "fluoro", lambda: derived_folder(study, "fluoro", fill), say)
+
+
+def recon_stage(study: Study, voxel_mm: float, progress: Progress | None, say: Say) -> bool:
+    """The static scan with normalised metal artefact reduction -> ``recon/`` (the volume,
+    the metal's mask, the uncorrected volume, a preview); against the truth: the RMSE outside
+    the metal, with and without MAR."""
+
+    def fill(folder: Path) -> dict:
+        protocol = scan_protocol(study)
+        stack = read_projections(study.path / "scan" / "projections.mha")
+        recorded = read_rtk_geometry(study.path / "scan" / "geometry.xml", stack.header)
+        planned = read_rtk_geometry(study.path / "scan" / "planned_geometry.xml", stack.header)
+        orbit, per_view = recon_geometry(study, protocol, planned)
+        grid = recon_grid(protocol, voxel_mm)
+
+        def fdk(projections: np.ndarray, on) -> object:
+            return fdk_reconstruct(
+                projections,
+                recorded if per_view else orbit,
+                on,
+                orbit_geometry=orbit if per_view else None,
+                progress=progress,
+            )
+
+        result = nmar(stack.data, recorded if per_view else orbit, grid, fdk=fdk, say=say)
+        write_volume(folder / "volume.nii.gz", result.volume)
+        write_volume(folder / "uncorrected.nii.gz", result.uncorrected)
+        write_volume(folder / "metal.nii.gz", Volume(result.metal.astype(np.uint8), grid, "label"))
+        save_orthogonal_slices(result.volume, folder / "slices.png", title="weighted FDK + NMAR")
+        record_volume(result.volume, folder / "recording.rrd")
+        truth = tka_truth(tka_scene(tka_phantom(study)), grid, protocol.exposure.tube_kv)
+        details = {
+            "voxel_mm": voxel_mm,
+            "metal_cm3": round(result.metal_mm3 / 1000.0, 2),
+            "rmse_outside_metal_per_mm": truth.rmse_outside_metal(result.volume.data),
+            "rmse_outside_metal_uncorrected_per_mm": truth.rmse_outside_metal(
+                result.uncorrected.data
+            ),
+        }
+        (folder / "metrics.json").write_text(json.dumps(details, indent=2), encoding="utf-8")
+        return details
+
+    require(study, "scan")
+    return run_stage(study, "recon", lambda: derived_folder(study, "recon", fill), say)
+
+
+def segmentation_stage(study: Study, say: Say) -> bool:
+    """The bones next to the metal -> ``segmentation/`` (labels with the metal
+    :data:`sim.tka_ct.METAL_LABEL`, a mesh per bone); against the truth: the Dice of the bones
+    within 20 mm of the metal."""
+
+    def fill(folder: Path) -> dict:
+        volume = read_volume(study.path / "recon" / "volume.nii.gz", unit="1/mm")
+        metal = read_volume(study.path / "recon" / "metal.nii.gz", unit="label").data > 0
+        labels = segment_bones_with_metal(volume, metal, METAL_LABEL, side="right")
+        write_volume(folder / "labels.nii.gz", labels)
+        for name, mesh in bone_surfaces(labels).items():
+            mesh.export(folder / f"{name}.stl")
+        protocol = scan_protocol(study)
+        truth = tka_truth(tka_scene(tka_phantom(study)), volume.grid, protocol.exposure.tube_kv)
+        dice = truth.near_metal_scores(labels.data)
+        (folder / "dice.json").write_text(json.dumps(dice, indent=2), encoding="utf-8")
+        return {"side": "right", "dice_near_metal": dice}
+
+    require(study, "recon")
+    return run_stage(
+        study, "segmentation", lambda: derived_folder(study, "segmentation", fill), say
+    )
+
+
+def placement_stage(study: Study, say: Say) -> bool:
+    """The components' meshes placed on the static scan's metal -> ``placement/``
+    (placement.json: each component's pose in the scan, its fit; against the truth: the
+    rotation and the centroid's distance from the scene's pose)."""
+
+    def fill(folder: Path) -> dict:
+        metal = read_volume(study.path / "recon" / "metal.nii.gz", unit="label")
+        components = study.path / "fluoro" / "components"
+        meshes = {}
+        for body, part in COMPONENTS.items():
+            path = components / f"{part}.stl"
+            meshes[body] = (read_mesh(path)[0], path)
+        placed = place_components(meshes, metal.data > 0, metal.grid)
+        scene = tka_scene(tka_phantom(study))
+        details = {}
+        for body, placement in placed.items():
+            part = COMPONENTS[body]
+            T, truth = placement.T_world_component, scene.poses[part]
+            centroid = np.asarray(meshes[body][0].centroid)
+            moved = (T[:3, :3] @ centroid + T[:3, 3]) - (truth[:3, :3] @ centroid + truth[:3, 3])
+            angle = Rotation.from_matrix(T[:3, :3] @ truth[:3, :3].T).magnitude()
+            details[body] = {
+                "mesh": placement.path,
+                "T_world_component": np.round(T, 6).tolist(),
+                "surface_distance_mm": round(placement.surface_distance_mm, 3),
+                "volume_ratio": round(placement.volume_ratio, 3),
+                "error_deg": round(float(np.degrees(angle)), 3),
+                "error_mm": round(float(np.linalg.norm(moved)), 3),
+            }
+        (folder / "placement.json").write_text(json.dumps(details, indent=2), encoding="utf-8")
+        return {
+            body: {k: v for k, v in d.items() if k not in ("mesh", "T_world_component")}
+            for body, d in details.items()
+        }
+
+    require(study, "recon", "fluoro")
+    return run_stage(study, "placement", lambda: derived_folder(study, "placement", fill), say)
+
+
+def registration_stage(
+    study: Study, settings: Settings | None, say: Say, progress: Progress | None
+) -> bool:
+    """The components tracked through the frames from their meshes (from the first frame's
+    start, ``fluoro/initial.csv``) -> ``registration/``, scored against the true poses."""
+
+    def work() -> dict:
+        target = study.path / "registration"
+        if target.exists():
+            shutil.rmtree(target)  # an interrupted earlier attempt: derived data, made again
+        fluoro = study.path / "fluoro"
+        implants = tuple(
+            ImplantSpec(body, fluoro / "components" / f"{part}.stl")
+            for body, part in COMPONENTS.items()
+        )
+        register_files(
+            None,
+            None,
+            fluoro / "frames.mha",
+            fluoro / "view.xml",
+            target,
+            implants=implants,
+            polarity="bright",
+            truth_path=fluoro / "poses.csv",
+            initial_path=fluoro / "initial.csv",
+            settings=settings,
+            progress=progress or (lambda done, total: say(f"registered frame {done}/{total}")),
+        )
+        study.adopt("registration")
+        study.save()
+        metrics = json.loads((target / "metrics.json").read_text(encoding="utf-8"))
+        keep = ("tre_mm", "tre_mm_median", "rsr_pct", "in_plane_mm_median")
+        return {k: metrics[k] for k in keep} | {
+            "depth_mm_median": metrics["out_of_plane_mm_median"]
+        }
+
+    require(study, "fluoro")
+    return run_stage(study, "registration", work, say)
+
+
+def assessment_stage(study: Study, say: Say) -> bool:
+    """The knee's kinematics from the tracked components -> ``assessment/`` (the TKA report:
+    the plateau plane of the insert, the femoral component's condylar points, MLD, DDV)."""
+
+    def fill(folder: Path) -> dict:
+        components = study.path / "fluoro" / "components"
+        folder.rmdir()  # assess_files makes its own new folder
+        kin = assess_files(
+            study.path / "registration" / "poses.csv",
+            None,
+            folder,
+            "right",
+            implants={
+                TRACKED_NAME[body]: components / f"{part}.stl" for body, part in COMPONENTS.items()
+            },
+            insert=components / f"{INSERT}.stl",
+            overlays=study.path / "registration" / "overlays",
+        ).kinematics
+        return {
+            "frames": len(kin.frames),
+            "max_abs_mld_mm": float(np.abs(kin.mld_mm).max()),
+            "flexion_range_deg": float(np.ptp(kin.flexion_deg)),
+            "flagged_frames": [int(f) for f in kin.frames[kin.flagged]],
+            "ddv_mm2": kin.ddv_mm2,
+        }
+
+    require(study, "registration")
+    return run_stage(study, "assessment", lambda: derived_folder(study, "assessment", fill), say)
