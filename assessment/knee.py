@@ -22,11 +22,8 @@ from assessment.anatomy import (
 from assessment.kinematics import knee_kinematics
 from assessment.results import MLD_FLAG_MM, KneeKinematics
 from recon.volume import Volume
-from registration.labels import BONE_LABELS, LABELS
+from registration.labels import BONE_LABELS, INSERT_LABEL, LABELS
 from registration.poses import BonePose, poses_by_frame
-
-INSERT_LABEL = 6
-"""Label of a TKA polyethylene insert; with ``tka`` the TP plane is fitted to its top."""
 
 
 @dataclass(frozen=True)

@@ -12,6 +12,9 @@ LABELS: dict[str, int] = {
 }
 """Label value per tissue (cortical and cancellous bone share a bone's label)."""
 
+INSERT_LABEL = 6
+"""Label of a TKA polyethylene insert (the knee report fits the TP plane to its top)."""
+
 BONE_LABELS: dict[str, tuple[int, ...]] = {
     "femur": (LABELS["femur"],),
     "tibia": (LABELS["tibia"],),

@@ -9,7 +9,7 @@ hardens the beam and starves the panel of photons (the simulated panel draws the
 Poisson noise from the signal left). The projection is ``-ln`` of the transmitted share.
 
 :func:`tka_truth` rasterises the same scene on a volume grid: labels (the bones' as the knee
-phantom's, the insert :data:`assessment.knee.INSERT_LABEL`, metal :data:`METAL_LABEL`) and the
+phantom's, the insert :data:`registration.labels.INSERT_LABEL`, metal :data:`METAL_LABEL`) and the
 attenuation a reconstruction of this beam shows, to first order (each material's attenuation
 averaged over the spectrum behind the leg).
 """
@@ -26,11 +26,10 @@ import trimesh
 from pydantic import BaseModel, ConfigDict, Field
 from scipy import ndimage
 
-from assessment.knee import INSERT_LABEL
 from recon.geometry import View
 from recon.volume import VolumeGrid
 from registration.implants import inside_fraction, ray_lengths
-from registration.labels import LABELS
+from registration.labels import INSERT_LABEL, LABELS
 from sim.spectrum import COMPOSITIONS, Spectrum, tube_spectrum
 from sim.tka import load_tka, part_poses, read_gait, tka_motion
 

@@ -56,6 +56,7 @@ from scanner.backends import load_backend_spec
 from scanner.storage import ScanStore, ViewRecord
 from scanner.study import Study, StudyError
 from sim.phantoms.knee import KneePhantomSpec
+from sim.tka_ct import TkaPhantomSpec
 from trajectories.config import ScannerConfig
 
 DEFAULT_EXAMPLES = 100
@@ -675,6 +676,7 @@ YAML_CONFIGS: dict[str, Callable[[Path], object]] = {
     "phantoms/knee.yaml": lambda p: load_config(p, KneePhantomSpec),
     "phantoms/bb_helix.yaml": lambda p: load_config(p, BBPhantomSpec),
     "phantoms/dewarp_grid.yaml": lambda p: load_config(p, DewarpGridSpec),
+    "phantoms/tka.yaml": lambda p: load_config(p, TkaPhantomSpec),
 }
 """Each committed config and the function the package that owns it reads it with."""
 
