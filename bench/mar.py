@@ -37,11 +37,10 @@ from recon.fdk import fdk_reconstruct  # noqa: E402
 from recon.mar import nmar  # noqa: E402
 from recon.volume import Volume  # noqa: E402
 from registration.segment import segment_bones, segment_bones_with_metal  # noqa: E402
+from sim.phantoms.tka import DEFAULT_DATA, TkaPhantomSpec  # noqa: E402
 from sim.scan import add_noise, photons_per_pixel  # noqa: E402
 from sim.tka_ct import (  # noqa: E402
-    DEFAULT_DATA,
     METAL_LABEL,
-    TkaPhantomSpec,
     tka_scene,
     tka_subject,
     tka_truth,

@@ -38,7 +38,7 @@ from scanner.study import MANIFEST, Study, StudyError
 from sim.backend import SimBackendSpec, SimFaults, volume_subject
 from sim.phantoms.bb import project_bb
 from sim.phantoms.knee import KneePhantomSpec, knee_grid, rasterize_knee
-from sim.tka_ct import TkaPhantomSpec, tka_scene, tka_subject
+from sim.phantoms.tka import TkaPhantomSpec
 from trajectories.config import ScannerConfig
 from trajectories.model import ScannerModel
 from trajectories.move import park_pose
@@ -193,6 +193,8 @@ def subject(inputs: SessionInputs, say: Say) -> Callable[[View], np.ndarray]:
     if isinstance(inputs.phantom, BBPhantomSpec):
         return lambda view: project_bb(inputs.phantom, Geometry([view]))[0]
     if isinstance(inputs.phantom, TkaPhantomSpec):
+        from sim.tka_ct import tka_scene, tka_subject  # its meshes and spectrum: only here
+
         say(f"loading the knee replacement from {inputs.phantom.data}")
         return tka_subject(tka_scene(inputs.phantom), inputs.protocol.exposure.tube_kv)
     grid = knee_grid(

@@ -31,8 +31,9 @@ from registration.poses import BonePose, write_poses
 from registration.segment import bone_surfaces, segment_bones_with_metal
 from registration.track import ImplantSpec, register_files
 from scanner.study import Study
+from sim.phantoms.tka import TkaPhantomSpec
 from sim.tka import TRACKED, load_tka, part_poses, read_gait, simulate_tka_fluoro, tka_motion
-from sim.tka_ct import METAL_LABEL, TkaPhantomSpec, tka_scene, tka_truth
+from sim.tka_ct import METAL_LABEL, tka_scene, tka_truth
 from study.jobs import assess_files
 from study.recording import record_volume
 from study.stages import (

@@ -56,7 +56,7 @@ from scanner.backends import load_backend_spec
 from scanner.storage import ScanStore, ViewRecord
 from scanner.study import Study, StudyError
 from sim.phantoms.knee import KneePhantomSpec
-from sim.tka_ct import TkaPhantomSpec
+from sim.phantoms.tka import TkaPhantomSpec
 from trajectories.config import ScannerConfig
 
 DEFAULT_EXAMPLES = 100

@@ -12,8 +12,9 @@ from scipy.spatial.transform import Rotation
 from recon.volume import VolumeGrid
 from registration.implants import inside_fraction
 from registration.placement import place_components
+from sim.phantoms.tka import TkaPhantomSpec
 from sim.tka import load_tka
-from sim.tka_ct import TkaPhantomSpec, tka_scene
+from sim.tka_ct import tka_scene
 
 DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "grand-challenge-tka"
 pytestmark = pytest.mark.skipif(not DATA.is_dir(), reason=f"no grand-challenge data at {DATA}")

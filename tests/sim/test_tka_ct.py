@@ -12,8 +12,9 @@ import trimesh
 from recon.geometry import DetectorSpec, circular_orbit
 from recon.volume import VolumeGrid
 from registration.implants import ray_lengths
+from sim.phantoms.tka import TkaPhantomSpec
 from sim.spectrum import COMPOSITIONS, tube_spectrum
-from sim.tka_ct import METAL_LABEL, TkaPhantomSpec, tka_scene, tka_truth
+from sim.tka_ct import METAL_LABEL, tka_scene, tka_truth
 
 DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "grand-challenge-tka"
 
