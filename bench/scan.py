@@ -51,9 +51,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from recon.config import ScanProtocol, load_config, load_protocol  # noqa: E402
-from recon.fdk import fdk_reconstruct  # noqa: E402
 from recon.io import encode_projections, read_projections, read_volume  # noqa: E402
-from recon.rtk_xml import read_rtk_geometry  # noqa: E402
 from scanner.scan import ScanRun, ScanSettings  # noqa: E402
 from scanner.session import read_inputs, run_session  # noqa: E402
 from scanner.study import Study  # noqa: E402
@@ -62,7 +60,7 @@ from sim.generator import MockGenerator  # noqa: E402
 from sim.stage import MockStage  # noqa: E402
 from sim.ur_controller import FakeURController  # noqa: E402
 from study.live_recon import LiveRecon  # noqa: E402
-from study.stages import recon_geometry, recon_grid, recon_stage, scan_protocol  # noqa: E402
+from study.stages import ScanGeometry, recon_grid, recon_stage, scan_protocol  # noqa: E402
 from trajectories.config import ScannerConfig  # noqa: E402
 from trajectories.model import ScannerModel  # noqa: E402
 from trajectories.plan import plan_scan  # noqa: E402
@@ -165,14 +163,10 @@ def sim_scan(tmp: Path, cfg: dict, log) -> dict:
     overhead = (between - sum(render_s[1:])) / (n - 1)
     log("reconstructing the same views offline")
     stack = read_projections(tmp / "study" / "scan" / "projections.mha")
-    planned = read_rtk_geometry(tmp / "study" / "scan" / "planned_geometry.xml", stack.header)
-    recorded = read_rtk_geometry(tmp / "study" / "scan" / "geometry.xml", stack.header)
-    orbit, per_view = recon_geometry(study, scan_protocol(study), planned)
+    views = ScanGeometry.of(study, scan_protocol(study), stack.header)
     grid = recon_grid(scan_protocol(study), cfg["recon_voxel_mm"])
     started = time.perf_counter()
-    offline = fdk_reconstruct(
-        stack.data, recorded if per_view else orbit, grid, orbit_geometry=orbit
-    ).volume.data
+    offline = views.fdk(stack.data, grid).volume.data
     offline_s = time.perf_counter() - started
     streamed = read_volume(tmp / "study" / "recon" / "volume.mha", unit="1/mm").data
     diff = float(np.abs(streamed - offline).max())

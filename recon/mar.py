@@ -37,6 +37,9 @@ METAL_SEED = 8.0
 """Metal certainly: above this many times the soft tissue's attenuation (bone is under 3)."""
 METAL_GROW = 4.0
 """Metal's extent: above this many times the soft tissue's, connected to a seed."""
+METAL_TRACED = 0.5
+"""The metal whose shadow is replaced: its voxels above this share of their region's median
+(its surface at half its level; a voxel a fifth full of metal is still far above bone)."""
 METAL_SHOWN = 0.75
 """The metal put back in the corrected volume: its voxels above this share of their region's
 median (the blur about the metal, between half and this, is corrected tissue: put back, its
@@ -103,24 +106,19 @@ def soft_tissue_level(data: np.ndarray) -> float:
     return 0.5 * float(edges[peak] + edges[peak + 1])
 
 
-def segment_metal(
-    volume: np.ndarray, soft: float, voxel_mm3: float, share: float = 0.5
-) -> np.ndarray:
-    """The metal's voxels (bool [z, y, x]): seeds above :data:`METAL_SEED` x ``soft`` grown
-    through voxels above :data:`METAL_GROW` x it, in regions of :data:`MIN_METAL_MM3` or more;
-    each region then kept above ``share`` of its own median (0.5: its surface at half its
-    level, where a voxel a fifth full of metal is still far above bone; the metal whose shadow
-    is replaced. :data:`METAL_SHOWN`: the metal put back, without the blur about it)."""
+def metal_levels(volume: np.ndarray, soft: float, voxel_mm3: float) -> np.ndarray:
+    """Each voxel's metal region's median, inf outside metal (float [z, y, x]): regions of
+    seeds above :data:`METAL_SEED` x ``soft`` grown through voxels above :data:`METAL_GROW` x
+    it, of :data:`MIN_METAL_MM3` or more. The metal at a share of its level is
+    ``volume >= share * levels`` (:data:`METAL_TRACED`, :data:`METAL_SHOWN`)."""
     grown = ndimage.binary_propagation(volume > METAL_SEED * soft, mask=volume > METAL_GROW * soft)
     regions, n = ndimage.label(grown)
     if n == 0:
-        return grown
+        return np.full(volume.shape, np.inf)
     index = np.arange(1, n + 1)
     sizes = ndimage.sum_labels(grown, regions, index) * voxel_mm3
-    level = ndimage.median(volume, regions, index)
-    keep = np.concatenate(([False], sizes >= MIN_METAL_MM3))
-    floor = np.concatenate(([np.inf], share * np.asarray(level)))
-    return keep[regions] & (volume >= floor[regions])
+    level = np.where(sizes >= MIN_METAL_MM3, ndimage.median(volume, regions, index), np.inf)
+    return np.concatenate(([np.inf], level))[regions]
 
 
 def metal_free_prior(volume: np.ndarray, metal: np.ndarray, soft: float) -> np.ndarray:
@@ -202,7 +200,8 @@ def nmar(
     first = fdk(projections, seen)
     data = np.asarray(first.volume.data, dtype=np.float32)
     soft = soft_tissue_level(data)
-    metal = segment_metal(data, soft, seen.voxel_volume_mm3)
+    levels = metal_levels(data, soft, seen.voxel_volume_mm3)
+    metal = data >= METAL_TRACED * levels
     if not metal.any():
         raise ValueError(
             f"MAR: no metal in the volume (nothing above {METAL_SEED:g} x the soft tissue's "
@@ -232,7 +231,7 @@ def nmar(
             estimate = fdk(interpolate_trace(projections, prior, trace), seen)
     corrected = fdk(interpolate_trace(projections, prior, trace), grid)
     volume = np.asarray(corrected.volume.data, dtype=np.float32).copy()
-    shown = segment_metal(data, soft, seen.voxel_volume_mm3, METAL_SHOWN)[inner]
+    shown = (data >= METAL_SHOWN * levels)[inner]
     data = data[inner]
     volume[shown] = data[shown]
     return MarResult(
@@ -263,6 +262,4 @@ def _seen_along_z(grid: VolumeGrid, geometry: Geometry) -> VolumeGrid:
 
 def _offset_voxels(outer: VolumeGrid, inner: VolumeGrid) -> tuple[int, int, int]:
     """Where ``inner``'s first voxel sits in ``outer`` (z, y, x)."""
-    return tuple(
-        round((inner.origin_mm[i] - outer.origin_mm[i]) / outer.spacing_mm[i]) for i in (2, 1, 0)
-    )
+    return tuple(int(k) for k in np.rint(outer.world_to_index(inner.origin_mm))[::-1])

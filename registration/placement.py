@@ -80,7 +80,7 @@ def _axes(points: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.nda
     return centre, vectors[1][:, ::-1]
 
 
-def _rotations() -> list[np.ndarray]:
+def _rotations() -> tuple[np.ndarray, ...]:
     """The 24 proper rotations that map the coordinate axes onto themselves."""
     out = []
     for order in itertools.permutations(range(3)):
@@ -89,7 +89,11 @@ def _rotations() -> list[np.ndarray]:
             m[list(order), range(3)] = signs
             if np.linalg.det(m) > 0:
                 out.append(m)
-    return out
+    return tuple(out)
+
+
+AXIS_ROTATIONS = _rotations()
+"""The 24 proper rotations that map the coordinate axes onto themselves (the fit's starts)."""
 
 
 class _RegionFit:
@@ -108,18 +112,19 @@ class _RegionFit:
         self.grid = grid
         self.volume_mm3 = float(region.sum()) * grid.voxel_volume_mm3
         k, j, i = np.nonzero(region)
-        world = np.asarray(grid.origin_mm) + np.column_stack((i, j, k)) * np.asarray(
-            grid.spacing_mm
-        )
-        self.centre, self.axes = _axes(world)
+        self.centre, self.axes = _axes(grid.index_to_world(np.column_stack((i, j, k))))
+
+    def _indices(self, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The points' voxel indices (3, N) [z, y, x], and which of them the scan's grid holds."""
+        zyx = self.grid.world_to_index(points_world)[:, ::-1].T
+        seen = np.all((zyx >= -0.5) & (zyx <= np.asarray(self.grid.shape)[:, None] - 0.5), axis=0)
+        return zyx, seen
 
     def distances(self, points_world: np.ndarray) -> np.ndarray:
         """The distance of each point to the region's surface (linear interpolation; a point
         off the map takes the map's largest value, one outside the scan's grid, where its
         metal is not seen, 0), mm."""
-        index = (points_world - np.asarray(self.grid.origin_mm)) / np.asarray(self.grid.spacing_mm)
-        zyx = index[:, ::-1].T
-        seen = np.all((zyx >= -0.5) & (zyx <= np.asarray(self.grid.shape)[:, None] - 0.5), axis=0)
+        zyx, seen = self._indices(points_world)
         d = ndimage.map_coordinates(
             self.distance,
             zyx - self.low_zyx[:, None],
@@ -132,9 +137,7 @@ class _RegionFit:
     def mean_distance(self, points_world: np.ndarray) -> float:
         """The mean distance of the points the scan sees to the region's surface, mm (inf if
         it sees under half of them)."""
-        index = (points_world - np.asarray(self.grid.origin_mm)) / np.asarray(self.grid.spacing_mm)
-        zyx = index[:, ::-1].T
-        seen = np.all((zyx >= -0.5) & (zyx <= np.asarray(self.grid.shape)[:, None] - 0.5), axis=0)
+        seen = self._indices(points_world)[1]
         if seen.mean() < 0.5:
             return float("inf")
         return float(self.distances(points_world)[seen].mean())
@@ -156,7 +159,7 @@ class _RegionFit:
 
         coarse = points[:: max(1, len(points) // COARSE_POINTS)]
         starts = []
-        for flip in _rotations():
+        for flip in AXIS_ROTATIONS:
             R = self.axes @ flip @ axes.T
             x = np.concatenate((Rotation.from_matrix(R).as_rotvec(), self.centre - R @ centre))
             result = least_squares(

@@ -283,14 +283,17 @@ WATER_PER_MM = 0.0193
 """Water's linear attenuation at 70 keV, 1/mm."""
 
 
-def _leg_chords(view: View, center_mm: np.ndarray) -> np.ndarray:
-    """Each pixel centre's ray length through the leg's cylinder (rows, cols), mm."""
+def cylinder_chords(
+    view: View, center_mm: np.ndarray, radius_mm: float = LEG_RADIUS_MM
+) -> np.ndarray:
+    """Each pixel centre's ray length through a vertical cylinder of ``radius_mm`` about
+    ``center_mm`` (the leg's by default), (rows, cols), mm."""
     v, u = np.mgrid[: view.rows, : view.cols].astype(np.float64)
     d = view.pixel_to_world(u, v) - view.source_mm
     s = view.source_mm[:2] - center_mm[:2]
     a = d[..., 0] ** 2 + d[..., 1] ** 2
     b = 2.0 * (d[..., 0] * s[0] + d[..., 1] * s[1])
-    c = s @ s - LEG_RADIUS_MM**2
+    c = s @ s - radius_mm**2
     root = np.sqrt(np.maximum(b * b - 4.0 * a * c, 0.0))
     t0 = np.clip((-b - root) / (2.0 * a), 0.0, 1.0)
     t1 = np.clip((-b + root) / (2.0 * a), 0.0, 1.0)
@@ -335,7 +338,7 @@ def simulate_tka_fluoro(
         rows=detector.rows * s, cols=detector.cols * s, pixel_pitch_mm=detector.pixel_pitch_mm / s
     )
     fine = lateral_view(spec, fine_panel, target_mm=center_mm)
-    leg = WATER_PER_MM * _leg_chords(fine, np.asarray(center_mm, dtype=np.float64))
+    leg = WATER_PER_MM * cylinder_chords(fine, np.asarray(center_mm, dtype=np.float64))
     rng = np.random.default_rng(seed)
     frames = np.empty((len(motion.frames), detector.rows, detector.cols), dtype=np.float32)
     for k in range(len(motion.frames)):

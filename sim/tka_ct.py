@@ -31,7 +31,7 @@ from registration.implants import inside_fraction, ray_lengths
 from registration.labels import INSERT_LABEL, LABELS
 from sim.phantoms.tka import TkaPhantomSpec
 from sim.spectrum import COMPOSITIONS, Spectrum, tube_spectrum
-from sim.tka import load_tka, part_poses, read_gait, tka_motion
+from sim.tka import cylinder_chords, load_tka, part_poses, read_gait, tka_motion
 
 METAL_LABEL = 7
 """Label of a metal component in :func:`tka_truth`'s labels."""
@@ -105,7 +105,7 @@ class TkaScene:
             for material, amount in layer.materials.items():
                 lengths[material] = lengths.get(material, 0.0) + amount * length
             inside += layer.displaces * length
-        leg = _cylinder_chords(fine, self.spec.center_mm, self.spec.leg_radius_mm)
+        leg = cylinder_chords(fine, self.spec.center_mm, self.spec.leg_radius_mm)
         lengths["water"] = lengths.get("water", 0.0) + np.maximum(leg - inside, 0.0)
         mu = np.stack([COMPOSITIONS[n].mu_per_mm(spectrum.energies_kev) for n in lengths])
         shown = spectrum.transmission(mu, np.maximum(np.stack(list(lengths.values())), 0.0))
@@ -128,20 +128,6 @@ def _finer(view: View, s: int) -> View:
         view.rows * s,
         view.cols * s,
     )
-
-
-def _cylinder_chords(view: View, center_mm: np.ndarray, radius_mm: float) -> np.ndarray:
-    """Each pixel centre's ray length through a vertical cylinder about ``center_mm``, mm."""
-    v, u = np.mgrid[: view.rows, : view.cols].astype(np.float64)
-    d = view.pixel_to_world(u, v) - view.source_mm
-    s = view.source_mm[:2] - center_mm[:2]
-    a = d[..., 0] ** 2 + d[..., 1] ** 2
-    b = 2.0 * (d[..., 0] * s[0] + d[..., 1] * s[1])
-    c = s @ s - radius_mm**2
-    root = np.sqrt(np.maximum(b * b - 4.0 * a * c, 0.0))
-    t0 = np.clip((-b - root) / (2.0 * a), 0.0, 1.0)
-    t1 = np.clip((-b + root) / (2.0 * a), 0.0, 1.0)
-    return (t1 - t0) * np.linalg.norm(d, axis=-1)
 
 
 def tka_scene(spec: TkaPhantomSpec) -> TkaScene:
@@ -258,11 +244,8 @@ def tka_truth(scene: TkaScene, grid: VolumeGrid, kvp: float) -> TkaTruth:
     """The scene on ``grid`` (:class:`TkaTruth`), its attenuation as a scan at ``kvp`` shows
     it to first order."""
     beam = beam_behind_leg(kvp)
-    y, x = np.meshgrid(
-        grid.origin_mm[1] + grid.spacing_mm[1] * np.arange(grid.shape[1]),
-        grid.origin_mm[0] + grid.spacing_mm[0] * np.arange(grid.shape[2]),
-        indexing="ij",
-    )
+    x_mm, y_mm, _ = grid.axes_mm()
+    y, x = np.meshgrid(y_mm, x_mm, indexing="ij")
     centre = scene.spec.center_mm
     leg = (x - centre[0]) ** 2 + (y - centre[1]) ** 2 <= scene.spec.leg_radius_mm**2
     leg = np.broadcast_to(leg, grid.shape)

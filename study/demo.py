@@ -131,6 +131,11 @@ PHANTOM_FILES = {"knee": "knee.yaml", "bb": "bb_helix.yaml", "tka": "tka.yaml"}
 """Each simulated subject's config in configs/phantoms/."""
 
 
+def _stages(size: dict) -> tuple[str, ...]:
+    """The stages of a demo of ``size`` (:data:`TKA_STAGES` for ``--tka``)."""
+    return TKA_STAGES if size.get("tka") else STAGES
+
+
 def _protocols(configs: Path, size: dict) -> tuple[ScanProtocol, ScanProtocol]:
     """The knee protocol and its calibration read-out (same plan, finer pixels)."""
     base = load_protocol(configs / "protocols" / "demo_knee.yaml")
@@ -164,8 +169,8 @@ def acquire(
     the panels' quantum noise and the fluoroscopy's. ``bars(description, unit)`` gives a
     progress callback per long step (views scanned, views fitted)."""
     protocol, cal_protocol = _protocols(configs, size)
-    tka = bool(size.get("tka"))
-    stages = TKA_STAGES if tka else STAGES
+    stages = _stages(size)
+    tka = stages is TKA_STAGES
     subject = "tka" if tka else "knee"
     knee = load_config(configs / "phantoms" / "knee.yaml", KneePhantomSpec)
     bb = load_config(configs / "phantoms" / "bb_helix.yaml", BBPhantomSpec)
@@ -365,20 +370,19 @@ def run(
     out = study.path
     started = time.perf_counter()
     acquire(study, configs, size, seed=seed, say=say, bars=bars)
-    tka = bool(size.get("tka"))
-    stages = TKA_STAGES if tka else STAGES
-    number = iter(range(STAGES.index("recon") + 1, len(stages) + 1))
+    stages = _stages(size)
+    tka = stages is TKA_STAGES
+    number = iter(range(stages.index("recon") + 1, len(stages) + 1))
 
     def stage(name: str, title: str) -> Say:
         say(f"stage {next(number)}/{len(stages)} {name}: {title}")
         return lambda msg: say(f"  {msg}")
 
     if tka:
-        recon_bar = _bar(bars, "recon: views backprojected", "views")
         tka_stages.recon_stage(
             study,
             size["recon_voxel_mm"],
-            recon_bar,
+            _bar(bars, "recon: views backprojected", "views"),
             stage("recon", "weighted FDK with metal artefact reduction (NMAR)"),
         )
         tka_stages.segmentation_stage(study, stage("segmentation", "bones next to the metal"))
@@ -419,7 +423,7 @@ def run(
             out / "assessment" / "series.rrd",
         ]
         (out / "recording.rrd").unlink(missing_ok=True)  # an interrupted merge: made again
-        merge_recordings([p for p in parts if p.exists()], out / "recording.rrd")
+        merge_recordings(parts, out / "recording.rrd")
         study.adopt("recording.rrd")
 
     run_stage(study, "recording", recording, stage("recording", "one recording of every stage"))
@@ -470,6 +474,6 @@ def _tka_summary(study: Study, out: Path, seconds: float) -> str:
         f"{seg['dice_near_metal']['bone']:.3f} ({out}/segmentation/labels.nii.gz)\n"
         f"  placement:  {placement} from the truth ({out}/placement/placement.json)\n"
         f"  tracking:   TRE median {reg['tre_mm_median']:.2f} mm, RSR {reg['rsr_pct']:.1f} %, "
-        f"depth median {reg['depth_mm_median']:.2f} mm ({out}/registration/poses.csv)\n"
+        f"depth median {reg['out_of_plane_mm_median']:.2f} mm ({out}/registration/poses.csv)\n"
         f"  study:      {out}/study.json (every stage, every file's sha256)"
     )

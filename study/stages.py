@@ -16,6 +16,7 @@ import os
 import shutil
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -36,6 +37,7 @@ from sim.phantoms.knee import KneePhantomSpec, attenuation_per_mm, rasterize_kne
 from study.recording import record_volume
 
 if TYPE_CHECKING:
+    from assessment.results import KneeKinematics
     from registration.boneaxis import Settings
 
 Say = Callable[[str], None]
@@ -127,6 +129,58 @@ def recon_geometry(
     return planned, True
 
 
+@dataclass(frozen=True)
+class ScanGeometry:
+    """A stored scan's geometries, and the one its reconstruction takes (:func:`recon_geometry`).
+
+    Attributes:
+        recorded: Each view as recorded.
+        planned: The plan's views.
+        rays: The views the rays come from: the calibrated ones, else the recorded ones.
+        weights: The views whose orbit sets FDK's angular weights (the plan's, with recorded
+            rays), or None (the rays' own).
+    """
+
+    recorded: Geometry
+    planned: Geometry
+    rays: Geometry
+    weights: Geometry | None
+
+    @classmethod
+    def of(cls, study: Study, protocol: ScanProtocol, header: object) -> ScanGeometry:
+        """The geometries of ``study``'s scan (``header``: its projection stack's)."""
+        recorded = read_rtk_geometry(study.path / "scan" / "geometry.xml", header)
+        planned = read_rtk_geometry(study.path / "scan" / "planned_geometry.xml", header)
+        orbit, per_view = recon_geometry(study, protocol, planned)
+        if per_view:
+            return cls(recorded, planned, recorded, orbit)
+        return cls(recorded, planned, orbit, None)
+
+    @property
+    def calibrated(self) -> bool:
+        """The rays come from the calibration."""
+        return self.weights is None
+
+    def fdk(
+        self, projections: np.ndarray, grid: VolumeGrid, progress: Progress | None = None
+    ) -> FDKResult:
+        """Weighted FDK of projections of this scan on ``grid``."""
+        return fdk_reconstruct(
+            projections, self.rays, grid, orbit_geometry=self.weights, progress=progress
+        )
+
+
+def kinematics_summary(kin: KneeKinematics) -> dict:
+    """An assessment stage's figures: frames, max |MLD|, flexion range, flagged frames, DDV."""
+    return {
+        "frames": len(kin.frames),
+        "max_abs_mld_mm": float(np.abs(kin.mld_mm).max()),
+        "flexion_range_deg": float(np.ptp(kin.flexion_deg)),
+        "flagged_frames": [int(f) for f in kin.frames[kin.flagged]],
+        "ddv_mm2": kin.ddv_mm2,
+    }
+
+
 def recon_stage(
     study: Study,
     voxel_mm: float = 1.0,
@@ -144,20 +198,12 @@ def recon_stage(
         nonlocal result
         protocol = scan_protocol(study)
         stack = read_projections(study.path / "scan" / "projections.mha")
-        recorded = read_rtk_geometry(study.path / "scan" / "geometry.xml", stack.header)
-        planned = read_rtk_geometry(study.path / "scan" / "planned_geometry.xml", stack.header)
-        orbit, per_view = recon_geometry(study, protocol, planned)
-        calibrated = not per_view
+        views = ScanGeometry.of(study, protocol, stack.header)
+        recorded, planned, calibrated = views.recorded, views.planned, views.calibrated
         grid = recon_grid(protocol, voxel_mm)
         streamed = result is not None
         if result is None:
-            result = fdk_reconstruct(
-                stack.data,
-                recorded if per_view else orbit,
-                grid,
-                orbit_geometry=orbit if per_view else None,
-                progress=progress,
-            )
+            result = views.fdk(stack.data, grid, progress)
         elif result.volume.grid != grid:
             raise ValueError(f"the reconstruction's grid {result.volume.grid} is not {grid}")
         volume = result.volume
@@ -225,6 +271,43 @@ def segmentation_stage(study: Study, say: Say = print) -> bool:
     )
 
 
+def track_fluoro(
+    study: Study,
+    say: Say,
+    progress: Progress | None,
+    volume: Path | None,
+    labels: Path | None,
+    **options: object,
+) -> dict:
+    """``registration.track.register_files`` of ``fluoro/`` (its frames and view; ``options``
+    the rest) into ``registration/`` (an interrupted attempt's folder made again), adopted by
+    the study; the figures of its metrics.json (none without truth)."""
+    from registration.track import register_files
+
+    target = study.path / "registration"
+    if target.exists():
+        shutil.rmtree(target)  # an interrupted earlier attempt: derived data, made again
+    fluoro = study.path / "fluoro"
+    register_files(
+        volume,
+        labels,
+        fluoro / "frames.mha",
+        fluoro / "view.xml",
+        target,
+        progress=progress or (lambda done, total: say(f"registered frame {done}/{total}")),
+        **options,
+    )
+    study.adopt("registration")
+    study.save()
+    if not (target / "metrics.json").exists():
+        return {}
+    metrics = json.loads((target / "metrics.json").read_text(encoding="utf-8"))
+    keep = ("tre_mm", "tre_mm_median", "rsr_pct", "in_plane_mm_median", "out_of_plane_mm_median")
+    details = {k: metrics[k] for k in keep}
+    details["tre_mm_max"] = max(row["tre_mm"] for row in metrics["per_frame"])
+    return details
+
+
 def registration_stage(
     study: Study,
     settings: Settings | None = None,
@@ -235,13 +318,9 @@ def registration_stage(
     (metrics.json when the sequence has ground truth); the frames are dewarped first when
     ``fluoro/`` holds an exposure of the dewarp grid (``dewarp_grid.mha`` and its
     ``dewarp_grid.yaml``). ``progress(done, total)`` counts frames (else ``say`` does)."""
-    from registration.track import register_files
     from study.jobs import fit_fluoro_distortion
 
     def work() -> dict:
-        target = study.path / "registration"
-        if target.exists():
-            shutil.rmtree(target)  # an interrupted earlier attempt: derived data, made again
         fluoro = study.path / "fluoro"
         truth = fluoro / "poses.csv"
         distortion = None
@@ -253,32 +332,16 @@ def registration_stage(
                 f"dewarp: {distortion.balls} grid balls, residual RMS {distortion.rms_mm:.3f} "
                 f"mm, largest displacement {distortion.max_displacement_mm:.2f} mm"
             )
-        register_files(
+        return track_fluoro(
+            study,
+            say,
+            progress,
             study.path / "recon" / "volume.nii.gz",
             study.path / "segmentation" / "labels.nii.gz",
-            study.path / "fluoro" / "frames.mha",
-            study.path / "fluoro" / "view.xml",
-            target,
             truth_path=truth if truth.exists() else None,
             distortion=distortion,
             settings=settings,
-            progress=progress or (lambda done, total: say(f"registered frame {done}/{total}")),
         )
-        study.adopt("registration")
-        study.save()
-        if not (target / "metrics.json").exists():
-            return {}
-        metrics = json.loads((target / "metrics.json").read_text(encoding="utf-8"))
-        keep = (
-            "tre_mm",
-            "tre_mm_median",
-            "rsr_pct",
-            "in_plane_mm_median",
-            "out_of_plane_mm_median",
-        )
-        details = {k: metrics[k] for k in keep}
-        details["tre_mm_max"] = max(row["tre_mm"] for row in metrics["per_frame"])
-        return details
 
     require(study, "segmentation", "fluoro")
     return run_stage(study, "registration", work, say)
@@ -300,13 +363,7 @@ def assessment_stage(study: Study, title: str = "Knee kinematics", say: Say = pr
         kin = write_assessment(
             labels, poses, folder, side, title=title, volume=volume, overlays=overlays
         ).kinematics
-        return {
-            "frames": len(kin.frames),
-            "max_abs_mld_mm": float(np.abs(kin.mld_mm).max()),
-            "flexion_range_deg": float(np.ptp(kin.flexion_deg)),
-            "flagged_frames": [int(f) for f in kin.frames[kin.flagged]],
-            "ddv_mm2": kin.ddv_mm2,
-        }
+        return kinematics_summary(kin)
 
     require(study, "registration", "segmentation")
     return run_stage(study, "assessment", lambda: derived_folder(study, "assessment", fill), say)

@@ -11,25 +11,24 @@ simulator each is scored against the truth (sim.tka_ct).
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from recon.fdk import Progress, fdk_reconstruct
+from recon.fdk import Progress
 from recon.geometry import DetectorSpec, Geometry
 from recon.io import read_projections, read_volume, write_projections, write_volume
 from recon.mar import nmar
 from recon.preview import save_orthogonal_slices
-from recon.rtk_xml import read_rtk_geometry, write_rtk_geometry
+from recon.rtk_xml import write_rtk_geometry
 from recon.volume import Volume
 from registration.boneaxis import Settings, compose
 from registration.implants import read_mesh
 from registration.placement import place_components
 from registration.poses import BonePose, write_poses
 from registration.segment import bone_surfaces, segment_bones_with_metal
-from registration.track import ImplantSpec, register_files
+from registration.track import ImplantSpec
 from scanner.study import Study
 from sim.phantoms.tka import TkaPhantomSpec
 from sim.tka import TRACKED, load_tka, part_poses, read_gait, simulate_tka_fluoro, tka_motion
@@ -38,12 +37,14 @@ from study.jobs import assess_files
 from study.recording import record_volume
 from study.stages import (
     Say,
+    ScanGeometry,
     derived_folder,
-    recon_geometry,
+    kinematics_summary,
     recon_grid,
     require,
     run_stage,
     scan_protocol,
+    track_fluoro,
 )
 
 FLUORO_CENTER_MM = np.array([0.0, 0.0, 490.0])
@@ -138,21 +139,15 @@ def recon_stage(study: Study, voxel_mm: float, progress: Progress | None, say: S
     def fill(folder: Path) -> dict:
         protocol = scan_protocol(study)
         stack = read_projections(study.path / "scan" / "projections.mha")
-        recorded = read_rtk_geometry(study.path / "scan" / "geometry.xml", stack.header)
-        planned = read_rtk_geometry(study.path / "scan" / "planned_geometry.xml", stack.header)
-        orbit, per_view = recon_geometry(study, protocol, planned)
+        views = ScanGeometry.of(study, protocol, stack.header)
         grid = recon_grid(protocol, voxel_mm)
-
-        def fdk(projections: np.ndarray, on) -> object:
-            return fdk_reconstruct(
-                projections,
-                recorded if per_view else orbit,
-                on,
-                orbit_geometry=orbit if per_view else None,
-                progress=progress,
-            )
-
-        result = nmar(stack.data, recorded if per_view else orbit, grid, fdk=fdk, say=say)
+        result = nmar(
+            stack.data,
+            views.rays,
+            grid,
+            fdk=lambda projections, on: views.fdk(projections, on, progress),
+            say=say,
+        )
         write_volume(folder / "volume.nii.gz", result.volume)
         write_volume(folder / "uncorrected.nii.gz", result.uncorrected)
         write_volume(folder / "metal.nii.gz", Volume(result.metal.astype(np.uint8), grid, "label"))
@@ -244,34 +239,22 @@ def registration_stage(
     start, ``fluoro/initial.csv``) -> ``registration/``, scored against the true poses."""
 
     def work() -> dict:
-        target = study.path / "registration"
-        if target.exists():
-            shutil.rmtree(target)  # an interrupted earlier attempt: derived data, made again
-        fluoro = study.path / "fluoro"
+        components = study.path / "fluoro" / "components"
         implants = tuple(
-            ImplantSpec(body, fluoro / "components" / f"{part}.stl")
-            for body, part in COMPONENTS.items()
+            ImplantSpec(body, components / f"{part}.stl") for body, part in COMPONENTS.items()
         )
-        register_files(
+        return track_fluoro(
+            study,
+            say,
+            progress,
             None,
             None,
-            fluoro / "frames.mha",
-            fluoro / "view.xml",
-            target,
             implants=implants,
             polarity="bright",
-            truth_path=fluoro / "poses.csv",
-            initial_path=fluoro / "initial.csv",
+            truth_path=study.path / "fluoro" / "poses.csv",
+            initial_path=study.path / "fluoro" / "initial.csv",
             settings=settings,
-            progress=progress or (lambda done, total: say(f"registered frame {done}/{total}")),
         )
-        study.adopt("registration")
-        study.save()
-        metrics = json.loads((target / "metrics.json").read_text(encoding="utf-8"))
-        keep = ("tre_mm", "tre_mm_median", "rsr_pct", "in_plane_mm_median")
-        return {k: metrics[k] for k in keep} | {
-            "depth_mm_median": metrics["out_of_plane_mm_median"]
-        }
 
     require(study, "fluoro")
     return run_stage(study, "registration", work, say)
@@ -295,13 +278,7 @@ def assessment_stage(study: Study, say: Say) -> bool:
             insert=components / f"{INSERT}.stl",
             overlays=study.path / "registration" / "overlays",
         ).kinematics
-        return {
-            "frames": len(kin.frames),
-            "max_abs_mld_mm": float(np.abs(kin.mld_mm).max()),
-            "flexion_range_deg": float(np.ptp(kin.flexion_deg)),
-            "flagged_frames": [int(f) for f in kin.frames[kin.flagged]],
-            "ddv_mm2": kin.ddv_mm2,
-        }
+        return kinematics_summary(kin)
 
     require(study, "registration")
     return run_stage(study, "assessment", lambda: derived_folder(study, "assessment", fill), say)
