@@ -93,6 +93,10 @@ SIM_GIGE_WINDOW_MS = 100.0
 it (the mock generator fires as soon as EXP arrives)."""
 SIM_GIGE_FRAME_TIMEOUT_S = 0.3
 """Longest wait for a frame of the simulated panel over GigE Vision, s (a dead panel's bound)."""
+SIM_GIGE_WARMUP_FRAMES = 1
+"""Frames the driver reads and discards when it connects to the simulated panel: the first
+frame after the stream starts comes late, which the frame timeout would take for a dead panel
+(a CI run lost a scan's view 0 so). They are blank and leave the sensor's noise untouched."""
 
 
 def load_backend_spec(kind: str, path: str | Path) -> SimBackendSpec | URBackendSpec:
@@ -260,7 +264,9 @@ def _panel_over_gige(
     (:mod:`sim.gige_panel`, its sensor the simulated panel's :meth:`SimDetector.integrate`),
     and the GigE Vision driver that reads it; with what stops the camera. The camera-gone
     fault kills the camera's process when the frame of view ``camera_gone_at_view`` is asked
-    for; a dropped frame (``dropped_frame_at_view``) comes after the driver's frame timeout."""
+    for; a dropped frame (``dropped_frame_at_view``) comes after the driver's frame timeout.
+    The driver's warm-up frames (:data:`SIM_GIGE_WARMUP_FRAMES`) are blank: the views' frames
+    are the sensor's, the same as read directly."""
     from scanner.gige import GigEPanel
     from sim.gige_panel import serve_sensor, start_fake_panel
 
@@ -269,10 +275,13 @@ def _panel_over_gige(
     sensor.arm(0.0)
     gone_at = spec.faults.camera_gone_at_view
     camera = None
-    frames = itertools.count()  # frames asked for in this session: one per view
+    frames = itertools.count(-SIM_GIGE_WARMUP_FRAMES)  # this session's: one per view
 
     def integrate(window_s: float) -> np.ndarray:
-        if next(frames) == gone_at and camera is not None:
+        frame = next(frames)
+        if frame < 0:
+            return np.zeros((panel.rows, panel.cols), dtype=np.uint16)
+        if frame == gone_at and camera is not None:
             simulated.world.log("detector", "camera gone")
             camera.kill()
         try:
@@ -298,6 +307,7 @@ def _panel_over_gige(
         panel.pixel_pitch_mm,
         window_ms=SIM_GIGE_WINDOW_MS,
         frame_timeout_s=SIM_GIGE_FRAME_TIMEOUT_S,
+        warmup_frames=SIM_GIGE_WARMUP_FRAMES,
     )
 
     def stop() -> None:

@@ -68,7 +68,8 @@ def test_a_camera_gone_mid_scan_ends_safe_within_the_frame_timeout_then_resumes(
         scan(tmp_path, "gone", panel_gige_interface=ADDRESS, faults={"camera_gone_at_view": 5})
     assert "GigE panel" in caught.value.reason
     study = Study.open(tmp_path / "gone")
-    assert study.stage("scan")["views_stored"] == 5 and study.verify() == []
+    assert study.stage("scan")["views_stored"] == 5, caught.value.reason
+    assert study.verify() == []
 
     events = wall_events(tmp_path / "gone.csv")
     gone = next(t for t, who, what in events if what == "camera gone")
