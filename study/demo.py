@@ -342,7 +342,9 @@ def open_demo(
     if tka:
         size = {**size, **TKA, "tka": True}
         size["frames"] = max(size["frames"], TKA_FRAMES_AT_LEAST)
-    settings = load_config(configs / "registration.yaml", Settings)
+    # components tracked from their meshes alone take the implant settings, as `cbct register`
+    settings_file = "registration_implants.yaml" if tka else "registration.yaml"
+    settings = load_config(configs / settings_file, Settings)
     if resume:
         study = Study.open(out)
         made = study.manifest["config"].get("demo", {})
@@ -389,7 +391,7 @@ def run(
         tka_stages.placement_stage(study, stage("placement", "components on the metal (3D-3D)"))
         tka_stages.registration_stage(
             study,
-            None,
+            settings,
             stage("registration", "the components tracked from their meshes"),
             _bar(bars, "registration: frames tracked", "frames"),
         )
