@@ -519,7 +519,7 @@ class Tracker:
                 f"field of {np.shape(field)} pixels for frames of {self.frames.shape[1:]}"
             )
         self.field = None if field is None or np.all(field) else np.asarray(field, dtype=bool)
-        self.bones = bones
+        self.bones = dict(bones)  # a mesh body's matched blur stays this tracker's
         self.soft_tissue = soft_tissue
         self._knees: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         """The frame's (femur, tibia) pose pairs the soft tissue was deformed by."""

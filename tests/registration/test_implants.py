@@ -4,13 +4,14 @@ partial volumes, rendered where JointTrack's reference poses put them."""
 from __future__ import annotations
 
 import importlib.util
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 import trimesh
 
-from registration.boneaxis import Settings, Tracker
+from registration.boneaxis import BoneResult, Settings, Tracker
 from registration.implants import MATERIALS, implant_model, ray_lengths, read_mesh, voxelize
 from registration.jointtrack import camera_view, read_calibration, read_poses
 
@@ -212,3 +213,24 @@ def test_the_depth_prior_weighs_a_move_along_the_view_axis_only():
     other = Tracker(view, np.zeros((1, 64, 64)), {"femur": model}, unnamed)
     other._before = {"femur": before}
     assert other._prior("femur", {"femur": before}) is None
+
+
+def test_a_tracker_matches_a_mesh_s_blur_for_itself_alone():
+    """The blur matched on the first frame is the frames' own, and stays the tracker's: the
+    caller's models are untouched (a bench that tracks sequence after sequence with the same
+    models once started each from the blur the one before had matched)."""
+    view = camera_view(1198.0, 0.0, 0.0, 0.373, 96, 96)
+    ball = trimesh.creation.box(extents=(12.0, 8.0, 10.0))
+    model = implant_model("femur", ball, MATERIALS["CoCr"])
+    pose = np.eye(4)
+    pose[:3, 3] = (0.0, 0.0, -900.0)
+    blur_mm = 0.6
+    frame = replace(model, blur_mm=blur_mm).render(view, pose)
+    models = {"femur": model}
+    tracker = Tracker(view, frame[None], models, Settings(pyramid_mm=(0.373,)))
+    result = BoneResult(pose, 0.0, 0.0, 0.0, 0, False)
+    tracker._match_model_blur(0, "femur", {"femur": pose}, result)
+    step = 0.15  # the candidates' spacing (boneaxis.MODEL_BLUR_MM); the parabola does better
+    assert tracker.bones["femur"].blur_mm == pytest.approx(blur_mm, abs=step / 2)
+    assert models["femur"].blur_mm == 0.0 and models["femur"] is model
+    assert result.ncc > 0.99

