@@ -63,3 +63,14 @@ def test_more_components_than_metal_is_refused(scanned) -> None:
     meshes = {body: (knee.meshes["tibial_tray"], "T.stl") for body in ("femur", "tibia", "x")}
     with pytest.raises(ValueError, match=r"2 separate region\(s\) for 3 component"):
         place_components(meshes, metal, grid)
+
+
+def test_a_component_of_the_other_side_is_refused(scanned) -> None:
+    """The femoral component mirrored (a left one for this right knee) fits the metal within
+    the distance check, but its mirror image, the right one, fits it clearly better."""
+    _, knee, metal, grid = scanned
+    mirrored = knee.meshes["femoral_component"].copy()
+    mirrored.apply_transform(np.diag([-1.0, 1.0, 1.0, 1.0]))  # trimesh keeps it outward
+    assert mirrored.volume > 0
+    with pytest.raises(ValueError, match=r"LEFT\.stl \(femur\) fits the scan's metal better mirr"):
+        place_components({"femur": (mirrored, "LEFT.stl")}, metal, grid)
