@@ -86,10 +86,13 @@ def _axes(points: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.nda
     w = np.ones(len(points)) if weights is None else weights
     centre = (w[:, None] * points).sum(axis=0) / w.sum()
     d = points - centre
-    axes = np.linalg.eigh((w[:, None] * d).T @ d / w.sum())[1][:, ::-1]
-    if np.linalg.det(axes) < 0:  # a right-handed frame, so that the starts are rotations
-        axes[:, 2] *= -1.0
-    return centre, axes
+    return centre, _right_handed(np.linalg.eigh((w[:, None] * d).T @ d / w.sum())[1][:, ::-1])
+
+
+def _right_handed(axes: np.ndarray) -> np.ndarray:
+    """``axes`` (columns) with the last reversed if they form a left-handed frame, so that the
+    fit's starts (:data:`AXIS_ROTATIONS` between two such frames) are rotations."""
+    return axes * [1.0, 1.0, -1.0] if np.linalg.det(axes) < 0 else axes
 
 
 def _rotations() -> tuple[np.ndarray, ...]:
@@ -240,9 +243,8 @@ def place_components(
                 f"the metal region holds {ratio:.2f} x its volume (expected "
                 f"{VOLUME_RATIO[0]:g}-{VOLUME_RATIO[1]:g}): the wrong component, size or side?"
             )
-        mirrored_axes = MIRROR @ axes
-        mirrored_axes[:, 2] *= -1.0  # right-handed again
-        _, other_side = fits[k].fit(points @ MIRROR, MIRROR @ centre, mirrored_axes)
+        mirrored = (points @ MIRROR, MIRROR @ centre, _right_handed(MIRROR @ axes))
+        _, other_side = fits[k].fit(*mirrored)
         if other_side <= MIRROR_BETTER * distance:
             raise ValueError(
                 f"{path} ({body}) fits the scan's metal better mirrored: its surface lies "

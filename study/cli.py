@@ -773,8 +773,9 @@ def register(
             for body, path in meshes.items()
         )
         if settings is None:
-            alone = implants and volume is None
-            settings = CONFIGS / ("registration_implants.yaml" if alone else "registration.yaml")
+            from study.stages import registration_settings_file
+
+            settings = registration_settings_file(CONFIGS, bool(implants) and volume is None)
         chosen = load_config(settings, Settings)
         warp = None if distortion is None else Distortion.read(distortion)
         with new_outputs(Output(out, "--out")) as (staged,), views_progress() as bar:

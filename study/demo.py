@@ -58,6 +58,7 @@ from study.stages import (
     assessment_stage,
     derived_folder,
     recon_stage,
+    registration_settings_file,
     registration_stage,
     run_stage,
     segmentation_stage,
@@ -342,9 +343,7 @@ def open_demo(
     if tka:
         size = {**size, **TKA, "tka": True}
         size["frames"] = max(size["frames"], TKA_FRAMES_AT_LEAST)
-    # components tracked from their meshes alone take the implant settings, as `cbct register`
-    settings_file = "registration_implants.yaml" if tka else "registration.yaml"
-    settings = load_config(configs / settings_file, Settings)
+    settings = load_config(registration_settings_file(configs, meshes_alone=tka), Settings)
     if resume:
         study = Study.open(out)
         made = study.manifest["config"].get("demo", {})

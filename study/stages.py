@@ -271,6 +271,13 @@ def segmentation_stage(study: Study, say: Say = print) -> bool:
     )
 
 
+def registration_settings_file(configs: Path, meshes_alone: bool) -> Path:
+    """The registration settings tracking takes by default: ``registration_implants.yaml``
+    for implant components tracked from their meshes alone (no static scan), else
+    ``registration.yaml``, in ``configs``."""
+    return configs / ("registration_implants.yaml" if meshes_alone else "registration.yaml")
+
+
 def track_fluoro(
     study: Study,
     say: Say,
