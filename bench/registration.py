@@ -30,7 +30,9 @@ The regimes (docs/system.md, issue "4D virtual imaging"; docs/implants.md for th
   the Dice of our silhouettes with JTML's masks (which are the reference poses' own
   silhouettes: agreement with the reference, not with the image), how far the outlines sit
   from the frame's Canny edges (sigma 2 px) beside the reference poses' outlines, the frames
-  tracked and the seconds per frame.
+  tracked and the seconds per frame. With ``--edge-fit``, a third estimate: each component
+  fitted to the frame's edges alone, started at the reference pose (:func:`edge_optimum`, a
+  fit of JointTrack's kind), and how far it lies from the reference and from ours.
 - ``tka``: a simulated knee replacement with ground truth (sim.tka: the Grand Challenge
   subject's components on its bones, moved by its knee kinematics measured over gait, 5 to
   53 deg of flexion over ``--frames`` frames; lateral frames of the share of the beam stopped,
@@ -62,6 +64,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from dataclasses import replace
@@ -69,7 +72,10 @@ from pathlib import Path
 
 import numba
 import numpy as np
+from scipy.ndimage import distance_transform_edt
+from scipy.optimize import minimize
 from scipy.spatial.transform import Rotation
+from skimage.feature import canny
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
@@ -93,7 +99,7 @@ from registration.metrics import (  # noqa: E402
     pose_error,
     summarize,
 )
-from registration.overlays import silhouette  # noqa: E402
+from registration.overlays import outline, silhouette  # noqa: E402
 from registration.segment import segment_bones  # noqa: E402
 from sim.fluoro import (  # noqa: E402
     DISTORTION_MAX_MM,
@@ -349,6 +355,34 @@ TKA_COMPONENTS = {
 """The JTML components: the tracker's body -> (mesh, JTML's short name)."""
 
 
+def edge_optimum(
+    edges_distance_px: np.ndarray, model, view, T: np.ndarray, maxfev: int = 300
+) -> tuple[np.ndarray, float]:
+    """Where a frame's edges alone put a component started at pose ``T`` (4x4, mm): the pose
+    whose outline lies nearest, on average, the frame's edges (``edges_distance_px``: each
+    pixel's distance to the nearest Canny edge, pixels), by Nelder-Mead over a move (mm) and
+    a turn about the centroid (deg). Returns the pose and its mean outline distance (px)."""
+
+    def mean_distance(x: np.ndarray) -> float:
+        line = outline(silhouette(model, view, compose(x, T, model.centroid_mm)))
+        return float(edges_distance_px[line].mean()) if line.any() else math.inf
+
+    x0 = np.zeros(6)
+    steps = np.diag([0.5, 0.5, 3.0, 0.5, 0.5, 0.5])  # the view's axis is z: depth moves more
+    best = minimize(
+        mean_distance,
+        x0,
+        method="Nelder-Mead",
+        options={
+            "maxfev": maxfev,
+            "initial_simplex": np.vstack((x0, x0 + steps)),
+            "xatol": 0.02,
+            "fatol": 1e-4,
+        },
+    )
+    return compose(best.x, T, model.centroid_mm), float(best.fun)
+
+
 def real_tka(
     seeds: list[int],
     settings: Settings | None = None,
@@ -356,12 +390,15 @@ def real_tka(
     frames: int | None = None,
     start: tuple[float, float, float] = (5.0, 20.0, 5.0),
     global_init: bool = True,
+    edge_fit: bool = False,
 ) -> dict:
     """The ``real_tka`` regime's entry (see the module docstring); ``settings`` default to
     configs/registration_implants.yaml, ``supersample``: the components' rays per pixel per
     axis (registration.implants.ImplantModel); ``frames``: the first so many (all: None);
     ``start``: the largest start offsets in-plane (mm), in depth (mm) and about each axis
-    (deg); ``global_init`` False: the first frame refined only (a start near the answer)."""
+    (deg); ``global_init`` False: the first frame refined only (a start near the answer);
+    ``edge_fit``: each component also fitted to the frames' edges from the reference
+    (:func:`edge_optimum`)."""
     if not TKA_DATA.is_dir():
         return {"regime": "real_tka", "skipped": f"no data at {TKA_DATA}"}
     import SimpleITK as sitk
@@ -399,7 +436,21 @@ def real_tka(
         for name in models
     }
     camera = np.eye(4)  # the calibration's view is in JointTrack's camera frame
+    edge_poses: dict[str, list[tuple[np.ndarray, float]]] = {}
+    if edge_fit:
+        log("real_tka: each component fitted to the frames' edges from the reference")
+        distances = [
+            distance_transform_edt(~canny(image.astype(np.float64), 2.0)) for image in images
+        ]
+        edge_poses = {
+            name: [
+                edge_optimum(distances[k], models[name], view, reference[name][k])
+                for k in range(len(files))
+            ]
+            for name in models
+        }
     rows = {name: [] for name in models}
+    ours_to_edges = {name: [] for name in models}
     seconds, first, failed = [], [], 0
     for seed in seeds:
         rng = np.random.default_rng(seed)
@@ -427,6 +478,12 @@ def real_tka(
                 mask = masks[name][k]
                 dice = 2.0 * (ours & mask).sum() / (ours.sum() + mask.sum())
                 rows[name].append((*d, dice, edge_fit_px(images[k], ours), reference_fit[name][k]))
+                if edge_poses:
+                    ours_to_edges[name].append(
+                        camera_differences(
+                            bone.pose, edge_poses[name][k][0], models[name].centroid_mm, camera
+                        )
+                    )
     entry = {"regime": "real_tka", "seeds": seeds, "frames": len(files), "start": list(start)}
     for name, data in rows.items():
         a = np.array(data)
@@ -444,6 +501,25 @@ def real_tka(
             "edge_distance_px_median": round(float(np.median(a[:, 7])), 3),
             "reference_edge_distance_px_median": round(float(np.median(a[:, 8])), 3),
         }
+        if edge_poses:
+            fits = edge_poses[name]
+            e = np.array(
+                [
+                    camera_differences(T, reference[name][k], models[name].centroid_mm, camera)
+                    for k, (T, _) in enumerate(fits)
+                ]
+            )
+            o = np.array(ours_to_edges[name])
+            entry[name]["edge_fit"] = {
+                "minus_reference_x_mm_median": round(float(np.median(e[:, 0])), 3),
+                "minus_reference_y_mm_median": round(float(np.median(e[:, 1])), 3),
+                "reference_in_plane_mm_median": round(
+                    float(np.median(np.hypot(e[:, 0], e[:, 1]))), 3
+                ),
+                "ours_in_plane_mm_median": round(float(np.median(np.hypot(o[:, 0], o[:, 1]))), 3),
+                "ours_minus_x_mm_median": round(float(np.median(o[:, 0])), 3),
+                "edge_distance_px_median": round(float(np.median([f for _, f in fits])), 3),
+            }
     entry["registrations_failed"] = int(failed)
     entry["s_per_frame"] = round(float(np.mean(seconds)), 3)
     entry["s_first_frame"] = round(float(np.mean(first)), 3)
@@ -512,6 +588,11 @@ def main() -> None:
         "--seeds", type=int, nargs="+", default=[0, 1, 2], help="real_tka: one start per seed"
     )
     parser.add_argument(
+        "--edge-fit",
+        action="store_true",
+        help="real_tka: also fit each component to the frames' edges from the reference",
+    )
+    parser.add_argument(
         "--no-dewarp", action="store_true", help="register the distorted frames as they are"
     )
     args = parser.parse_args()
@@ -522,7 +603,7 @@ def main() -> None:
     entries = []
     for regime in args.regimes:
         if regime == "real_tka":
-            entries.append(real_tka(args.seeds))
+            entries.append(real_tka(args.seeds, edge_fit=args.edge_fit))
             log(f"real_tka: {json.dumps(entries[-1])}")
             continue
         if regime == "tka":
