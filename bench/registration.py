@@ -72,10 +72,8 @@ from pathlib import Path
 
 import numba
 import numpy as np
-from scipy.ndimage import distance_transform_edt
 from scipy.optimize import minimize
 from scipy.spatial.transform import Rotation
-from skimage.feature import canny
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
@@ -95,11 +93,12 @@ from registration.jointtrack import read_calibration  # noqa: E402
 from registration.jointtrack import read_poses as read_jts  # noqa: E402
 from registration.metrics import (  # noqa: E402
     camera_differences,
+    edge_distances_px,
     edge_fit_px,
     pose_error,
     summarize,
 )
-from registration.overlays import outline, silhouette  # noqa: E402
+from registration.overlays import silhouette  # noqa: E402
 from registration.segment import segment_bones  # noqa: E402
 from sim.fluoro import (  # noqa: E402
     DISTORTION_MAX_MM,
@@ -356,16 +355,16 @@ TKA_COMPONENTS = {
 
 
 def edge_optimum(
-    edges_distance_px: np.ndarray, model, view, T: np.ndarray, maxfev: int = 300
+    distances_px: np.ndarray | None, model, view, T: np.ndarray, maxfev: int = 300
 ) -> tuple[np.ndarray, float]:
     """Where a frame's edges alone put a component started at pose ``T`` (4x4, mm): the pose
-    whose outline lies nearest, on average, the frame's edges (``edges_distance_px``: each
-    pixel's distance to the nearest Canny edge, pixels), by Nelder-Mead over a move (mm) and
-    a turn about the centroid (deg). Returns the pose and its mean outline distance (px)."""
+    whose outline lies nearest, on average, the frame's edges (:func:`edge_fit_px` with the
+    frame's ``distances_px``), by Nelder-Mead over a move (mm) and a turn about the centroid
+    (deg). Returns the pose and its mean outline distance (px)."""
 
     def mean_distance(x: np.ndarray) -> float:
-        line = outline(silhouette(model, view, compose(x, T, model.centroid_mm)))
-        return float(edges_distance_px[line].mean()) if line.any() else math.inf
+        fit = edge_fit_px(distances_px, silhouette(model, view, compose(x, T, model.centroid_mm)))
+        return math.inf if math.isnan(fit) else fit
 
     x0 = np.zeros(6)
     steps = np.diag([0.5, 0.5, 3.0, 0.5, 0.5, 0.5])  # the view's axis is z: depth moves more
@@ -428,9 +427,10 @@ def real_tka(
         sitk.GetArrayFromImage(sitk.ReadImage(str(f))).reshape(masks["femur"][0].shape)
         for f in files
     ]
+    distances = [edge_distances_px(image) for image in images]  # to each frame's edges
     reference_fit = {
         name: [
-            edge_fit_px(images[k], silhouette(models[name], view, reference[name][k]))
+            edge_fit_px(distances[k], silhouette(models[name], view, reference[name][k]))
             for k in range(len(files))
         ]
         for name in models
@@ -439,9 +439,6 @@ def real_tka(
     edge_poses: dict[str, list[tuple[np.ndarray, float]]] = {}
     if edge_fit:
         log("real_tka: each component fitted to the frames' edges from the reference")
-        distances = [
-            distance_transform_edt(~canny(image.astype(np.float64), 2.0)) for image in images
-        ]
         edge_poses = {
             name: [
                 edge_optimum(distances[k], models[name], view, reference[name][k])
@@ -477,7 +474,9 @@ def real_tka(
                 ours = silhouette(models[name], view, bone.pose)
                 mask = masks[name][k]
                 dice = 2.0 * (ours & mask).sum() / (ours.sum() + mask.sum())
-                rows[name].append((*d, dice, edge_fit_px(images[k], ours), reference_fit[name][k]))
+                rows[name].append(
+                    (*d, dice, edge_fit_px(distances[k], ours), reference_fit[name][k])
+                )
                 if edge_poses:
                     ours_to_edges[name].append(
                         camera_differences(

@@ -120,16 +120,23 @@ def camera_differences(
     return np.concatenate((centre[0] - centre[1], turn))
 
 
-def edge_fit_px(image: np.ndarray, silhouette: np.ndarray, sigma_px: float = 2.0) -> float:
-    """How well a silhouette's outline sits on the image's edges: the mean distance (pixels)
-    from its outline pixels to the nearest edge a Canny detector finds at ``sigma_px``."""
+def edge_distances_px(image: np.ndarray, sigma_px: float = 2.0) -> np.ndarray | None:
+    """Each pixel's distance (pixels) to the nearest edge a Canny detector finds in ``image``
+    at ``sigma_px``; None when it finds none."""
     from scipy.ndimage import distance_transform_edt
     from skimage.feature import canny
 
+    edges = canny(np.asarray(image, dtype=np.float64), sigma=sigma_px)
+    return distance_transform_edt(~edges) if edges.any() else None
+
+
+def edge_fit_px(distances_px: np.ndarray | None, silhouette: np.ndarray) -> float:
+    """How well a silhouette's outline sits on an image's edges: the mean distance (pixels)
+    from its outline pixels to the nearest edge (``distances_px``: :func:`edge_distances_px`
+    of the image); nan without edges or outline."""
     from registration.overlays import outline
 
-    edges = canny(np.asarray(image, dtype=np.float64), sigma=sigma_px)
     line = outline(silhouette)
-    if not edges.any() or not line.any():
+    if distances_px is None or not line.any():
         return float("nan")
-    return float(distance_transform_edt(~edges)[line].mean())
+    return float(distances_px[line].mean())

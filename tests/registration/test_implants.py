@@ -226,8 +226,8 @@ def test_a_tracker_matches_a_mesh_s_blur_for_itself_alone():
     caller's models are untouched (a bench that tracks sequence after sequence with the same
     models once started each from the blur the one before had matched)."""
     view = camera_view(1198.0, 0.0, 0.0, 0.373, 96, 96)
-    ball = trimesh.creation.box(extents=(12.0, 8.0, 10.0))
-    model = implant_model("femur", ball, MATERIALS["CoCr"])
+    box = trimesh.creation.box(extents=(12.0, 8.0, 10.0))
+    model = implant_model("femur", box, MATERIALS["CoCr"])
     pose = np.eye(4)
     pose[:3, 3] = (0.0, 0.0, -900.0)
     blur_mm = 0.6
