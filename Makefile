@@ -24,12 +24,11 @@ demo: $(STAMP)
 	$(BIN)/cbct demo --out $(DEMO_OUT)
 
 # the suite on two workers of one thread each (pytest-xdist; a worker's numba and BLAS
-# threads would fight the other's for the cores), then the tests that bound real device
-# times alone (tests/conftest.py: REALTIME)
+# threads would fight the other's for the cores); the tests that bound real device times go
+# to one worker first, beside one single-threaded test at a time (tests/conftest.py: REALTIME)
 test: $(STAMP)
 	NUMBA_NUM_THREADS=1 OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 \
-		$(BIN)/python -m pytest -n 2 --dist loadfile -m 'not slow and not realtime'
-	$(BIN)/python -m pytest -m 'not slow and realtime'
+		$(BIN)/python -m pytest -n 2 --dist loadfile -m 'not slow'
 
 DOCS_STAMP := $(VENV)/.installed-docs
 

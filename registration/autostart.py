@@ -1,15 +1,15 @@
 """An automatic start for implant components on the first frame, where no start is given.
 
-A metal component is a near-opaque shadow with the component's outline. On the frame
-binned to :data:`BIN_MM` pixels, the component's silhouette is rendered at every
-orientation of a grid (:data:`DIRECTIONS` directions of its axes brought to world z, each turned
-about z in steps of :data:`TURN_DEG`: all of its orientations) at a typical distance
-(:data:`DEPTH_FRACTION` of the way to the panel) and matched to the frame by normalised
-cross-correlation over every position in the image (FFT): the best position of each
-orientation scores it. The best :data:`KEEP` orientations that differ by more than
-:data:`DISTINCT_DEG` are the candidates, each placed where its silhouette fits; the tracker
-then searches about each (differential evolution in twice its first-frame box) and keeps the
-best (registration.boneaxis.Tracker.best_start).
+A metal component is a near-opaque shadow with the component's outline. On the frame binned to
+:data:`BIN_MM` pixels, the component's silhouette is rendered at every orientation of a grid
+(:data:`DIRECTIONS` directions of its axes brought to world z, each turned about z in steps of
+:data:`TURN_DEG`: all of its orientations) at a typical distance (:data:`DEPTH_FRACTION` of the
+way to the panel) and matched to the frame by normalised cross-correlation over every position
+in the image (FFT, and summed-area tables for the frame's sums under the box): the best
+position of each orientation scores it. The best :data:`KEEP` orientations that differ by more
+than :data:`DISTINCT_DEG` are the candidates, each placed where its silhouette fits; the
+tracker then searches about each (differential evolution in twice its first-frame box) and
+keeps the best (registration.boneaxis.Tracker.best_start).
 """
 
 from __future__ import annotations
@@ -70,18 +70,18 @@ def binned_frame(
 
 
 class Matcher:
-    """Silhouettes matched to one binned frame at every position (FFTs of the frame, its
-    square and its unexposed part computed once; the frame zero-padded so that no match
-    wraps around)."""
+    """Silhouettes matched to one binned frame at every position: the frame's sums and sums
+    of squares under a box from summed-area tables, its correlation with the silhouette and
+    with its unexposed part by FFT (spectra computed once; the frame zero-padded so that no
+    match wraps around)."""
 
     def __init__(self, image: np.ndarray, inside: np.ndarray) -> None:
         self.shape = image.shape
         self.padded = tuple(next_fast_len(2 * n, real=True) for n in image.shape)
         low, high = np.percentile(image[inside], [1.0, 99.0])
         self.least_contrast = LEAST_CONTRAST * float(high - low)
-        self.spectra = [
-            rfft2(a, self.padded) for a in (image, image * image, (~inside).astype(np.float64))
-        ]
+        self.tables = [_summed_area(a) for a in (image, image * image)]
+        self.spectra = [rfft2(a, self.padded) for a in (image, (~inside).astype(np.float64))]
 
     def _correlate(self, spectrum: np.ndarray, box_spectrum: np.ndarray, anchor) -> np.ndarray:
         """``sum_q a[p - anchor + q] box[q]`` at every pixel ``p`` of the frame."""
@@ -89,6 +89,19 @@ class Matcher:
         rows = (np.arange(self.shape[0]) - anchor[0]) % self.padded[0]
         cols = (np.arange(self.shape[1]) - anchor[1]) % self.padded[1]
         return full[np.ix_(rows, cols)]
+
+    def _box_sums(self, table: np.ndarray, box: tuple[int, int], anchor) -> np.ndarray:
+        """``sum_q a[p - anchor + q]`` over a box of shape ``box`` at every pixel ``p`` (zero
+        outside the frame), from ``a``'s summed-area table (:func:`_summed_area`)."""
+        (n0, n1), (h, w) = self.shape, box
+        r0, c0 = n0 - anchor[0], n1 - anchor[1]  # the table's margin is the frame's size
+        r1, c1 = r0 + h, c0 + w
+        return (
+            table[r1 : r1 + n0, c1 : c1 + n1]
+            - table[r0 : r0 + n0, c1 : c1 + n1]
+            - table[r1 : r1 + n0, c0 : c0 + n1]
+            + table[r0 : r0 + n0, c0 : c0 + n1]
+        )
 
     def match(self, box: np.ndarray) -> np.ndarray:
         """How well ``box`` (a silhouette, bool) matches the frame with its pixel
@@ -102,16 +115,25 @@ class Matcher:
         energy = n * share * (1.0 - share)  # sum of (box - share)^2
         if energy == 0.0:  # a silhouette filling its box: no shape to match
             return np.full(self.shape, -np.inf)
-        ones = rfft2(np.ones(box.shape), self.padded)
         shape = rfft2(box.astype(np.float64), self.padded)
-        image, squares, outside = self.spectra
-        sums = self._correlate(image, ones, anchor)
-        spread = self._correlate(squares, ones, anchor) - sums * sums / n
+        (image, outside), (sums_table, squares_table) = self.spectra, self.tables
+        sums = self._box_sums(sums_table, box.shape, anchor)
+        spread = self._box_sums(squares_table, box.shape, anchor) - sums * sums / n
         covariance = self._correlate(image, shape, anchor) - share * sums
         fit = covariance / np.sqrt(np.maximum(spread, 1e-12) * energy)
         fit[covariance / energy < self.least_contrast] = -np.inf
         fit[self._correlate(outside, shape, anchor) > 0.5] = -np.inf
         return fit
+
+
+def _summed_area(a: np.ndarray) -> np.ndarray:
+    """The summed-area table of ``a`` zero-padded by its own size on every side: entry
+    ``[i, j]`` is the sum of the padded array's ``[:i, :j]`` (a box no larger than ``a`` then
+    reads it without clipping)."""
+    padded = np.pad(a, [(n, n) for n in a.shape])
+    table = np.zeros((padded.shape[0] + 1, padded.shape[1] + 1))
+    table[1:, 1:] = padded.cumsum(axis=0).cumsum(axis=1)
+    return table
 
 
 def candidate_poses(

@@ -50,6 +50,8 @@ COARSE_EVALUATIONS = 60
 """The most evaluations of the cost a start's first fit takes."""
 STARTS_REFINED = 3
 """The best starts after that refined with every point."""
+FORWARD_STEP = float(np.sqrt(np.finfo(float).eps))
+"""Relative step of the fit's forward differences (scipy's for '2-point')."""
 MARGIN_MM = 15.0
 """The distance map reaches this far beyond the region."""
 MIRROR_BETTER = 0.9
@@ -172,28 +174,40 @@ class _RegionFit:
             T = pose(x)
             return p @ T[:3, :3].T + T[:3, 3]
 
+        def jacobian(x: np.ndarray, p: np.ndarray) -> np.ndarray:
+            """Forward differences of the distances (scipy's '2-point' steps), the six moved
+            point sets looked up in the map at once."""
+            steps = FORWARD_STEP * np.where(x >= 0, 1.0, -1.0) * np.maximum(1.0, np.abs(x))
+            steps = (x + steps) - x  # exactly representable
+            shifted = np.concatenate([moved(x + np.eye(6)[i] * steps[i], p) for i in range(6)])
+            here = self.distances(moved(x, p))
+            there = self.distances(shifted).reshape(6, len(p))
+            return ((there - here) / steps[:, None]).T
+
+        def fitted(p: np.ndarray, x0: np.ndarray, evaluations: int | None) -> np.ndarray:
+            return least_squares(
+                lambda x: self.distances(moved(x, p)),
+                x0,
+                jac=lambda x: jacobian(x, p),
+                loss="soft_l1",
+                f_scale=1.0,
+                max_nfev=evaluations,
+            ).x
+
         coarse = points[:: max(1, len(points) // COARSE_POINTS)]
         starts = []
         for flip in AXIS_ROTATIONS:
             R = self.axes @ flip @ axes.T
             x = np.concatenate((Rotation.from_matrix(R).as_rotvec(), self.centre - R @ centre))
-            result = least_squares(
-                lambda x, p=coarse: self.distances(moved(x, p)),
-                x,
-                loss="soft_l1",
-                f_scale=1.0,
-                max_nfev=COARSE_EVALUATIONS,
-            )
-            starts.append((self.mean_distance(moved(result.x, coarse)), result.x))
+            x = fitted(coarse, x, COARSE_EVALUATIONS)
+            starts.append((self.mean_distance(moved(x, coarse)), x))
         starts.sort(key=lambda s: s[0])
         best_x, best = None, np.inf
         for _, x0 in starts[:STARTS_REFINED]:
-            result = least_squares(
-                lambda x: self.distances(moved(x, points)), x0, loss="soft_l1", f_scale=1.0
-            )
-            mean = self.mean_distance(moved(result.x, points))
+            x = fitted(points, x0, None)
+            mean = self.mean_distance(moved(x, points))
             if mean < best:
-                best_x, best = result.x, mean
+                best_x, best = x, mean
         return pose(best_x), best
 
 

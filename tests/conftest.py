@@ -230,8 +230,44 @@ REALTIME = (
     "test_bench_soak.py",
 )
 """Tests (folders or files under tests/) that drive devices on real clocks and bound their
-times (time to SAFE, timeouts, pacing): marked ``realtime``; ``make test`` runs them alone,
-after the others, so that no parallel work stretches their clocks."""
+times (time to SAFE, timeouts, pacing): marked ``realtime``. ``make test`` hands them to one
+worker as one unit, first (:func:`pytest_xdist_make_scheduler`), so that beside them runs at
+most one other test, single-threaded, on a machine of two cores or more: never enough work to
+stretch their clocks."""
+
+
+RTK_PEER = (
+    "recon/test_fdk.py",
+    "recon/test_io.py",
+    "recon/test_project.py",
+    "recon/test_rtk_xml.py",
+    "study/test_cli.py",
+)
+"""Test files that compare with the peer itk-rtk: loading RTK's wrapping takes 17 s in each
+process, so ``make test`` hands them to one worker as one unit."""
+
+
+def pytest_xdist_make_scheduler(config, log):
+    """``--dist loadfile`` with the files of :data:`REALTIME` as one unit, given out first,
+    and those of :data:`RTK_PEER` as another; None (xdist's own scheduler) for the other
+    modes."""
+    if config.getoption("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    class Units(LoadFileScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            where = super()._split_scope(nodeid).removeprefix("tests/")
+            if where.startswith(REALTIME):
+                return "realtime"
+            return "itk-rtk" if where.startswith(RTK_PEER) else where
+
+        def _assign_work_unit(self, node) -> None:
+            if "realtime" in self.workqueue:
+                self.workqueue.move_to_end("realtime", last=False)
+            super()._assign_work_unit(node)
+
+    return Units(config, log)
 
 
 def pytest_collection_modifyitems(config, items) -> None:

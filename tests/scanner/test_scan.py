@@ -28,16 +28,17 @@ from sim.panel import SimPanelSpec
 from sim.phantoms.knee import KneePhantomSpec, rasterize_knee
 from sim.scan import photons_per_pixel, simulate_knee_scan
 
-FAULT_VIEW = 30
-PHANTOM_VOXEL_MM = 1.5
+VIEWS = 60
+FAULT_VIEW = 20
+PHANTOM_VOXEL_MM = 2.0
 
 
 def small_protocol():
-    """The demo knee protocol with 90 views of 128^2 (the panel binned 2x more)."""
+    """The demo knee protocol with :data:`VIEWS` views of 128^2 (the panel binned 2x more)."""
     protocol = load_protocol(CONFIGS / "protocols" / "demo_knee.yaml")
     d = protocol.detector
     panel = d.model_copy(update={"rows": 128, "cols": 128, "pixel_pitch_mm": 2 * d.pixel_pitch_mm})
-    orbit = protocol.orbit.model_copy(update={"views": 90})
+    orbit = protocol.orbit.model_copy(update={"views": VIEWS})
     return protocol.model_copy(update={"detector": panel, "orbit": orbit, "name": "small"})
 
 
@@ -82,15 +83,15 @@ def test_scan_completes_with_every_file_checked(reference: Path):
     study = Study.open(reference)
     assert study.stage("plan")["status"] == "complete"
     scan = study.stage("scan")
-    assert scan["status"] == "complete" and scan["views"] == 90
-    assert scan["dose_mas"] == pytest.approx(90 * small_protocol().exposure.mas)
+    assert scan["status"] == "complete" and scan["views"] == VIEWS
+    assert scan["dose_mas"] == pytest.approx(VIEWS * small_protocol().exposure.mas)
     assert study.verify() == []
     stack = read_projections(reference / "scan" / "projections.mha")
-    assert stack.data.shape == (90, 128, 128)
+    assert stack.data.shape == (VIEWS, 128, 128)
     with open(reference / "scan" / "exposure_log.csv", encoding="utf-8") as fh:
         log = list(csv.DictReader(fh))
-    assert [int(r["view"]) for r in log] == list(range(90))
-    assert [int(r["sequence"]) for r in log] == list(range(1, 91))  # one pulse per view
+    assert [int(r["view"]) for r in log] == list(range(VIEWS))
+    assert [int(r["sequence"]) for r in log] == list(range(1, VIEWS + 1))  # one pulse per view
 
 
 def test_recorded_geometry_is_the_measured_one(reference: Path):
@@ -138,7 +139,7 @@ def test_recording_has_every_view(reference: Path):
         chunks[chunk.entity_path.lstrip("/")].append(chunk)
     for entity in ("scan/projection", "scan/joints/rotary", "world/scan/frustum"):
         rows = sum(c.to_record_batch().num_rows for c in chunks[entity] if not c.is_static)
-        assert rows == 90, entity
+        assert rows == VIEWS, entity
 
 
 FAULTS = {
@@ -304,10 +305,10 @@ def test_at_a_pulse_only_the_view_before_may_not_be_on_disk_yet(tmp_path, monkey
     monkeypatch.setattr(SerialGenerator, "expose", checked_expose)
     monkeypatch.setattr(scanner.session, "calibrate_detector", calibrating_panel)
     run_session(tmp_path / "study", inputs(tmp_path))
-    assert len(pulses) == 90
+    assert len(pulses) == VIEWS
     assert not_yet > 0  # the storage does overlap the next pulse
     study = Study.open(tmp_path / "study")
-    assert study.verify() == [] and study.stage("scan")["views"] == 90
+    assert study.verify() == [] and study.stage("scan")["views"] == VIEWS
     assert list((tmp_path / "study" / "scan" / "views").glob(".*")) == []
 
 

@@ -200,21 +200,20 @@ def test_cbct_segment_labels_a_scan_as_the_demo_does(demo: Path, tmp_path):
 
 
 def test_a_worker_killed_mid_task_loses_nothing(demo, tmp_path):
-    """cbct batch on a copy of the quick demo's study whose reconstruction and segmentation
-    are to be made again: a worker SIGKILLed while it reconstructs; the task runs again
-    elsewhere. (Here, beside the demo's other tests: the suite's parallel workers take whole
-    files, and the demo is made once per worker.)"""
+    """cbct batch on a copy of the quick demo's study whose segmentation is to be made again
+    (the recon task's second stage): a worker SIGKILLed while it segments, its folder half
+    written; the task runs again elsewhere. (Here, beside the demo's other tests: the suite's
+    parallel workers take whole files, and the demo is made once per worker.)"""
     studies = [tmp_path / "studies" / "knee"]
     shutil.copytree(demo, studies[0], copy_function=os.link)
     copy = Study.open(studies[0])
-    for stage in ("recon", "segmentation"):
-        copy.mark(stage, "incomplete", reason="made again by the test")
+    copy.mark("segmentation", "incomplete", reason="made again by the test")
     killed: dict[str, object] = {}
 
-    def kill_a_worker_in_recon(client: Client) -> None:
+    def kill_a_worker_in_segmentation(client: Client) -> None:
         deadline = time.monotonic() + 120
         while time.monotonic() < deadline and "pid" not in killed:
-            if any((p / "recon.partial").is_dir() for p in studies):
+            if any((p / "segmentation.partial").is_dir() for p in studies):
                 for address, stacks in client.call_stack().items():
                     keys = [k for k in stacks if str(k).startswith("recon-")]
                     if keys:
@@ -228,14 +227,14 @@ def test_a_worker_killed_mid_task_loses_nothing(demo, tmp_path):
     cluster = batch.local_cluster(2)
     try:
         with Client(cluster) as client:
-            killer = threading.Thread(target=kill_a_worker_in_recon, args=(client,))
+            killer = threading.Thread(target=kill_a_worker_in_segmentation, args=(client,))
             killer.start()
             report = batch.run(client, studies, "recon", options)
             killer.join()
     finally:
         cluster.close()
 
-    assert "pid" in killed, "no recon task was seen running"
+    assert "pid" in killed, "no recon task was seen segmenting"
     index = int(str(killed["key"]).rsplit("-", 1)[1])
     assert [o.status for o in report.outcomes] == ["ran"], report.outcomes
     rerun = next(o for o in report.outcomes if o.study == str(studies[index]))
