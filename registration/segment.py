@@ -94,6 +94,7 @@ def segment_bones(
     *,
     soft_tissue_per_mm: float | None = None,
     side: Literal["right", "left"] | None = None,
+    anchors: np.ndarray | None = None,
 ) -> Volume:
     """Label the femur, tibia, fibula and patella of a knee CBCT volume (module docstring).
 
@@ -104,6 +105,9 @@ def segment_bones(
             the histogram.
         side: "right" or "left" knee; default inferred from the fibula (lateral: -x for a
             right knee, +x for a left one).
+        anchors: Bone without an interior of its own that marks a region of its own in the
+            separation (bool [z, y, x]; an implant and the bone it caps): the cortex next to
+            it goes to it, not to the nearest other bone's interior.
 
     Returns:
         uint8 labels on the same grid, unit "label": :data:`LABELS` (air 0, soft tissue 1,
@@ -135,7 +139,8 @@ def segment_bones(
     bone = np.zeros(data.shape, dtype=bool)
     regions = np.zeros(data.shape, dtype=np.int32)
     bone[box], interior = _fill_bone(relative[box] >= edge)
-    regions[box] = _separate(bone[box], interior, spacing_zyx, voxel_mm3)
+    anchored = None if anchors is None else np.asarray(anchors, dtype=bool)[box] & bone[box]
+    regions[box] = _separate(bone[box], interior, spacing_zyx, voxel_mm3, anchored)
     named = _name_bones(regions, volume, side)
 
     labels = np.zeros(data.shape, dtype=np.uint8)
@@ -172,7 +177,7 @@ def segment_bones_with_metal(
     smooth = ndimage.gaussian_filter(np.where(near, soft, data), 1.0)
     capped = _convex_hulls(np.asarray(metal, dtype=bool)) & (smooth > CAPPED_BONE * soft)
     data[near | capped] = METAL_AS_CORTEX * soft
-    labels = segment_bones(Volume(data, volume.grid, "1/mm"), side=side)
+    labels = segment_bones(Volume(data, volume.grid, "1/mm"), side=side, anchors=near | capped)
     labels.data[near] = metal_label
     return labels
 
@@ -334,24 +339,33 @@ def _fill_bone(shell: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _separate(
-    bone: np.ndarray, interior: np.ndarray, spacing_zyx: np.ndarray, voxel_mm3: float
+    bone: np.ndarray,
+    interior: np.ndarray,
+    spacing_zyx: np.ndarray,
+    voxel_mm3: float,
+    anchors: np.ndarray | None = None,
 ) -> np.ndarray:
     """Regions of the bone mask: one per enclosed interior, grown over the cortex.
 
     Markers are the interiors of at least :data:`MIN_MARKER_MM3`; each cortex voxel goes to
     the interior nearest to it within the bone (a watershed of the distance to the markers),
-    so a fused wall between two bones is split down its middle. Bone without a marker (no
-    interior at this resolution) becomes one region per connected component.
+    so a fused wall between two bones is split down its middle; each of ``anchors``'
+    connected parts is a marker too. Bone without a marker (no interior at this resolution)
+    becomes one region per connected component.
     """
     markers, _ = ndimage.label(interior)
     sizes = np.bincount(markers.ravel())
     small = sizes * voxel_mm3 < MIN_MARKER_MM3
     small[0] = True
     markers[small[markers]] = 0
+    if anchors is not None:  # each anchor a marker of its own, apart from the interiors
+        own, _ = ndimage.label(anchors)
+        markers[anchors] = 0
+        markers[own > 0] = own[own > 0] + sizes.size
     distance = ndimage.distance_transform_edt(markers == 0, sampling=spacing_zyx)
     regions = watershed(distance, markers, mask=bone)
     unmarked, _ = ndimage.label(bone & (regions == 0))
-    regions[unmarked > 0] = unmarked[unmarked > 0] + sizes.size
+    regions[unmarked > 0] = unmarked[unmarked > 0] + int(markers.max()) + 1
     return regions
 
 
