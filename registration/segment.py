@@ -106,8 +106,8 @@ def segment_bones(
         side: "right" or "left" knee; default inferred from the fibula (lateral: -x for a
             right knee, +x for a left one).
         anchors: Bone without an interior of its own that marks a region of its own in the
-            separation (bool [z, y, x]; an implant and the bone it caps): the cortex next to
-            it goes to it, not to the nearest other bone's interior.
+            separation (bool [z, y, x]; an implant and the voxels touching it): the cortex
+            next to it goes to it, not to the nearest other bone's interior.
 
     Returns:
         uint8 labels on the same grid, unit "label": :data:`LABELS` (air 0, soft tissue 1,
@@ -169,7 +169,11 @@ def segment_bones_with_metal(
       tissue's level: bone fixed to an implant is closed by it as by its own cortex;
     - so is the bone the implant caps: the voxels inside each metal region's convex hull (a
       femoral component's box, a tray's plate and stem) above :data:`CAPPED_BONE` x the soft
-      tissue's level once smoothed (cancellous bone is ~1.4 x; the notch's soft tissue ~1).
+      tissue's level once smoothed (cancellous bone is ~1.4 x; the notch's soft tissue ~1);
+    - each implant, with the voxels touching it, is a marker of its own in the separation
+      (``anchors``): the cortex beside a tray that encloses no interior of its own goes to
+      the tray, and with it to the tibia, not to the fibula's interior nearby. (The capped
+      bone as well would take the femur's posterior condyles from it.)
     """
     near = ndimage.binary_dilation(np.asarray(metal, dtype=bool))
     data = np.asarray(volume.data, dtype=np.float32).copy()
@@ -177,7 +181,7 @@ def segment_bones_with_metal(
     smooth = ndimage.gaussian_filter(np.where(near, soft, data), 1.0)
     capped = _convex_hulls(np.asarray(metal, dtype=bool)) & (smooth > CAPPED_BONE * soft)
     data[near | capped] = METAL_AS_CORTEX * soft
-    labels = segment_bones(Volume(data, volume.grid, "1/mm"), side=side, anchors=near | capped)
+    labels = segment_bones(Volume(data, volume.grid, "1/mm"), side=side, anchors=near)
     labels.data[near] = metal_label
     return labels
 

