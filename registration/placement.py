@@ -175,14 +175,13 @@ class _RegionFit:
             return p @ T[:3, :3].T + T[:3, 3]
 
         def jacobian(x: np.ndarray, p: np.ndarray) -> np.ndarray:
-            """Forward differences of the distances (scipy's '2-point' steps), the six moved
-            point sets looked up in the map at once."""
+            """Forward differences of the distances (scipy's '2-point' steps), the point set at
+            ``x`` and its six moves looked up in the map at once."""
             steps = FORWARD_STEP * np.where(x >= 0, 1.0, -1.0) * np.maximum(1.0, np.abs(x))
             steps = (x + steps) - x  # exactly representable
-            shifted = np.concatenate([moved(x + np.eye(6)[i] * steps[i], p) for i in range(6)])
-            here = self.distances(moved(x, p))
-            there = self.distances(shifted).reshape(6, len(p))
-            return ((there - here) / steps[:, None]).T
+            at = [moved(x + d, p) for d in np.vstack((np.zeros(6), np.diag(steps)))]
+            here, *there = self.distances(np.concatenate(at)).reshape(7, len(p))
+            return ((np.array(there) - here) / steps[:, None]).T
 
         def fitted(p: np.ndarray, x0: np.ndarray, evaluations: int | None) -> np.ndarray:
             return least_squares(
