@@ -36,10 +36,14 @@ The regimes (docs/system.md, issue "4D virtual imaging"; docs/implants.md for th
 - ``tka``: a simulated knee replacement with ground truth (sim.tka: the Grand Challenge
   subject's components on its bones, moved by its knee kinematics measured over gait, 5 to
   53 deg of flexion over ``--frames`` frames; lateral frames of the share of the beam stopped,
-  every part and the leg's water by exact ray lengths, Poisson photons); the femoral component
-  and the tray tracked with the implant settings from frame 0 started 4 mm / 4 deg off, one
-  noise and start seed per sequence. Reported as the bone regimes (TRE, RSR, per-axis errors,
-  in-plane and depth), and per component.
+  every part and the leg's water, bent at the knee, by exact ray lengths, Poisson photons);
+  the femoral component and the tray tracked with the implant settings from frame 0 started
+  4 mm / 4 deg off, one noise and start seed per sequence, the tray with its insert. Reported
+  as the bone regimes (TRE, RSR, per-axis errors, in-plane and depth, over the components'
+  own points), and per component.
+- ``tka_bones``: the same, each component tracked with the true bones it is fixed to as well
+  (sim.tka.FIXED_BONES: the femur; the tibia and the fibula): what the tracker does when the
+  bones' place on the components is known exactly.
 
 In the first two regimes the frames are dewarped first (calibration.distortion), with the warp
 fitted to one exposure of the dewarp grid through the same image model as the frames
@@ -111,6 +115,7 @@ from sim.fluoro import (  # noqa: E402
 from sim.motion import flexion_extension, squat_motion  # noqa: E402
 from sim.phantoms.knee import KneePhantomSpec, rasterize_knee  # noqa: E402
 from sim.scan import simulate_knee_scan  # noqa: E402
+from sim.tka import FIXED_BONES as TKA_FIXED_BONES  # noqa: E402
 from sim.tka import TRACKED as TKA_TRACKED  # noqa: E402
 from sim.tka import load_tka, part_poses, read_gait, simulate_tka_fluoro, tka_motion  # noqa: E402
 
@@ -265,7 +270,7 @@ def drr_ms_256(models, view) -> float:
     return (time.perf_counter() - started) / 20 * 1000.0
 
 
-REGIMES = ("matched", "independent", "cross_renderer", "real_tka", "tka")
+REGIMES = ("matched", "independent", "cross_renderer", "real_tka", "tka", "tka_bones")
 GC_DATA = ROOT.parent / "shared" / "data" / "grand-challenge-tka"
 TKA_CENTER_MM = np.array([0.0, 0.0, 490.0])
 """Where the simulated knee replacement's joint centre stands (the phantom knee's height)."""
@@ -273,10 +278,12 @@ TKA_PHOTONS = 2.0e4
 """Unattenuated photons per 0.6 mm pixel of the simulated TKA frames."""
 
 
-def tka(sequences: int, frames: int, panel: int) -> dict:
-    """The ``tka`` regime's entry (see the module docstring)."""
+def tka(sequences: int, frames: int, panel: int, bones: bool = False) -> dict:
+    """The ``tka`` regime's entry, or with ``bones`` the ``tka_bones`` one (see the module
+    docstring)."""
+    regime = "tka_bones" if bones else "tka"
     if not GC_DATA.is_dir():
-        return {"regime": "tka", "skipped": f"no data at {GC_DATA}"}
+        return {"regime": regime, "skipped": f"no data at {GC_DATA}"}
     knee = load_tka(GC_DATA)
     gait = read_gait(GC_DATA / "kinematics" / "fluoroscopic_gait.sto")
     motion = tka_motion(knee, gait, frames, TKA_CENTER_MM)
@@ -287,7 +294,10 @@ def tka(sequences: int, frames: int, panel: int) -> dict:
             body,
             knee.meshes[part],
             knee.materials[part],
-            attached=[(knee.meshes[p], knee.materials[p]) for p in attached],
+            attached=[
+                (knee.meshes[p], knee.materials[p])
+                for p in (*attached, *(TKA_FIXED_BONES[body] if bones else ()))
+            ],
         )
         for body, (part, attached) in TKA_TRACKED.items()
     }
@@ -317,7 +327,7 @@ def tka(sequences: int, frames: int, panel: int) -> dict:
                     )
                 )
     entry = {
-        "regime": "tka",
+        "regime": regime,
         "sequences": sequences,
         "frames": frames,
         "panel": panel,
@@ -605,9 +615,9 @@ def main() -> None:
             entries.append(real_tka(args.seeds, edge_fit=args.edge_fit))
             log(f"real_tka: {json.dumps(entries[-1])}")
             continue
-        if regime == "tka":
-            entries.append(tka(args.sequences, args.frames, args.panel))
-            log(f"tka: {json.dumps(entries[-1])}")
+        if regime in ("tka", "tka_bones"):
+            entries.append(tka(args.sequences, args.frames, args.panel, regime == "tka_bones"))
+            log(f"{regime}: {json.dumps(entries[-1])}")
             continue
         log(f"regime {regime}: bone models")
         spec, volume, labels = static_scan(regime)

@@ -31,6 +31,8 @@ MESH_UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
 COMPONENT_SIZE_MM = (20.0, 200.0)
 """The largest extent a knee implant component can have, mm (a patellar button to a long
 stemmed tray)."""
+BONE_SIZE_MM = (20.0, 600.0)
+"""The largest extent a knee's bone mesh can have, mm (a patella to a whole femur)."""
 
 
 @dataclass(frozen=True)
@@ -71,6 +73,12 @@ MATERIALS = {
 polyethylene of inserts; mass attenuation from the NIST tables of their elements, mixed by
 weight (to about 10 %: the registration's similarity ignores a scale, and metal is near-opaque
 in a frame whatever its exact value)."""
+BONE = Material("bone", 1.45, (0.22, 0.19), False)
+"""A whole bone's mean: cortex and cancellous bone with marrow (mass attenuation of cortical
+bone at 60 and 80 keV; the density a knee's bones average over their volume)."""
+ATTACHABLE = {**MATERIALS, BONE.name: BONE}
+"""What a part fixed to a tracked component can be made of: an implant material (an insert's
+polyethylene) or bone (the bone the component is fixed to)."""
 
 
 @dataclass(frozen=True)
@@ -477,7 +485,8 @@ def implant_model(
         energy_kev: Effective energy (keV) of the attenuation coefficient.
         supersample: Rays per pixel along each axis when rendering.
         attached: Parts fixed to it and moving with it, each a closed mesh in its frame and
-            a material (a tray's polyethylene insert): rendered with it, not in its points.
+            a material (a tray's polyethylene insert, the bone it is fixed to): rendered with
+            it, not in its points.
     """
     if not material.radiopaque:
         raise ValueError(

@@ -36,7 +36,15 @@ from registration.autostart import candidate_poses
 from registration.boneaxis import TRACK_ORDER, FrameResult, Settings, Tracker
 from registration.drr import SoftTissue, bone_models
 from registration.frames import Frames, read_frames
-from registration.implants import MATERIALS, implant_model, read_mesh
+from registration.implants import (
+    ATTACHABLE,
+    BONE,
+    BONE_SIZE_MM,
+    COMPONENT_SIZE_MM,
+    MATERIALS,
+    implant_model,
+    read_mesh,
+)
 from registration.jointtrack import read_calibration
 from registration.jointtrack import read_poses as read_jts
 from registration.jointtrack import write_poses as write_jts
@@ -88,12 +96,16 @@ FILE_NAMES = {"femur": "femur", "tibia_fibula": "tibia", "patella": "patella"}
 @dataclass(frozen=True)
 class ImplantSpec:
     """An implant component to track: which body it stands for (femur, tibia or patella), its
-    mesh file, the mesh's unit and its material (registration.implants)."""
+    mesh file, the mesh's unit, its material (registration.implants) and the parts fixed to it
+    (``attached``: each a mesh file in the component mesh's frame and unit, and its material
+    from :data:`registration.implants.ATTACHABLE`: a tray's insert, the bone the component is
+    fixed to), rendered with it."""
 
     body: str
     mesh: Path
     unit: str = "mm"
     material: str = "CoCr"
+    attached: tuple[tuple[Path, str], ...] = ()
 
 
 def body_name(name: str) -> str:
@@ -326,8 +338,19 @@ def register_files(
         if spec.material not in MATERIALS:
             raise ValueError(f"{spec.mesh}: material {spec.material!r}; one of {sorted(MATERIALS)}")
         mesh, report = read_mesh(spec.mesh, spec.unit)
-        models[name] = implant_model(name, mesh, MATERIALS[spec.material])
+        attached = []
+        for path, material in spec.attached:
+            if material not in ATTACHABLE:
+                raise ValueError(
+                    f"{path}: material {material!r} of a part fixed to {spec.mesh.name}; one of "
+                    f"{sorted(ATTACHABLE)}"
+                )
+            size = BONE_SIZE_MM if material == BONE.name else COMPONENT_SIZE_MM
+            attached.append((read_mesh(path, spec.unit, size)[0], ATTACHABLE[material]))
+        models[name] = implant_model(name, mesh, MATERIALS[spec.material], attached=attached)
         meshes[name] = {**asdict(report), "material": spec.material}
+        if spec.attached:
+            meshes[name]["attached"] = [[str(path), m] for path, m in spec.attached]
     bodies = tuple(b for b in TRACK_ORDER if b in models)
     T_world_camera = camera_frame(view)
     count = int(numbers[-1]) + 1

@@ -39,20 +39,21 @@ from scipy.ndimage import gaussian_filter
 from scipy.spatial.transform import Rotation
 
 from recon.geometry import DetectorSpec, View
-from registration.implants import COMPONENT_SIZE_MM, MATERIALS, Material, ray_lengths, read_mesh
+from registration.implants import (
+    BONE,
+    BONE_SIZE_MM,
+    COMPONENT_SIZE_MM,
+    MATERIALS,
+    Material,
+    ray_lengths,
+    read_mesh,
+)
 from sim.fluoro import lateral_view
 from sim.phantoms.knee import KneePhantomSpec
 
 OSIM_TO_LPS = np.array([[0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 """OpenSim's right-leg frame (x anterior, y superior, z right) in the world's LPS axes: its
 columns are x -> posterior's opposite (-y), y -> superior (+z), z -> right (-x)."""
-
-BONE = Material("bone", 1.45, (0.22, 0.19), False)
-"""A whole bone's mean: cortex and cancellous bone with marrow (mass attenuation of cortical
-bone at 60 and 80 keV; the density a knee's bones average over their volume)."""
-
-BONE_SIZE_MM = (20.0, 600.0)
-"""The largest extent a knee's bone mesh can have, mm (a patella to a whole femur)."""
 
 PARTS = {
     "femoral_component": ("femoral_component_decimated.stl", "femur_r", "CoCr"),
@@ -69,6 +70,8 @@ PARTS = {
 TRACKED = {"femur": ("femoral_component", ()), "tibia_fibula": ("tibial_tray", ("tibial_insert",))}
 """The tracked bodies (the bones' names, as the tracker's): the component that stands for each,
 and the parts fixed to it that move with it (the tray's insert)."""
+FIXED_BONES = {"femur": ("femur",), "tibia_fibula": ("tibia", "fibula")}
+"""The bones each tracked body's component is fixed to."""
 
 
 @dataclass(frozen=True)
@@ -278,26 +281,55 @@ def part_poses(knee: TkaKnee, motion: TkaMotion, part: str) -> np.ndarray:
 
 
 LEG_RADIUS_MM = 60.0
-"""The soft tissue about the knee: a vertical cylinder of water this wide, centred on it."""
+"""The soft tissue about the knee: cylinders of water this wide about the thigh's and the
+shank's axes, through the knee's centre."""
 WATER_PER_MM = 0.0193
 """Water's linear attenuation at 70 keV, 1/mm."""
 
 
 def cylinder_chords(
-    view: View, center_mm: np.ndarray, radius_mm: float = LEG_RADIUS_MM
+    view: View,
+    center_mm: np.ndarray,
+    radius_mm: float = LEG_RADIUS_MM,
+    axis: np.ndarray | tuple[float, float, float] = (0.0, 0.0, 1.0),
+    side: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Each pixel centre's ray length through a vertical cylinder of ``radius_mm`` about
-    ``center_mm`` (the leg's by default), (rows, cols), mm."""
+    """Each pixel centre's ray length (rows, cols), mm, through a cylinder of ``radius_mm``
+    about the line through ``center_mm`` along ``axis`` (vertical by default), cut to the
+    half-space ``(x - center) . side >= 0`` when ``side`` is given."""
     v, u = np.mgrid[: view.rows, : view.cols].astype(np.float64)
     d = view.pixel_to_world(u, v) - view.source_mm
-    s = view.source_mm[:2] - center_mm[:2]
-    a = d[..., 0] ** 2 + d[..., 1] ** 2
-    b = 2.0 * (d[..., 0] * s[0] + d[..., 1] * s[1])
-    c = s @ s - radius_mm**2
-    root = np.sqrt(np.maximum(b * b - 4.0 * a * c, 0.0))
-    t0 = np.clip((-b - root) / (2.0 * a), 0.0, 1.0)
-    t1 = np.clip((-b + root) / (2.0 * a), 0.0, 1.0)
-    return (t1 - t0) * np.linalg.norm(d, axis=-1)
+    a = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
+    w = view.source_mm - np.asarray(center_mm, dtype=np.float64)
+    d_across = d - (d @ a)[..., None] * a
+    w_across = w - (w @ a) * a
+    qa = np.sum(d_across**2, axis=-1)
+    qb = 2.0 * (d_across @ w_across)
+    qc = w_across @ w_across - radius_mm**2
+    root = np.sqrt(np.maximum(qb * qb - 4.0 * qa * qc, 0.0))
+    t0 = np.clip((-qb - root) / (2.0 * qa), 0.0, 1.0)
+    t1 = np.clip((-qb + root) / (2.0 * qa), 0.0, 1.0)
+    if side is not None:  # w . n + t d . n >= 0
+        dn, wn = d @ side, float(w @ side)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t_cut = -wn / dn
+        t0 = np.where(dn > 0, np.maximum(t0, t_cut), t0)
+        t1 = np.where(dn < 0, np.minimum(t1, t_cut), t1)
+        if wn < 0:  # the source is on the other side: rays parallel to the cut miss it
+            t1 = np.where(dn == 0, t0, t1)
+    return np.maximum(t1 - t0, 0.0) * np.linalg.norm(d, axis=-1)
+
+
+def leg_chords(view: View, center_mm: np.ndarray, T_femur: np.ndarray, T_tibia: np.ndarray):
+    """Each pixel centre's ray length (rows, cols), mm, through the leg bent at the knee: a
+    cylinder of :data:`LEG_RADIUS_MM` along the femur's long axis (its body's y) above the
+    plane that halves the knee's angle, one along the tibia's below it."""
+    up = T_femur[:3, 1] / np.linalg.norm(T_femur[:3, 1])
+    down = -T_tibia[:3, 1] / np.linalg.norm(T_tibia[:3, 1])
+    side = (up - down) / np.linalg.norm(up - down)
+    return cylinder_chords(view, center_mm, axis=up, side=side) + cylinder_chords(
+        view, center_mm, axis=down, side=-side
+    )
 
 
 def simulate_tka_fluoro(
@@ -313,7 +345,8 @@ def simulate_tka_fluoro(
     """Lateral fluoroscopy of the knee replacement through ``motion``, as an image
     intensifier's video shows it: per pixel the share of the beam stopped, ``1 - I / I0``.
 
-    Every part (metal, polyethylene, bone) and the leg's soft tissue attenuate along each of
+    Every part (metal, polyethylene, bone) and the leg's soft tissue (:func:`leg_chords`: the
+    thigh's and the shank's water, bent at the knee as the bones are) attenuate along each of
     ``supersample`` x ``supersample`` rays per pixel; the transmitted photons are Poisson
     (``photons`` unattenuated per pixel: metal starves them), then the imaging chain blurs by a
     Gaussian of ``blur_mm`` at the panel.
@@ -338,11 +371,12 @@ def simulate_tka_fluoro(
         rows=detector.rows * s, cols=detector.cols * s, pixel_pitch_mm=detector.pixel_pitch_mm / s
     )
     fine = lateral_view(spec, fine_panel, target_mm=center_mm)
-    leg = WATER_PER_MM * cylinder_chords(fine, np.asarray(center_mm, dtype=np.float64))
+    center_mm = np.asarray(center_mm, dtype=np.float64)
     rng = np.random.default_rng(seed)
     frames = np.empty((len(motion.frames), detector.rows, detector.cols), dtype=np.float32)
     for k in range(len(motion.frames)):
-        total = leg.copy()
+        femur, tibia = (motion.poses[body][k] for body in ("femur_r", "tibia_r"))
+        total = WATER_PER_MM * leg_chords(fine, center_mm, femur, tibia)
         for part, mesh in knee.meshes.items():
             lengths = ray_lengths(
                 fine,

@@ -696,6 +696,13 @@ def register(
         list[str] | None,
         typer.Option(help="BODY=MATERIAL of an implant: CoCr (default), Ti6Al4V; repeatable"),
     ] = None,
+    attach: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="BODY=MESH:MATERIAL: a part fixed to BODY's implant, in its mesh's frame "
+            "(an insert: UHMWPE; the bone it is fixed to: bone), tracked with it; repeatable"
+        ),
+    ] = None,
     implant_unit: Annotated[str, typer.Option(help="the meshes' unit: mm, cm, m or in")] = "mm",
     geometry: Annotated[
         Path | None, typer.Option(help="the fluoroscopy view, RTK geometry XML")
@@ -768,8 +775,14 @@ def register(
         lacking = sorted(set(materials) - set(meshes))
         if lacking:
             fail(f"--material {lacking[0]}=...: {lacking[0]} has no --implant")
+        attached = _attachments(attach)
+        lacking = sorted(set(attached) - set(meshes))
+        if lacking:
+            fail(f"--attach {lacking[0]}=...: {lacking[0]} has no --implant")
         implants = tuple(
-            ImplantSpec(body, path, implant_unit, materials.get(body, "CoCr"))
+            ImplantSpec(
+                body, path, implant_unit, materials.get(body, "CoCr"), attached.get(body, ())
+            )
             for body, path in meshes.items()
         )
         if settings is None:
@@ -853,6 +866,25 @@ def _body_words(option: str, given: list[str] | None) -> dict[str, str]:
         if name in out:
             raise ValueError(f"{option}: {body} given twice")
         out[name] = value.strip()
+    return out
+
+
+def _attachments(given: list[str] | None) -> dict[str, tuple[tuple[Path, str], ...]]:
+    """``--attach BODY=MESH:MATERIAL`` options as the tracker's body name -> its parts (mesh,
+    material); ValueError naming the value otherwise."""
+    from registration.implants import ATTACHABLE
+    from registration.track import body_name
+
+    out: dict[str, tuple[tuple[Path, str], ...]] = {}
+    for item in given or ():
+        body, _, value = item.partition("=")
+        mesh, _, material = value.rpartition(":")
+        if not body or not mesh or material not in ATTACHABLE:
+            raise ValueError(
+                f"--attach {item!r}: give BODY=MESH:MATERIAL, MATERIAL one of {sorted(ATTACHABLE)}"
+            )
+        name = body_name(body.strip())
+        out[name] = (*out.get(name, ()), (Path(mesh.strip()), material))
     return out
 
 

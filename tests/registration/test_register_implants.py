@@ -165,4 +165,11 @@ def test_bad_input_is_refused_before_any_work(case, tmp_path):
     assert result.exit_code == 2 and "give its unit" in result.output
     result = runner.invoke(app, [*_args(folder, tmp_path / "d"), "--material", "knee=CoCr"])
     assert result.exit_code == 2 and "body 'knee': one of femur, tibia, patella" in result.output
-    assert not any((tmp_path / x).exists() for x in "abcd")
+    result = runner.invoke(app, [*_args(folder, tmp_path / "e"), "--attach", "tibia=a.stl:steel"])
+    assert result.exit_code == 2 and "give BODY=MESH:MATERIAL, MATERIAL one of" in result.output
+    result = runner.invoke(app, [*_args(folder, tmp_path / "f"), "--attach", "patella=b.stl:bone"])
+    assert result.exit_code == 2 and "patella has no --implant" in result.output
+    lost = tmp_path / "lost.stl"
+    result = runner.invoke(app, [*_args(folder, tmp_path / "g"), "--attach", f"tibia={lost}:bone"])
+    assert result.exit_code == 2 and "lost.stl: no such mesh file" in result.output
+    assert not any((tmp_path / x).exists() for x in "abcdefg")

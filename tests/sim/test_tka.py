@@ -8,10 +8,22 @@ from pathlib import Path
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from recon.geometry import DetectorSpec
 from registration.implants import ray_lengths
-from sim.tka import load_tka, read_gait, simulate_tka_fluoro, tka_motion
+from sim.fluoro import lateral_view
+from sim.phantoms.knee import KneePhantomSpec
+from sim.tka import (
+    LEG_RADIUS_MM,
+    OSIM_TO_LPS,
+    cylinder_chords,
+    leg_chords,
+    load_tka,
+    read_gait,
+    simulate_tka_fluoro,
+    tka_motion,
+)
 
 DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "grand-challenge-tka"
 pytestmark = pytest.mark.skipif(not DATA.is_dir(), reason=f"no grand-challenge data at {DATA}")
@@ -59,3 +71,22 @@ def test_a_frame_shows_the_metal_as_the_beam_stopped(knee):
     metal = ray_lengths(view, femoral.vertices, femoral.faces, motion.poses["femur_r"][0]) > 5.0
     assert metal.sum() > 20 and frames[0][metal].min() > 0.98
     assert frames[0][:, :3].mean() < 0.5  # the panel's edge: air, or the leg's skin
+
+
+def test_the_leg_bends_with_the_knee():
+    """Straight, the leg is the vertical cylinder about the knee; bent 60 degrees, the ray
+    through a point of the shank's axis crosses at least its diameter (less the half pixel it
+    misses the point by), and the ray through where the straight shank was crosses no leg."""
+    detector = DetectorSpec(rows=64, cols=64, pixel_pitch_mm=4.8)
+    view = lateral_view(KneePhantomSpec(side="right"), detector, target_mm=CENTER_MM)
+    straight = np.eye(4)
+    straight[:3, :3] = OSIM_TO_LPS  # the bodies' y (superior) along the world's z
+    vertical = cylinder_chords(view, CENTER_MM)
+    assert np.allclose(leg_chords(view, CENTER_MM, straight, straight), vertical, atol=1e-9)
+    bent = straight.copy()
+    bent[:3, :3] = Rotation.from_euler("x", 60.0, degrees=True).as_matrix() @ OSIM_TO_LPS
+    chords = leg_chords(view, CENTER_MM, straight, bent)
+    shank = np.rint(view.project((CENTER_MM - 100.0 * bent[:3, 1])[None])[0]).astype(int)
+    assert chords[shank[1], shank[0]] > 2.0 * np.sqrt(LEG_RADIUS_MM**2 - 3.0**2)
+    was = np.rint(view.project((CENTER_MM - [0.0, 0.0, 100.0])[None])[0]).astype(int)
+    assert vertical[was[1], was[0]] > 0.0 and chords[was[1], was[0]] == 0.0
