@@ -320,7 +320,9 @@ def cylinder_chords(
     return np.maximum(t1 - t0, 0.0) * np.linalg.norm(d, axis=-1)
 
 
-def leg_chords(view: View, center_mm: np.ndarray, T_femur: np.ndarray, T_tibia: np.ndarray):
+def leg_chords(
+    view: View, center_mm: np.ndarray, T_femur: np.ndarray, T_tibia: np.ndarray
+) -> np.ndarray:
     """Each pixel centre's ray length (rows, cols), mm, through the leg bent at the knee: a
     cylinder of :data:`LEG_RADIUS_MM` along the femur's long axis (its body's y) above the
     plane that halves the knee's angle, one along the tibia's below it."""
