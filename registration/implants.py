@@ -81,6 +81,12 @@ ATTACHABLE = {**MATERIALS, BONE.name: BONE}
 polyethylene) or bone (the bone the component is fixed to)."""
 
 
+def size_range_mm(material: str) -> tuple[float, float]:
+    """The plausible range of the largest extent (mm) of a knee's part made of ``material``
+    (a name in :data:`ATTACHABLE`): a bone's, or an implant component's."""
+    return BONE_SIZE_MM if material == BONE.name else COMPONENT_SIZE_MM
+
+
 @dataclass(frozen=True)
 class MeshReport:
     """What reading a mesh found: its file, unit, size (mm), faces and the repairs made."""

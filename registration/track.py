@@ -38,12 +38,10 @@ from registration.drr import SoftTissue, bone_models
 from registration.frames import Frames, read_frames
 from registration.implants import (
     ATTACHABLE,
-    BONE,
-    BONE_SIZE_MM,
-    COMPONENT_SIZE_MM,
     MATERIALS,
     implant_model,
     read_mesh,
+    size_range_mm,
 )
 from registration.jointtrack import read_calibration
 from registration.jointtrack import read_poses as read_jts
@@ -345,8 +343,8 @@ def register_files(
                     f"{path}: material {material!r} of a part fixed to {spec.mesh.name}; one of "
                     f"{sorted(ATTACHABLE)}"
                 )
-            size = BONE_SIZE_MM if material == BONE.name else COMPONENT_SIZE_MM
-            attached.append((read_mesh(path, spec.unit, size)[0], ATTACHABLE[material]))
+            part = read_mesh(path, spec.unit, size_range_mm(material))[0]
+            attached.append((part, ATTACHABLE[material]))
         models[name] = implant_model(name, mesh, MATERIALS[spec.material], attached=attached)
         meshes[name] = {**asdict(report), "material": spec.material}
         if spec.attached:

@@ -40,13 +40,11 @@ from scipy.spatial.transform import Rotation
 
 from recon.geometry import DetectorSpec, View
 from registration.implants import (
-    BONE,
-    BONE_SIZE_MM,
-    COMPONENT_SIZE_MM,
-    MATERIALS,
+    ATTACHABLE,
     Material,
     ray_lengths,
     read_mesh,
+    size_range_mm,
 )
 from sim.fluoro import lateral_view
 from sim.phantoms.knee import KneePhantomSpec
@@ -183,8 +181,7 @@ def load_tka(folder: Path | str) -> TkaKnee:
     model = ET.parse(where).getroot()
     meshes, bodies, materials, repairs = {}, {}, {}, {}
     for part, (file, body, material) in PARTS.items():
-        size = COMPONENT_SIZE_MM if material != "bone" else BONE_SIZE_MM
-        mesh, report = read_mesh(folder / "meshes" / file, unit="m", size_mm=size)
+        mesh, report = read_mesh(folder / "meshes" / file, "m", size_range_mm(material))
         body_element = model.find(f".//Body[@name='{body}']")
         osim_name = file.replace("_", " ")  # "Femoral Component decimated.stl", in any case
         placed = np.eye(4)
@@ -194,7 +191,7 @@ def load_tka(folder: Path | str) -> TkaKnee:
                 placed = _frame(frame.findtext("translation"), frame.findtext("orientation"))
         mesh.apply_transform(placed)
         meshes[part], bodies[part], repairs[part] = mesh, body, report.repairs
-        materials[part] = BONE if material == "bone" else MATERIALS[material]
+        materials[part] = ATTACHABLE[material]
     knee = read_joint(model, "knee_r", str(where))
     if not np.allclose(knee.child_mm, np.eye(4)):
         raise ValueError(f"{where}: the knee joint's tibial frame is not the tibia's own")
