@@ -46,16 +46,8 @@ def _describe(path: Path, err: ValidationError, model: type[BaseModel]) -> str:
     return "\n".join(lines)
 
 
-def load_config(path: str | Path, model: type[Model]) -> Model:
-    """Read a YAML file into a pydantic model, raising :class:`ConfigError` on any problem.
-
-    NaN or infinite numbers are refused too.
-
-    Args:
-        path: YAML file, UTF-8.
-        model: The pydantic model class to validate against.
-    """
-    path = Path(path)
+def _read_mapping(path: Path, seen: tuple[Path, ...] = ()) -> dict:
+    """A YAML file's mapping of fields, those of the file it ``extends`` beneath its own."""
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as err:
@@ -68,6 +60,33 @@ def load_config(path: str | Path, model: type[Model]) -> Model:
         raise ConfigError(f"{path}: not valid YAML ({err})") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping of fields, got {type(data).__name__}")
+    if "extends" not in data:
+        return data
+    base = data.pop("extends")
+    if not isinstance(base, str):
+        raise ConfigError(f"{path}: extends: value {base!r}: give the path of a YAML file")
+    seen = (*seen, path.resolve())
+    if (path.parent / base).resolve() in seen:
+        raise ConfigError(f"{path}: extends: {base!r}, which extends this file again (a loop)")
+    try:
+        return {**_read_mapping(path.parent / base, seen), **data}
+    except ConfigError as err:
+        raise ConfigError(f"{path}: extends: {base!r}: {err}") from None
+
+
+def load_config(path: str | Path, model: type[Model]) -> Model:
+    """Read a YAML file into a pydantic model, raising :class:`ConfigError` on any problem.
+
+    NaN or infinite numbers are refused too. A file may start from another: ``extends:
+    other.yaml`` (relative to the file) takes every field of that file, and the file's own
+    fields replace them.
+
+    Args:
+        path: YAML file, UTF-8.
+        model: The pydantic model class to validate against.
+    """
+    path = Path(path)
+    data = _read_mapping(path)
     _check_finite(path, data)  # before pydantic, whose limits say nothing useful of NaN
     try:
         config = model.model_validate(data)

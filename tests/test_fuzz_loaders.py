@@ -673,6 +673,7 @@ YAML_CONFIGS: dict[str, Callable[[Path], object]] = {
     "scanner.yaml": lambda p: load_config(p, ScannerConfig),
     "registration.yaml": lambda p: load_config(p, Settings),
     "registration_implants.yaml": lambda p: load_config(p, Settings),
+    "registration_gait.yaml": lambda p: load_config(p, Settings),
     "phantoms/knee.yaml": lambda p: load_config(p, KneePhantomSpec),
     "phantoms/bb_helix.yaml": lambda p: load_config(p, BBPhantomSpec),
     "phantoms/dewarp_grid.yaml": lambda p: load_config(p, DewarpGridSpec),
@@ -734,6 +735,8 @@ def yaml_field_edits(draw, text: bytes) -> bytes:
 @pytest.mark.parametrize("name", sorted(YAML_CONFIGS))
 def test_yaml_configs(tmp_path, name, examples) -> None:
     text = (CONFIGS / name).read_bytes()
+    for sibling in (CONFIGS / name).parent.glob("*.yaml"):  # what a config ``extends``
+        (tmp_path / sibling.name).write_bytes(sibling.read_bytes())
     path = tmp_path / Path(name).name
     fuzz(
         examples,

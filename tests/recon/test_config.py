@@ -80,3 +80,30 @@ def test_missing_fields_unreadable_files_and_non_mappings(tmp_path):
         load_protocol(write(tmp_path, "name: [unclosed"))
     with pytest.raises(ConfigError, match="expected a mapping"):
         load_config(write(tmp_path, "- 1\n- 2\n"), ScanProtocol)
+
+
+def test_a_config_extends_another_and_replaces_its_fields(tmp_path):
+    """The gait settings are the implant settings but for the fields they give; a base that
+    is missing, a loop, or an ``extends`` that is not a path are refused by name."""
+    from registration.boneaxis import Settings
+
+    implants = load_config(CONFIGS / "registration_implants.yaml", Settings).model_dump()
+    gait = load_config(CONFIGS / "registration_gait.yaml", Settings).model_dump()
+    own = yaml.safe_load((CONFIGS / "registration_gait.yaml").read_text())
+    assert set(own) == {"extends", "kpm_depth", "drop_ncc"}
+    assert {k: v for k, v in gait.items() if k not in own} == {
+        k: v for k, v in implants.items() if k not in own
+    }
+    assert (gait["kpm_depth"], gait["drop_ncc"]) == (own["kpm_depth"], own["drop_ncc"])
+    (tmp_path / "a.yaml").write_text("extends: b.yaml\nname: a\n")
+    (tmp_path / "b.yaml").write_text("extends: a.yaml\n")
+    with pytest.raises(ConfigError, match=r"b\.yaml: extends: 'a\.yaml', which extends this"):
+        load_config(tmp_path / "a.yaml", ScanProtocol)
+    (tmp_path / "c.yaml").write_text("extends: absent.yaml\n")
+    with pytest.raises(
+        ConfigError, match=r"c\.yaml: extends: 'absent\.yaml': .*absent\.yaml: cannot"
+    ):
+        load_config(tmp_path / "c.yaml", ScanProtocol)
+    (tmp_path / "d.yaml").write_text("extends: [1, 2]\n")
+    with pytest.raises(ConfigError, match=r"d\.yaml: extends: value \[1, 2\]: give the path"):
+        load_config(tmp_path / "d.yaml", ScanProtocol)
