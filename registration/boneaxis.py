@@ -202,6 +202,13 @@ class Settings(BaseModel):
     prior_weight: float = Field(
         0.005, ge=0.0, description="prior cost in NCC units per sigma squared"
     )
+    kpm_depth: Literal["extrapolate", "hold"] = Field(
+        "extrapolate",
+        description="what the KPM's prediction does with a bone's depth (its centroid's move "
+        "along the view's ray): extrapolate it with the rest of the last motion, or hold it at "
+        "the last frame's (one plane measures depth least well: an error in it, extrapolated, "
+        "grows from frame to frame)",
+    )
     seed: int = 0
 
 
@@ -943,6 +950,21 @@ class Tracker:
     def _score(self, frame: int, name: str, poses: dict[str, np.ndarray]) -> tuple[float, float]:
         return self._objective(frame, self.levels[-1], name, poses).scores(poses[name])
 
+    def _held(self, name: str, T: np.ndarray, T_last: np.ndarray) -> np.ndarray:
+        """A prediction ``T`` of bone ``name``, its depth held at ``T_last``'s when the settings
+        say so (:attr:`Settings.kpm_depth`): moved along the ray through its centroid (which
+        therefore projects where it did) until the centroid is as far from the source as at
+        ``T_last``."""
+        if self.settings.kpm_depth == "extrapolate":
+            return T
+        center = np.append(self.bones[name].centroid_mm, 1.0)
+        source = self.view.source_mm
+        ray = (T @ center)[:3] - source
+        distance = np.linalg.norm(ray)
+        held = T.copy()
+        held[:3, 3] += (np.linalg.norm((T_last @ center)[:3] - source) / distance - 1.0) * ray
+        return held
+
     def _kpm(self, frame: int, name: str, poses, history) -> tuple[np.ndarray, int]:
         """Line search along the kinematic direction: the last frame-to-frame motion, or at a
         turning point (the last motion under half the one before it) the one before; a scan
@@ -961,9 +983,9 @@ class Tracker:
         start = base @ carried[-1]
 
         def at(lam: float) -> np.ndarray:
-            return start @ _exp(lam * xi)
+            return self._held(name, start @ _exp(lam * xi), start)
 
-        line = start @ _exp(KPM_LAMBDA[:, None] * xi)
+        line = np.array([at(lam) for lam in KPM_LAMBDA])
         # about the frame's prediction: the soft tissue deformed as the other bones' objectives
         objective = self._objective(frame, self.levels[0], name, poses, reach=(line[0], line[-1]))
         costs = [objective.cost(T) for T in line]
@@ -1016,7 +1038,11 @@ class Tracker:
         self._before = history[-1] if history else {}
         if s.kpm and len(history) >= 2:  # every bone at its constant-velocity prediction first
             poses = {
-                b: predict(history[-2][b], history[-1][b], self.bones[b].centroid_mm)
+                b: self._held(
+                    b,
+                    predict(history[-2][b], history[-1][b], self.bones[b].centroid_mm),
+                    history[-1][b],
+                )
                 for b in self.order
             }
         if history and self._by_least_squares():

@@ -240,3 +240,30 @@ def test_a_tracker_matches_a_mesh_s_blur_for_itself_alone():
     assert tracker.bones["femur"].blur_mm == pytest.approx(blur_mm, abs=step / 2)
     assert models["femur"].blur_mm == 0.0 and models["femur"] is model
     assert result.ncc > 0.99
+
+
+@pytest.mark.parametrize("kpm_depth", ["extrapolate", "hold"])
+def test_the_kpm_holds_a_depth_error_instead_of_extrapolating_it(kpm_depth):
+    """A ball moves 2 mm across the beam per frame; the last frame's estimate is 2 mm too deep.
+    Extrapolating that step doubles the depth error in the next frame's KPM start, and it grows
+    from frame to frame so (a tray lost in swing); held, the start keeps the last frame's
+    depth, and the in-plane motion is extrapolated either way (the ball's centre projects
+    within 0.1 mm at the panel of where it truly is)."""
+    view = camera_view(1198.0, 0.0, 0.0, 0.373, 96, 96)
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=10.0)
+    model = implant_model("femur", ball, MATERIALS["CoCr"])
+    across = np.cross(view.normal, (0.0, 1.0, 0.0))
+    across /= np.linalg.norm(across)
+    truth = [np.eye(4) for _ in range(3)]
+    for k, T in enumerate(truth):
+        T[:3, 3] = (0.0, 0.0, -900.0) + 2.0 * k * across
+    frames = np.stack([model.render(view, T) for T in truth])
+    history = [{"femur": truth[0]}, {"femur": truth[1].copy()}]
+    history[1]["femur"][:3, 3] += 2.0 * view.normal  # too deep (or too shallow) by 2 mm
+    settings = Settings(pyramid_mm=(0.746, 0.373), kpm_depth=kpm_depth)
+    tracker = Tracker(view, frames, {"femur": model}, settings)
+    start, _ = tracker._kpm(2, "femur", dict(history[-1]), history)
+    depth_error = abs(float((start[:3, 3] - truth[2][:3, 3]) @ view.normal))
+    assert depth_error == pytest.approx(4.0 if kpm_depth == "extrapolate" else 2.0, abs=0.1)
+    on_panel = view.project(np.stack([start[:3, 3], truth[2][:3, 3]]))
+    assert np.linalg.norm(on_panel[0] - on_panel[1]) * view.pitch_u_mm < 0.1
