@@ -37,8 +37,9 @@ The regimes (docs/system.md, issue "4D virtual imaging"; docs/implants.md for th
   subject's components on its bones, moved by its knee kinematics measured over gait, 5 to
   53 deg of flexion over ``--frames`` frames; lateral frames of the share of the beam stopped,
   every part and the leg's water, bent at the knee, by exact ray lengths, Poisson photons);
-  the femoral component and the tray tracked with the implant settings from frame 0 started
-  4 mm / 4 deg off, one noise and start seed per sequence, the tray with its insert. Reported
+  the femoral component and the tray tracked with the gait settings
+  (configs/registration_gait.yaml) from frame 0 started 4 mm / 4 deg off, one noise and start
+  seed per sequence, the tray with its insert. Reported
   as the bone regimes (TRE, RSR, per-axis errors, in-plane and depth, over the components'
   own points), and per component.
 - ``tka_bones``: the same, each component tracked with the true bones it is fixed to as well
@@ -288,7 +289,7 @@ def tka(sequences: int, frames: int, panel: int, bones: bool = False) -> dict:
     gait = read_gait(GC_DATA / "kinematics" / "fluoroscopic_gait.sto")
     motion = tka_motion(knee, gait, frames, TKA_CENTER_MM)
     detector = DetectorSpec(rows=panel, cols=panel, pixel_pitch_mm=307.2 / panel)
-    settings = load_config(ROOT / "configs" / "registration_implants.yaml", Settings)
+    settings = load_config(ROOT / "configs" / "registration_gait.yaml", Settings)
     models = {
         body: implant_model(
             body,

@@ -343,7 +343,12 @@ def open_demo(
     if tka:
         size = {**size, **TKA, "tka": True}
         size["frames"] = max(size["frames"], TKA_FRAMES_AT_LEAST)
-    settings = load_config(registration_settings_file(configs, meshes_alone=tka), Settings)
+    settings_file = (
+        configs / "registration_gait.yaml"
+        if tka
+        else registration_settings_file(configs, meshes_alone=False)
+    )
+    settings = load_config(settings_file, Settings)
     if resume:
         study = Study.open(out)
         made = study.manifest["config"].get("demo", {})
