@@ -951,18 +951,18 @@ class Tracker:
         return self._objective(frame, self.levels[-1], name, poses).scores(poses[name])
 
     def _held(self, name: str, T: np.ndarray, T_last: np.ndarray) -> np.ndarray:
-        """A prediction ``T`` of bone ``name``, its depth held at ``T_last``'s when the settings
-        say so (:attr:`Settings.kpm_depth`): moved along the ray through its centroid (which
-        therefore projects where it did) until the centroid is as far from the source as at
-        ``T_last``."""
+        """Predictions ``T`` (..., 4, 4) of bone ``name``, their depth held at ``T_last``'s when
+        the settings say so (:attr:`Settings.kpm_depth`): each moved along the ray through its
+        centroid (which therefore projects where it did) until the centroid is as far from the
+        source as at ``T_last``."""
         if self.settings.kpm_depth == "extrapolate":
             return T
         center = np.append(self.bones[name].centroid_mm, 1.0)
         source = self.view.source_mm
-        ray = (T @ center)[:3] - source
-        distance = np.linalg.norm(ray)
+        rays = (T @ center)[..., :3] - source
+        distance = np.linalg.norm((T_last @ center)[:3] - source)
         held = T.copy()
-        held[:3, 3] += (np.linalg.norm((T_last @ center)[:3] - source) / distance - 1.0) * ray
+        held[..., :3, 3] += (distance / np.linalg.norm(rays, axis=-1, keepdims=True) - 1.0) * rays
         return held
 
     def _kpm(self, frame: int, name: str, poses, history) -> tuple[np.ndarray, int]:
@@ -985,7 +985,7 @@ class Tracker:
         def at(lam: float) -> np.ndarray:
             return self._held(name, start @ _exp(lam * xi), start)
 
-        line = np.array([at(lam) for lam in KPM_LAMBDA])
+        line = self._held(name, start @ _exp(KPM_LAMBDA[:, None] * xi), start)
         # about the frame's prediction: the soft tissue deformed as the other bones' objectives
         objective = self._objective(frame, self.levels[0], name, poses, reach=(line[0], line[-1]))
         costs = [objective.cost(T) for T in line]
