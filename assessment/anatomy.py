@@ -73,12 +73,15 @@ class TibiaAnatomy:
         plateau_normal: unit TP plane normal, pointing proximally.
         proximal_axis: unit long axis, distal -> proximal.
         lateral_axis: unit medial -> lateral direction, orthogonal to the long axis.
+        surface_mm: the plateau's upward-facing surface points (N, 3), where the condyles
+            rest (assessment.contact); None when unknown.
     """
 
     plateau_center_mm: np.ndarray
     plateau_normal: np.ndarray
     proximal_axis: np.ndarray
     lateral_axis: np.ndarray
+    surface_mm: np.ndarray | None = None
 
     @property
     def frame(self) -> np.ndarray:
@@ -204,4 +207,5 @@ def tibia_anatomy(labels: Volume, tibia_label: int, plateau_offset_mm: float = 0
         plateau_normal=normal,
         proximal_axis=up,
         lateral_axis=lateral,
+        surface_mm=plateau,
     )

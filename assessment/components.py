@@ -12,6 +12,7 @@ outer surface's distal and posterior faces, a compartment each side of the notch
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Literal
 
 import numpy as np
@@ -21,6 +22,7 @@ from assessment.anatomy import FemurAnatomy, TibiaAnatomy
 from assessment.kinematics import knee_kinematics
 from assessment.knee import KneeAssessment
 from assessment.results import MLD_FLAG_MM
+from assessment.screening import screen
 from registration.poses import BonePose, poses_by_frame
 
 NOTCH_HALF_WIDTH_MM = 8.0
@@ -92,6 +94,7 @@ def plateau_anatomy(plateau: trimesh.Trimesh, offset_mm: float = 0.0) -> TibiaAn
         plateau_normal=normal,
         proximal_axis=np.array([0.0, 1.0, 0.0]),
         lateral_axis=np.array([0.0, 0.0, 1.0]),
+        surface_mm=centers[top],
     )
 
 
@@ -102,9 +105,12 @@ def assess_components(
     side: Literal["right", "left"] = "right",
     plateau_offset_mm: float = 0.0,
     flag_mm: float = MLD_FLAG_MM,
+    *,
+    insert: bool = True,
 ) -> KneeAssessment:
     """Joint angles, TP-condyle distances and flags of a knee replacement over a motion, from
-    its components' poses.
+    its components' poses in the frames whose registration neither failed nor is implausible
+    (assessment.screening).
 
     Args:
         femoral: The femoral component (its frame is the femur's tracked pose's).
@@ -114,6 +120,9 @@ def assess_components(
         side: Which knee; a left one is refused (the components' frames are not mirrored yet).
         plateau_offset_mm: Shift of the TP plane along its normal, mm.
         flag_mm: MLD flag threshold, mm.
+        insert: ``plateau`` is the insert, on which the femoral component rests (its gaps are
+            measured from contact); False for a tray, which the condyles do not touch (no
+            gaps: neither sunk nor lifted frames are found).
 
     Returns:
         The kinematics and the components' anatomy.
@@ -127,7 +136,15 @@ def assess_components(
     frames, stacks = poses_by_frame(poses, ("femur", tibia_name))
     femur = femoral_anatomy(femoral)
     tibia = plateau_anatomy(plateau, plateau_offset_mm)
+    if not insert:
+        tibia = replace(tibia, surface_mm=None)
     kinematics = knee_kinematics(
-        femur, tibia, frames, stacks["femur"], stacks[tibia_name], side, flag_mm
+        femur, tibia, frames, stacks["femur"], stacks[tibia_name], side, flag_mm, (0.0, 0.0)
+    )
+    kinematics = screen(
+        kinematics,
+        poses,
+        {"femur": "femoral component", tibia_name: "tibial tray"},
+        "the insert" if insert else "the tray",
     )
     return KneeAssessment(kinematics, femur, tibia)

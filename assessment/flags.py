@@ -1,7 +1,9 @@
 """Medial-lateral difference (MLD) flags: runs of flagged frames and the sentences a surgeon reads.
 
-A frame is flagged when |MLD| exceeds ``KneeKinematics.flag_mm`` (2 mm, docs/system.md). A flag is a
-cue for review of alignment and ligament balance, not a diagnosis; the wording says so.
+A measured, loaded frame is flagged when |MLD| exceeds ``KneeKinematics.flag_mm`` (2 mm,
+docs/system.md), and only when enough frames are measured (assessment.results). A flag is a cue
+for review of alignment and ligament balance, not a diagnosis; the wording says so. The frames
+left out (assessment.screening) are named, never measured.
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ from typing import Literal
 
 import numpy as np
 
-from assessment.results import KneeKinematics
+from assessment.results import LOADED_GAP_MM, MIN_MEASURED_SHARE, KneeKinematics
 
 
 @dataclass(frozen=True)
@@ -81,6 +83,62 @@ def _run(kin: KneeKinematics, first: int, last: int) -> FlagRun:
     )
 
 
+def frames_text(frames: list[int]) -> str:
+    """Frame numbers in words, runs joined: "frame 5", "frames 7–11", "frames 3, 7–11".
+
+    Args:
+        frames: Frame numbers, ascending.
+
+    Returns:
+        The text ("" for none).
+    """
+    if not frames:
+        return ""
+    runs: list[list[int]] = []
+    for frame in frames:
+        if runs and frame == runs[-1][-1] + 1:
+            runs[-1].append(frame)
+        else:
+            runs.append([frame])
+    parts = [str(r[0]) if len(r) == 1 else f"{r[0]}–{r[-1]}" for r in runs]
+    return ("frame " if len(frames) == 1 else "frames ") + ", ".join(parts)
+
+
+def exclusion_sentences(kin: KneeKinematics) -> list[str]:
+    """What was not measured, grouped by what went wrong: "tibial tray not tracked in frames
+    7–11" (empty when every frame is measured).
+
+    Args:
+        kin: per-frame knee metrics.
+    """
+    grouped: dict[str, list[int]] = {}
+    for frame, exclusion in zip(kin.frames, kin.excluded or (), strict=False):
+        if exclusion is not None:
+            grouped.setdefault(exclusion.what, []).append(int(frame))
+    return [f"{what} in {frames_text(frames)}" for what, frames in grouped.items()]
+
+
+def measured_text(kin: KneeKinematics) -> str:
+    """Which frames the metrics come from: "tibial tray not tracked in frames 7–11: metrics
+    from 7 of 12 frames", or "all 12 frames measured".
+
+    Args:
+        kin: per-frame knee metrics.
+    """
+    total, measured = len(kin.frames), int(kin.measured.sum())
+    if measured == total:
+        return f"all {total} frames measured"
+    return "; ".join(exclusion_sentences(kin)) + f": metrics from {measured} of {total} frames"
+
+
+def insufficient_text(kin: KneeKinematics) -> str:
+    """The sentence that replaces every clinical flag when too few frames are measured."""
+    return (
+        f"Tracking insufficient: {measured_text(kin)} (a clinical flag needs at least "
+        f"{MIN_MEASURED_SHARE:.0%} of them): repeat or correct the registration."
+    )
+
+
 def angle_text(flexion_deg: float) -> str:
     """A knee angle in words: "35° flexion", or "8° extension" for hyperextension (negative).
 
@@ -112,16 +170,30 @@ def describe_flags(kin: KneeKinematics) -> list[str]:
         kin: per-frame knee metrics.
 
     Returns:
-        Plain-text sentences (Unicode dashes, degree and squared signs).
+        Plain-text sentences (Unicode dashes, degree and squared signs); when too few frames
+        are measured, only :func:`insufficient_text`.
     """
+    if not kin.sufficient:
+        return [insufficient_text(kin)]
     limit = f"{kin.flag_mm:g} mm"
     runs = flag_runs(kin)
     ddv = f"{kin.ddv_mm2:.2f} mm²"
+    left_out = [f"Not measured: {s}." for s in exclusion_sentences(kin)]
+    with np.errstate(invalid="ignore"):
+        unloaded = np.abs(kin.mld_mm) > kin.flag_mm
+    unloaded &= kin.measured & ~kin.loaded
+    if unloaded.any():
+        left_out.append(
+            f"{frames_text([int(f) for f in kin.frames[unloaded]]).capitalize()}: |MLD| above "
+            f"{limit} with neither condyle within {LOADED_GAP_MM:g} mm of the plateau (the knee "
+            "bears no weight there): not flagged."
+        )
     if not runs:
-        max_abs = float(np.max(np.abs(kin.mld_mm)))
+        max_abs = float(np.nanmax(np.abs(kin.mld_mm)))
         return [
-            f"No medial–lateral difference above {limit} over the motion "
-            f"(max |MLD| {max_abs:.1f} mm); DDV {ddv}."
+            f"No medial–lateral difference above {limit} over the measured frames "
+            f"(max |MLD| {max_abs:.1f} mm); DDV {ddv}.",
+            *left_out,
         ]
     sentences = [
         f"Medial–lateral difference above {limit} in {run.frame_text} "
@@ -132,7 +204,7 @@ def describe_flags(kin: KneeKinematics) -> list[str]:
     ]
     n_flagged = int(np.count_nonzero(kin.flagged))
     sentences.append(
-        f"{n_flagged} of {len(kin.frames)} frames flagged; distance difference variance (DDV) "
-        f"over the motion {ddv}."
+        f"{n_flagged} of {int(kin.measured.sum())} measured frames flagged; distance difference "
+        f"variance (DDV) over them {ddv}."
     )
-    return sentences
+    return sentences + left_out

@@ -13,6 +13,9 @@ into right knees (x -> -x on points, ``M T M`` on poses) so both sides share one
 - Scarvell's distances: for each femoral condyle, the signed distance of its lowest point
   (closest to the plateau) to the tibial plateau (TP) plane, and that point projected onto the
   plane in the plane's (medial, anterior) axes.
+- Gaps: how far each condyle stands above the plateau's surface (assessment.contact), less
+  its rest: its gap in the static scan (the joint space of a knee standing), or contact (0)
+  for a femoral component on its insert.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from typing import Literal
 import numpy as np
 
 from assessment.anatomy import FemurAnatomy, TibiaAnatomy
+from assessment.contact import PlateauSurface
 from assessment.results import MLD_FLAG_MM, KneeKinematics
 
 MIRROR = np.diag([-1.0, 1.0, 1.0, 1.0])
@@ -47,8 +51,9 @@ def knee_kinematics(
     tibia_poses: np.ndarray,
     side: Literal["right", "left"],
     flag_mm: float = MLD_FLAG_MM,
+    rest_gap_mm: tuple[float, float] | None = None,
 ) -> KneeKinematics:
-    """Angles, translations and TP-condyle distances per frame.
+    """Angles, translations, TP-condyle distances and gaps per frame.
 
     Args:
         femur: reference anatomy of the femur, already mirrored for a left knee.
@@ -59,6 +64,8 @@ def knee_kinematics(
         tibia_poses: the tibia's, likewise.
         side: which knee the poses belong to.
         flag_mm: MLD flag threshold (mm).
+        rest_gap_mm: the (medial, lateral) gaps at rest, mm; None: those of the reference
+            poses (the static scan). Without surface points on ``tibia`` there are no gaps.
     """
     if side == "left":
         femur_poses, tibia_poses = mirror_poses(femur_poses), mirror_poses(tibia_poses)
@@ -74,8 +81,9 @@ def knee_kinematics(
     offset = T[:, :3, 3] - F[:, :3, 3]
     translation = np.column_stack([np.einsum("ij,ij->i", offset, e) for e in (e1, e2, e3)])
     medial, anterior = tibia.plane_axes
-    distances, points = [], []
-    for condyle in (femur.medial_condyle_mm, femur.lateral_condyle_mm):
+    surface = None if tibia.surface_mm is None else PlateauSurface(tibia)
+    distances, points, gaps = [], [], []
+    for j, condyle in enumerate((femur.medial_condyle_mm, femur.lateral_condyle_mm)):
         homogeneous = np.hstack((condyle, np.ones((len(condyle), 1))))
         relative = np.linalg.inv(tibia_poses) @ femur_poses  # femur in the tibia's reference
         moved = np.einsum("fij,nj->fni", relative, homogeneous)[..., :3]
@@ -86,6 +94,9 @@ def knee_kinematics(
         rel = p - tibia.plateau_center_mm
         distances.append(d)
         points.append(np.column_stack((rel @ medial, rel @ anterior)))
+        if surface is not None:
+            rest = surface.gap_mm(condyle) if rest_gap_mm is None else rest_gap_mm[j]
+            gaps.append(surface.gap_mm(moved) - rest)
     return KneeKinematics(
         side=side,
         frames=np.asarray(frames),
@@ -97,5 +108,7 @@ def knee_kinematics(
         lateral_distance_mm=distances[1],
         medial_point_mm=points[0],
         lateral_point_mm=points[1],
+        medial_gap_mm=gaps[0] if gaps else None,
+        lateral_gap_mm=gaps[1] if gaps else None,
         flag_mm=flag_mm,
     )

@@ -21,6 +21,7 @@ from assessment.anatomy import (
 )
 from assessment.kinematics import knee_kinematics
 from assessment.results import MLD_FLAG_MM, KneeKinematics
+from assessment.screening import screen
 from recon.volume import Volume
 from registration.labels import BONE_LABELS, INSERT_LABEL, LABELS
 from registration.poses import BonePose, poses_by_frame
@@ -70,7 +71,8 @@ def assess_knee(
     plateau_offset_mm: float = 0.0,
     flag_mm: float = MLD_FLAG_MM,
 ) -> KneeAssessment:
-    """Joint angles, TP-condyle distances and flags of a knee over a motion.
+    """Joint angles, TP-condyle distances and flags of a knee over a motion, from the frames
+    whose registration neither failed nor is implausible (assessment.screening).
 
     Args:
         labels: static-scan label volume (world LPS).
@@ -100,5 +102,11 @@ def assess_knee(
         tibia = tibia_anatomy(anatomy_labels, LABELS["tibia"], plateau_offset_mm)
     kinematics = knee_kinematics(
         femur, tibia, frames, stacks["femur"], stacks[tibia_name], side, flag_mm
+    )
+    kinematics = screen(
+        kinematics,
+        poses,
+        {"femur": "femur", tibia_name: "tibia"},
+        "the polyethylene insert" if tka else "the tibial plateau",
     )
     return KneeAssessment(kinematics, femur, tibia)

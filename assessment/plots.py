@@ -38,6 +38,8 @@ FIGSIZE_IN = (7.0, 5.0)
 MEDIAL_COLOR = "tab:blue"
 LATERAL_COLOR = "tab:orange"
 FLAG_COLOR = "tab:red"
+EXCLUDED_COLOR = "0.45"
+"""Titles of frames not measured: grey, never the flags' red."""
 
 
 @dataclass(frozen=True)
@@ -93,6 +95,21 @@ def _frame_colorbar(fig: Figure, ax: Axes, kin: KneeKinematics, cmap: Colormap) 
     return norm
 
 
+def _shade_excluded(ax: Axes, kin: KneeKinematics) -> None:
+    """Shade the frames not measured on a per-frame axis (one legend entry)."""
+    label = "not measured"
+    for frame in kin.frames[~kin.measured]:
+        ax.axvspan(frame - 0.5, frame + 0.5, color="0.88", zorder=0, label=label)
+        label = None
+
+
+def _span(*values: np.ndarray) -> tuple[float, float]:
+    """The least and greatest finite value of ``values`` ((0, 1) when there is none)."""
+    finite = np.concatenate([np.ravel(v) for v in values])
+    finite = finite[np.isfinite(finite)]
+    return (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
+
+
 def distance_scatter(kin: KneeKinematics) -> Plot:
     """Medial vs lateral TP–condyle distance per frame, coloured by frame.
 
@@ -109,8 +126,8 @@ def distance_scatter(kin: KneeKinematics) -> Plot:
     ax = fig.add_subplot()
     cmap = _time_cmap()
     med, lat = kin.medial_distance_mm, kin.lateral_distance_mm
-    lo = float(min(med.min(), lat.min())) - kin.flag_mm - 0.5
-    hi = float(max(med.max(), lat.max())) + kin.flag_mm + 0.5
+    lo, hi = _span(med, lat)
+    lo, hi = lo - kin.flag_mm - 0.5, hi + kin.flag_mm + 0.5
     line = np.array([lo, hi])
     ax.fill_between(
         line,
@@ -134,7 +151,8 @@ def distance_scatter(kin: KneeKinematics) -> Plot:
 
 
 def mld(kin: KneeKinematics) -> Plot:
-    """Medial–lateral difference (MLD) per frame with the ±``kin.flag_mm`` band shaded.
+    """Medial–lateral difference (MLD) per frame with the ±``kin.flag_mm`` band shaded, the
+    frames not measured shaded grey (a gap in the line).
 
     Args:
         kin: per-frame knee metrics.
@@ -145,6 +163,7 @@ def mld(kin: KneeKinematics) -> Plot:
     fig = _figure()
     ax = fig.add_subplot()
     mld, flagged = kin.mld_mm, kin.flagged
+    _shade_excluded(ax, kin)
     ax.axhspan(-kin.flag_mm, kin.flag_mm, color="0.9", label=f"within ±{kin.flag_mm:g} mm")
     for level in (-kin.flag_mm, kin.flag_mm):
         ax.axhline(level, color=FLAG_COLOR, linestyle="--", linewidth=1)
@@ -158,7 +177,7 @@ def mld(kin: KneeKinematics) -> Plot:
         zorder=3,
         label=f"flagged (|MLD| > {kin.flag_mm:g} mm)",
     )
-    span = max(float(np.max(np.abs(mld))), kin.flag_mm) * 1.3
+    span = max(_span(np.abs(mld))[1], kin.flag_mm) * 1.3
     ax.set_ylim(-span, span)
     ax.text(0.99, 0.97, "medial gap larger", transform=ax.transAxes, ha="right", va="top")
     ax.text(0.99, 0.03, "lateral gap larger", transform=ax.transAxes, ha="right", va="bottom")
@@ -216,7 +235,10 @@ def trajectories(kin: KneeKinematics) -> Plot:
     norm = _frame_colorbar(fig, ax, kin, cmap)
     colors = cmap(norm(kin.frames))
     med, lat = kin.medial_point_mm, kin.lateral_point_mm
-    ax.add_collection(LineCollection(np.stack([med, lat], axis=1), colors=colors, linewidths=1))
+    shown = kin.measured
+    ax.add_collection(
+        LineCollection(np.stack([med, lat], axis=1)[shown], colors=colors[shown], linewidths=1)
+    )
     ax.scatter(med[:, 0], med[:, 1], c=colors, marker="o", s=25, edgecolors="0.3", linewidths=0.5)
     ax.scatter(lat[:, 0], lat[:, 1], c=colors, marker="s", s=25, edgecolors="0.3", linewidths=0.5)
     ax.legend(
@@ -237,7 +259,8 @@ def trajectories(kin: KneeKinematics) -> Plot:
 
 
 def angles(kin: KneeKinematics) -> Plot:
-    """Joint angles per frame: flexion, varus and internal rotation, one panel each.
+    """Joint angles per frame: flexion, varus and internal rotation, one panel each; the
+    frames not measured shaded grey.
 
     Args:
         kin: per-frame knee metrics.
@@ -254,6 +277,7 @@ def angles(kin: KneeKinematics) -> Plot:
         ("Flexion (°)", "Varus (°)", "Internal rot. (°)"),
         strict=True,
     ):
+        _shade_excluded(ax, kin)
         ax.plot(kin.frames, values, color="0.2", marker="o", markersize=3, linewidth=1.2)
         ax.axhline(0.0, color="0.6", linewidth=0.8)
         ax.set_ylabel(label)
@@ -279,7 +303,8 @@ def _picks(kin: KneeKinematics, images: dict[int, Path]) -> list[int]:
 def motion_frames_png(kin: KneeKinematics, images: dict[int, Path]) -> bytes:
     """The motion frames with their joint angles (the paper's figure): up to
     :data:`MOTION_FRAMES` frames evenly spaced over those with an image, each titled with
-    its frame number and Grood–Suntay angles; flagged frames titled in red.
+    its frame number and Grood–Suntay angles; flagged frames titled in red, frames not
+    measured in grey.
 
     Args:
         kin: per-frame knee metrics.
@@ -290,6 +315,11 @@ def motion_frames_png(kin: KneeKinematics, images: dict[int, Path]) -> bytes:
     for ax, k in zip(fig.subplots(1, len(picks), squeeze=False)[0], picks, strict=True):
         ax.imshow(matplotlib.image.imread(images[int(kin.frames[k])]), cmap="gray")
         ax.set_axis_off()
+        if not kin.measured[k]:
+            ax.set_title(
+                f"frame {int(kin.frames[k])}:\nnot measured", fontsize=9, color=EXCLUDED_COLOR
+            )
+            continue
         ax.set_title(
             f"frame {int(kin.frames[k])}: flexion {kin.flexion_deg[k]:.0f}°\n"
             f"varus {kin.varus_deg[k]:.1f}°, int. rot. {kin.internal_rotation_deg[k]:.1f}°",
@@ -347,7 +377,8 @@ def frames_beside_4d_png(kin: KneeKinematics, images: dict[int, Path], scene: Mo
         plane = scene.plane @ carrier[:3, :3].T + carrier[:3, 3]
         ax.add_collection3d(Poly3DCollection([plane], facecolors=(0.24, 0.55, 0.25, 0.35)))
         for j, color in enumerate((MEDIAL_COLOR, LATERAL_COLOR)):
-            ax.scatter(*scene.condyles[k, j], color=color, s=12, depthshade=False)
+            if np.isfinite(scene.condyles[k, j]).all():  # none in a frame not measured
+                ax.scatter(*scene.condyles[k, j], color=color, s=12, depthshade=False)
         for set_limits, c in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), center, strict=True):
             set_limits(c - half, c + half)
         ax.set_box_aspect((1, 1, 1), zoom=1.5)

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from assessment.flags import angle_text, describe_flags
+from assessment.flags import angle_text, describe_flags, insufficient_text, measured_text
 from assessment.plots import Plot, frames_beside_4d_png, motion_frames_png, save_all
 from assessment.results import KneeKinematics
 from assessment.viewer import MotionScene, view_html
@@ -26,6 +26,7 @@ from registration.poses import BonePose
 
 CSV_COLUMNS = (
     "frame",
+    "status",
     "flexion_deg",
     "varus_deg",
     "internal_rotation_deg",
@@ -41,19 +42,22 @@ CSV_COLUMNS = (
     "lateral_ml_mm",
     "lateral_ap_mm",
 )
-"""Header of metrics.csv; tx/ty/tz are the JCS translations (medial-lateral shift, anterior
-drawer, distraction), *_ml/*_ap the projection points on the TP plane."""
+"""Header of metrics.csv; status is "measured" or why the frame is not (its numbers are then
+empty), tx/ty/tz are the JCS translations (medial-lateral shift, anterior drawer,
+distraction), *_ml/*_ap the projection points on the TP plane."""
 
 _CAPTIONS = {
     "distance_scatter": "Medial vs lateral TP–condyle distance per frame; the band marks "
     "|MLD| within the flag threshold around y = x (equal gaps).",
-    "mld": "Medial–lateral difference per frame; flagged frames in red.",
+    "mld": "Medial–lateral difference per frame; flagged frames in red, frames not measured "
+    "shaded grey (a gap in the line).",
     "extension_distance": "Medial and lateral TP–condyle distances against the extension angle.",
     "trajectories": "Medial and lateral condyle points projected on the TP plane, joined per "
     "frame, light to dark over time (Feng's method).",
-    "angles": "Joint angles per frame (Grood–Suntay).",
+    "angles": "Joint angles per frame (Grood–Suntay); frames not measured shaded grey.",
     "motion_frames": "Motion frames with their joint angles: registered frames evenly spaced "
-    "over the motion, outlines at the registered poses; flagged frames titled in red.",
+    "over the motion, outlines at the registered poses; flagged frames titled in red, frames "
+    "not measured in grey.",
     "frames_beside_4d": "The registered frames (top) beside the 4D rendering at the same "
     "instants (bottom): the bodies at their registered poses, the tibial plateau plane and "
     "the lowest medial and lateral condyle points.",
@@ -69,8 +73,11 @@ th, td { border: 1px solid #ccc; padding: 4px 10px; text-align: right; }
 th { background: #f0f0f0; }
 table.summary th, table.summary td { text-align: left; }
 tr.flagged td { background: #fde2e1; }
+tr.excluded td { background: #eeeeee; color: #777; font-style: italic; }
 .flags { border: 2px solid #d9822b; background: #fff4e5; padding: 10px 16px; font-size: 16px; }
 .flags.clear { border-color: #3d8b40; background: #eaf6ea; }
+.flags.insufficient, .banner { border: 2px solid #5b6770; background: #e9edf0; }
+.banner { padding: 10px 16px; font-size: 18px; font-weight: bold; margin-bottom: 12px; }
 .flags p { margin: 6px 0; }
 .note { font-size: 13px; color: #555; }
 .plots { display: grid; grid-template-columns: 1fr 1fr; gap: 16px; }
@@ -89,6 +96,7 @@ figcaption { font-size: 13px; color: #444; margin-top: 4px; }
 .filmstrip { display: flex; flex-wrap: wrap; gap: 4px; }
 .filmstrip img { height: 72px; border: 3px solid transparent; cursor: pointer; }
 .filmstrip img.flagged { border-color: #c0392b; }
+.filmstrip img.excluded { border: 3px dashed #7f8c8d; opacity: 0.6; }
 .filmstrip img.current { outline: 2px solid #2c7be5; }
 """
 
@@ -139,6 +147,8 @@ _MARKERS_JS = """
 (() => {
   const marks = [...document.querySelectorAll('.marker')].map((m) => [m, JSON.parse(m.dataset.xy)]);
   window.reportMotion.listen((k) => marks.forEach(([m, xy]) => {
+    m.style.display = xy[k] === null ? 'none' : '';  // a frame not measured has no point
+    if (xy[k] === null) return;
     m.style.left = `${100 * xy[k][0]}%`;
     m.style.top = `${100 * xy[k][1]}%`;
   }));
@@ -161,12 +171,14 @@ class FrameOverlay:
         png: The frame with each tracked body's outline at its registered pose.
         caption: What the registration and the assessment said of it (NCC per body, flags).
         flagged: Whether the assessment flagged the frame.
+        excluded: Whether the assessment left the frame out (failed or implausible).
     """
 
     frame: int
     png: Path
     caption: str
     flagged: bool
+    excluded: bool = False
 
 
 def frame_overlays(
@@ -189,12 +201,23 @@ def frame_overlays(
         if not png.is_file():
             continue
         caption = f"frame {frame}: NCC " + ", ".join(ncc.get(frame, ["not recorded"]))
-        out.append(FrameOverlay(frame, png, caption + _flag_note(kin, k), bool(kin.flagged[k])))
+        out.append(
+            FrameOverlay(
+                frame,
+                png,
+                caption + _flag_note(kin, k),
+                bool(kin.flagged[k]),
+                not kin.measured[k],
+            )
+        )
     return out
 
 
 def _flag_note(kin: KneeKinematics, k: int) -> str:
-    """What a caption says of the ``k``-th assessed frame's flag ("" when it is not flagged)."""
+    """What a caption says of the ``k``-th assessed frame: not measured and why, or its flag
+    ("" when it is measured and not flagged)."""
+    if kin.excluded is not None and kin.excluded[k] is not None:
+        return f"; not measured: {kin.excluded[k]}"
     if not kin.flagged[k]:
         return ""
     return f"; flagged (|MLD| {abs(kin.mld_mm[k]):.2f} mm > {kin.flag_mm:g} mm)"
@@ -206,11 +229,22 @@ def _fmt(value: float, digits: int) -> str:
     return text[1:] if text.startswith("-") and float(text) == 0 else text
 
 
+def _status(kin: KneeKinematics, i: int) -> str:
+    """The ``i``-th frame's status: "measured", or why it is not."""
+    return "measured" if kin.measured[i] else str(kin.excluded[i])
+
+
 def _metric_rows(kin: KneeKinematics) -> list[dict[str, str]]:
-    """Per-frame rows keyed by CSV_COLUMNS (distances and angles to 4 decimals)."""
+    """Per-frame rows keyed by CSV_COLUMNS (distances and angles to 4 decimals; empty for a
+    frame not measured)."""
     mld, flagged = kin.mld_mm, kin.flagged
     rows = []
     for i, frame in enumerate(kin.frames):
+        if not kin.measured[i]:
+            rows.append(
+                {c: "" for c in CSV_COLUMNS} | {"frame": str(int(frame)), "status": _status(kin, i)}
+            )
+            continue
         values = (
             kin.flexion_deg[i],
             kin.varus_deg[i],
@@ -224,16 +258,18 @@ def _metric_rows(kin: KneeKinematics) -> list[dict[str, str]]:
         rows.append(
             {
                 "frame": str(int(frame)),
-                **dict(zip(CSV_COLUMNS[1:10], (_fmt(v, 4) for v in values), strict=True)),
+                "status": "measured",
+                **dict(zip(CSV_COLUMNS[2:11], (_fmt(v, 4) for v in values), strict=True)),
                 "flagged": str(int(flagged[i])),
-                **dict(zip(CSV_COLUMNS[11:], (_fmt(v, 4) for v in points), strict=True)),
+                **dict(zip(CSV_COLUMNS[12:], (_fmt(v, 4) for v in points), strict=True)),
             }
         )
     return rows
 
 
 def write_metrics_csv(kin: KneeKinematics, path: Path | str) -> Path:
-    """Write one row per frame with the CSV_COLUMNS header ("flagged" is 0 or 1).
+    """Write one row per frame with the CSV_COLUMNS header ("flagged" is 0 or 1; a frame not
+    measured has its reason as status and no numbers).
 
     Args:
         kin: per-frame knee metrics.
@@ -251,7 +287,8 @@ def write_metrics_csv(kin: KneeKinematics, path: Path | str) -> Path:
 
 
 def summary_rows(kin: KneeKinematics) -> dict[str, str]:
-    """The report's summary table: frames, flexion range, max |MLD| and where, DDV, flags.
+    """The report's summary table: frames and which are measured, flexion range, max |MLD| and
+    where, DDV, flags (over the measured frames).
 
     Args:
         kin: per-frame knee metrics.
@@ -259,18 +296,24 @@ def summary_rows(kin: KneeKinematics) -> dict[str, str]:
     Returns:
         Plain-text values by row label.
     """
-    mld = kin.mld_mm
-    peak = int(np.argmax(np.abs(mld)))
-    side = "medial" if mld[peak] > 0 else "lateral"
-    n_flagged = int(np.count_nonzero(kin.flagged))
-    return {
+    rows = {
         "Side": kin.side,
         "Frames": f"{len(kin.frames)} ({int(kin.frames[0])}–{int(kin.frames[-1])})",
-        "Flexion range": f"{kin.flexion_deg.min():.1f}° to {kin.flexion_deg.max():.1f}°",
+        "Measured": measured_text(kin),
+    }
+    if not kin.measured.any():
+        return rows | {"Flagged frames": "none: no frame measured"}
+    mld = kin.mld_mm
+    peak = int(np.nanargmax(np.abs(mld)))
+    side = "medial" if mld[peak] > 0 else "lateral"
+    n_flagged = int(np.count_nonzero(kin.flagged))
+    flagged = f"{n_flagged} of {int(kin.measured.sum())} measured (|MLD| > {kin.flag_mm:g} mm)"
+    return rows | {
+        "Flexion range": f"{np.nanmin(kin.flexion_deg):.1f}° to {np.nanmax(kin.flexion_deg):.1f}°",
         "Max |MLD|": f"{abs(mld[peak]):.2f} mm, {side} gap larger, frame {int(kin.frames[peak])} "
         f"({angle_text(kin.flexion_deg[peak])})",
         "DDV (variance of MLD)": f"{kin.ddv_mm2:.2f} mm²",
-        "Flagged frames": f"{n_flagged} of {len(kin.frames)} (|MLD| > {kin.flag_mm:g} mm)",
+        "Flagged frames": flagged if kin.sufficient else "none: tracking insufficient",
     }
 
 
@@ -279,13 +322,17 @@ def _table(
     header: list[str] | None = None,
     css_class: str = "",
     flagged: np.ndarray | None = None,
+    excluded: np.ndarray | None = None,
 ) -> str:
-    """An HTML table with escaped cells; rows where ``flagged`` is true are shaded."""
+    """An HTML table with escaped cells; rows where ``flagged`` is true are shaded red, those
+    where ``excluded`` is true grey."""
     out = [f'<table class="{css_class}">' if css_class else "<table>"]
     if header:
         out.append("<tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in header) + "</tr>")
     for i, row in enumerate(rows):
         cls = ' class="flagged"' if flagged is not None and flagged[i] else ""
+        if excluded is not None and excluded[i]:
+            cls = ' class="excluded"'
         out.append(f"<tr{cls}>" + "".join(f"<td>{html.escape(c)}</td>" for c in row) + "</tr>")
     out.append("</table>")
     return "\n".join(out)
@@ -305,9 +352,13 @@ def _frame_table(kin: KneeKinematics) -> str:
         "Lateral (mm)",
         "MLD (mm)",
         "Flagged",
+        "Status",
     ]
     rows = []
     for i, frame in enumerate(kin.frames):
+        if not kin.measured[i]:
+            rows.append([str(int(frame)), *["—"] * (len(header) - 2), _status(kin, i)])
+            continue
         rows.append(
             [
                 str(int(frame)),
@@ -319,9 +370,10 @@ def _frame_table(kin: KneeKinematics) -> str:
                 _fmt(kin.lateral_distance_mm[i], 2),
                 _fmt(kin.mld_mm[i], 2),
                 "yes" if kin.flagged[i] else "",
+                "measured",
             ]
         )
-    return _table(rows, header, flagged=kin.flagged)
+    return _table(rows, header, flagged=kin.flagged, excluded=~kin.measured)
 
 
 def _steps(kin: KneeKinematics, overlays: Sequence[FrameOverlay]) -> list[dict]:
@@ -346,7 +398,7 @@ def _motion(
     thumbs = []
     for item in overlays:
         data = base64.b64encode(item.png.read_bytes()).decode("ascii")
-        cls = ' class="flagged"' if item.flagged else ""
+        cls = ' class="flagged"' if item.flagged else ' class="excluded"' if item.excluded else ""
         thumbs.append(
             f'<img{cls} src="data:image/png;base64,{data}" alt="frame {item.frame}" '
             f'data-step="{step_of.get(item.frame, 0)}">'
@@ -371,7 +423,8 @@ def _motion(
 <span id="motion-caption"></span></div>
 {strip}
 <p class="note">Left, each frame with every tracked body's outline at its registered pose
-(frames the assessment flagged are framed in red); right, the bodies at their registered
+(frames the assessment flagged are framed in red, frames it did not measure dashed grey: their
+registration failed or is implausible); right, the bodies at their registered
 poses in 3D (drag to turn, scroll to zoom), the tibial plateau plane in green and the lowest
 medial (blue) and lateral (orange) condyle points. The red rings on the plots mark the frame
 shown. Click a frame of the strip to show it; open the report with <code>#play</code> after
@@ -382,14 +435,20 @@ its name to start playing, <code>#frame=N</code> to start at frame N.</p>
 """
 
 
+def _points(xy: np.ndarray) -> list[list[float] | None]:
+    """Per frame a marker's place (4 decimals), or None where the frame has no point."""
+    return [
+        np.round(p, 4).tolist() if np.isfinite(p).all() else None for p in np.asarray(xy, float)
+    ]
+
+
 def _figure(name: str, path: Path, plot: Plot | None) -> str:
     """One plot as a figure; with ``plot``, a ring per marked series the player moves."""
     data = base64.b64encode(path.read_bytes()).decode("ascii")
     rings = ""
     if plot is not None:
         rings = "".join(
-            f'<i class="marker" data-xy="{json.dumps(np.round(xy, 4).tolist())}"></i>'
-            for xy in plot.markers
+            f'<i class="marker" data-xy="{json.dumps(_points(xy))}"></i>' for xy in plot.markers
         )
     return (
         f'<figure><div class="marked"><img src="data:image/png;base64,{data}" '
@@ -410,6 +469,10 @@ def _html(
     summary = {**summary_rows(kin), **extra_rows}
     sentences = describe_flags(kin)
     box_class = "flags" if kin.flagged.any() else "flags clear"
+    banner = ""
+    if not kin.sufficient:
+        box_class = "flags insufficient"
+        banner = f'<div class="banner">{html.escape(insufficient_text(kin))}</div>\n'
     moving = bool(overlays) or scene is not None
     figures = [
         _figure(name, path, plot if moving else None) for name, (path, plot) in plots.items()
@@ -427,7 +490,7 @@ def _html(
 </head>
 <body>
 <h1>{html.escape(title)}</h1>
-<h2>Summary</h2>
+{banner}<h2>Summary</h2>
 {_table([[k, v] for k, v in summary.items()], css_class="summary")}
 <h2>Flags</h2>
 <div class="{box_class}">
@@ -435,8 +498,11 @@ def _html(
 </div>
 <p class="note">TP–condyle distances: lowest medial / lateral femoral condyle point to the tibial
 plateau plane (Scarvell's method). MLD = medial − lateral distance; a frame is flagged when
-|MLD| &gt; {kin.flag_mm:g} mm. DDV = variance of the MLD over the motion. Flags are cues for
-review of alignment and ligament balance, not a diagnosis.</p>
+|MLD| &gt; {kin.flag_mm:g} mm while a condyle rests on the plateau. DDV = variance of the MLD
+over the measured frames. A frame whose registration failed or is implausible (a condyle deep
+inside the plateau, both lifted far off it, a jump between frames) is not measured: no number,
+no flag, a gap in the plots. Flags are cues for review of alignment and ligament balance, not
+a diagnosis.</p>
 {motion}<h2>Plots</h2>
 <div class="plots">
 {"".join(figures)}

@@ -51,7 +51,8 @@ class MotionScene:
         poses: Per body ``T_world_body`` in every frame (F, 4, 4).
         plane: The TP plane's square in the static pose (4, 3 corners), moved by ``tibia``.
         tibia: The body that carries the plane.
-        condyles: The lowest medial and lateral condyle points in every frame (F, 2, 3).
+        condyles: The lowest medial and lateral condyle points in every frame (F, 2, 3);
+            NaN in a frame not measured.
         side: "right" or "left".
     """
 
@@ -188,7 +189,10 @@ def scene_json(scene: MotionScene) -> str:
         },
         "condyles": {
             "colors": list(CONDYLE_COLORS),
-            "points": np.round(scene.condyles, 3).tolist(),
+            "points": [
+                [np.round(p, 3).tolist() if np.isfinite(p).all() else None for p in frame]
+                for frame in scene.condyles
+            ],
         },
         "center": np.round(center, 3).tolist(),
         "radius": round(float(np.linalg.norm(points.max(axis=0) - points.min(axis=0))) / 2, 3),
@@ -271,7 +275,11 @@ _VIEW_JS = """
       b.mesh.matrix.fromArray(b.poses[k]);
       b.mesh.matrixWorldNeedsUpdate = true;
     });
-    points.forEach((ball, j) => ball.position.set(...data.condyles.points[k][j]));
+    points.forEach((ball, j) => {
+      const at = data.condyles.points[k][j];  // null in a frame not measured
+      ball.visible = at !== null;
+      if (at !== null) ball.position.set(...at);
+    });
     camera.position.set(
       center.x + distance * Math.cos(elevation) * Math.cos(azimuth),
       center.y + distance * Math.cos(elevation) * Math.sin(azimuth),

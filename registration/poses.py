@@ -4,7 +4,9 @@ A pose ``T_world_bone`` (4x4) moves a bone from where the static CBCT scan saw i
 reference frame: world coordinates at the time of the scan) to where it is in a frame. The
 6-DoF row of the file repeats it as docs/design.md parameterises poses: the world position of the
 bone's centroid (tx, ty, tz) mm and the rotation as extrinsic x-y-z angles (scipy "xyz") in
-degrees about that centroid. The 16 matrix entries are authoritative when reading.
+degrees about that centroid. The 16 matrix entries are authoritative when reading. A file may
+leave out the similarity, seconds, failed and reason columns (files written before them still
+read): similarity and seconds are then unknown and no pose is marked failed.
 """
 
 from __future__ import annotations
@@ -30,6 +32,8 @@ COLUMNS = (
     "rz_deg",
     "similarity",
     "seconds",
+    "failed",
+    "reason",
 )
 RIGID_TOLERANCE = 1e-5
 """Largest |R^T R - I| entry and |det R - 1| accepted as a rotation."""
@@ -45,6 +49,9 @@ class BonePose:
         T_world_bone: 4x4 rigid motion from the reference (CBCT) pose, mm.
         similarity: the registration's similarity at this pose (NaN when unknown).
         seconds: time the registration spent on it (NaN when unknown).
+        failed: the registration marked this pose failed (the assessment measures nothing
+            from it).
+        reason: why it failed (empty when it did not), e.g. "NCC 0.308 below 0.5".
     """
 
     frame: int
@@ -52,6 +59,8 @@ class BonePose:
     T_world_bone: np.ndarray
     similarity: float = math.nan
     seconds: float = math.nan
+    failed: bool = False
+    reason: str = ""
 
     def six_dof(self, centroid_mm: np.ndarray) -> np.ndarray:
         """(tx, ty, tz) mm of the moved centroid and (rx, ry, rz) deg, extrinsic xyz.
@@ -120,13 +129,21 @@ def write_poses(
         if pose.bone not in centroids_mm:
             raise ValueError(f"{where}: no reference centroid for bone {pose.bone!r}")
         six = pose.six_dof(centroids_mm[pose.bone])
-        rows.append([pose.frame, pose.bone, *T.ravel(), *six, pose.similarity, pose.seconds])
+        numbers = (*T.ravel(), *six, pose.similarity, pose.seconds)
+        rows.append(
+            [
+                pose.frame,
+                pose.bone,
+                *(repr(float(x)) for x in numbers),
+                int(pose.failed),
+                pose.reason,
+            ]
+        )
     tmp = path.with_name(path.name + ".partial")
     with open(tmp, "w", newline="", encoding="utf-8") as fh:
         writer = csv.writer(fh)
         writer.writerow(COLUMNS)
-        for row in rows:
-            writer.writerow([row[0], row[1], *(repr(float(x)) for x in row[2:])])
+        writer.writerows(rows)
     tmp.rename(path)
     return path
 
@@ -175,7 +192,9 @@ def _read_poses(path: Path) -> list[BonePose]:
             similarity, seconds = (
                 _number(row.get(c), f"{path}: line {line}: {c}") for c in ("similarity", "seconds")
             )
-            poses.append(BonePose(frame, bone, T, similarity, seconds))
+            failed = _flag(row.get("failed"), f"{path}: line {line}: failed")
+            reason = row.get("reason") or ""
+            poses.append(BonePose(frame, bone, T, similarity, seconds, failed, reason))
     if not poses:
         raise ValueError(f"{path}: no poses")
     return poses
@@ -193,6 +212,16 @@ def _number(text: str | None, where: str) -> float:
     if math.isinf(value):
         raise ValueError(f"{where}: {text!r} is infinite")
     return value
+
+
+def _flag(text: str | None, where: str) -> bool:
+    """The ``failed`` column's value: False when empty (or absent), else 0 or 1; ValueError
+    naming ``where`` for anything else."""
+    if text in (None, "", "0"):
+        return False
+    if text == "1":
+        return True
+    raise ValueError(f"{where}: {text!r} is not 0 or 1")
 
 
 def poses_by_frame(

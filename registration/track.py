@@ -419,7 +419,7 @@ def _write(
         distortion.write(out / "distortion.json")
     centroids = {name: model.centroid_mm for name, model in models.items()}
     poses = [
-        BonePose(r.frame, name, b.pose, b.ncc, b.seconds)
+        BonePose(r.frame, name, b.pose, b.ncc, b.seconds, b.failed, b.reason)
         for r in results
         for name, b in r.bones.items()
     ]

@@ -82,7 +82,8 @@ def flexion_extension(
     varus_frames: tuple[int, int] | None = None,
 ) -> KneeMotion:
     """Flexion 0 -> max -> 0 (cosine profile) with ``varus_deg`` in frames
-    ``varus_frames`` = (first, last) inclusive (all frames when None); the tibia stands still.
+    ``varus_frames`` = (first, last) inclusive (all frames when None): the femur turned about
+    its medial condyle's contact, the lateral condyle lifted off; the tibia stands still.
     """
     _check_frames(frames)
     phase = np.linspace(0.0, 2.0 * np.pi, frames)
@@ -98,9 +99,13 @@ def flexion_extension(
     for k, (angle, tilt) in enumerate(zip(flexion, varus, strict=True)):
         flexed = spec.model_copy(update={"flexion_deg": float(angle)})
         world = knee_bone_poses(flexed)
-        centers[k] = knee_landmarks(flexed)["knee_center"]
-        # varus: the medial condyle drops, rotating about the tibia's AP axis (world y here)
-        tilt_T = _rotation_about("y", sign * tilt, centers[k])
+        landmarks = knee_landmarks(flexed)
+        centers[k] = landmarks["knee_center"]
+        # varus: the femur turns about the tibia's AP axis (world y here) through its medial
+        # condyle's contact, which stays on the plateau while the lateral compartment opens
+        # (a knee under load pivots on the compartment it bears on)
+        tilt_T = _rotation_about("y", sign * tilt, landmarks["medial_condyle_lowest"])
+        centers[k] = tilt_T[:3, :3] @ centers[k] + tilt_T[:3, 3]  # the TEA's midpoint, tilted
         for bone in BONES:
             moved = world[bone] @ inverse[bone]
             poses[bone][k] = tilt_T @ moved if bone in ("femur", "patella") else moved

@@ -421,6 +421,7 @@ COLUMNS = pa.schema(
         ("registration_stage_s", pa.float64()),
         ("assessment_s", pa.float64()),
         ("frames", pa.int64()),
+        ("measured_frames", pa.int64()),
         ("max_abs_mld_mm", pa.float64()),
         ("ddv_mm2", pa.float64()),
         ("flexion_range_deg", pa.float64()),
@@ -430,7 +431,8 @@ COLUMNS = pa.schema(
 """The cohort table: one row per study and bone. TRE (per bone, over frames, mm) where the
 study has ground truth; similarity = the registration's NCC; ``registration_s`` the bone's
 registration seconds summed over frames; ``*_s`` the study's stage seconds; the assessment's
-headline metrics (max |MLD| mm, DDV mm^2, flexion range deg) repeat on each bone's row."""
+headline metrics (frames measured, max |MLD| mm, DDV mm^2, flexion range deg: over the measured
+frames) repeat on each bone's row."""
 
 
 def _json(path: Path) -> dict:
@@ -473,6 +475,7 @@ def cohort_rows(studies: Sequence[Path], report: BatchReport | None = None) -> l
                     "registration_stage_s": _seconds(stages, "registration"),
                     "assessment_s": _seconds(stages, "assessment"),
                     "frames": assessment.get("frames"),
+                    "measured_frames": assessment.get("measured_frames"),
                     "max_abs_mld_mm": assessment.get("max_abs_mld_mm"),
                     "ddv_mm2": assessment.get("ddv_mm2"),
                     "flexion_range_deg": assessment.get("flexion_range_deg"),
@@ -576,6 +579,7 @@ def _page(
         "study",
         "status",
         "failed_task",
+        "measured_frames",
         "max_abs_mld_mm",
         "ddv_mm2",
         "flexion_range_deg",

@@ -586,7 +586,12 @@ def assess(
     """Knee kinematics, TP-condyle distances and flags: report.html (the registered frames
     and the motion in 3D played), metrics.csv, plots, 4D, and export/ (ITK transforms,
     Autoscoper .tra, a 3D Slicer scene); of bones (--labels) or of a knee replacement's
-    components (--implant, --insert)."""
+    components (--implant, --insert). Frames whose registration failed or is implausible are
+    not measured; with fewer than half measured the report gives no clinical flag and the
+    command exits 1."""
+    import numpy as np
+
+    from assessment.flags import insufficient_text, measured_text
     from scanner.outputs import Output, new_outputs
     from study import jobs
 
@@ -622,10 +627,18 @@ def assess(
     except (ValueError, OSError) as err:
         fail(str(err))
     kin = result.kinematics
+    if not kin.sufficient:
+        console.print(
+            f"[bold red]{insufficient_text(kin)}[/] The report, marked so, is at "
+            f"{out / 'report.html'}.",
+            soft_wrap=True,
+            highlight=False,
+        )
+        raise typer.Exit(1)
     console.print(
-        f"[green]wrote[/] {out / 'report.html'}: {len(kin.frames)} frames, flexion "
-        f"{kin.flexion_deg.min():.0f}..{kin.flexion_deg.max():.0f} deg, max |MLD| "
-        f"{abs(kin.mld_mm).max():.2f} mm, {int(kin.flagged.sum())} frame(s) flagged",
+        f"[green]wrote[/] {out / 'report.html'}: {measured_text(kin)}, flexion "
+        f"{np.nanmin(kin.flexion_deg):.0f}..{np.nanmax(kin.flexion_deg):.0f} deg, max |MLD| "
+        f"{np.nanmax(np.abs(kin.mld_mm)):.2f} mm, {int(kin.flagged.sum())} frame(s) flagged",
         soft_wrap=True,
         highlight=False,
     )

@@ -91,7 +91,7 @@ QUICK = {
     "phantom_voxel_mm": 1.0,
     "recon_voxel_mm": 1.0,
     "fluoro_panel": 512,
-    "fluoro_voxel_mm": 1.0,
+    "fluoro_voxel_mm": 0.5,
     "frames": 8,
     "max_flexion_deg": 40.0,
 }

@@ -212,13 +212,19 @@ def write_component_assessment(
     plateau_offset_mm: float = 0.0,
     title: str = "Knee replacement kinematics",
     overlays: Path | None = None,
+    insert: bool = True,
 ) -> KneeAssessment:
     """:func:`write_assessment` of a knee replacement from its tracked components' poses:
     ``components`` by body ("femur": the femoral component, "tibia_fibula" or "tibia": the
-    tray), ``plateau`` the insert (or the tray) in the tray's frame
+    tray), ``plateau`` the insert (``insert``) or the tray in the tray's frame
     (assessment.components)."""
     result = assess_components(
-        components["femur"], plateau, poses, side, plateau_offset_mm=plateau_offset_mm
+        components["femur"],
+        plateau,
+        poses,
+        side,
+        plateau_offset_mm=plateau_offset_mm,
+        insert=insert,
     )
     tracked = [p for p in poses if p.bone in components]
     motion = Motion.of(tracked)
@@ -343,6 +349,7 @@ def assess_files(
             plateau_offset_mm=plateau_offset_mm,
             title=f"Knee replacement kinematics: {poses_path.name}",
             overlays=overlays,
+            insert=insert is not None,
         )
     if labels_path is None:
         raise ValueError("give --labels (the static scan's labels), or the components' meshes")

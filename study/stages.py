@@ -170,15 +170,29 @@ class ScanGeometry:
         )
 
 
-def kinematics_summary(kin: KneeKinematics) -> dict:
-    """An assessment stage's figures: frames, max |MLD|, flexion range, flagged frames, DDV."""
-    return {
+def kinematics_summary(kin: KneeKinematics, truth: KneeKinematics | None = None) -> dict:
+    """An assessment stage's figures: frames, those measured and why the others are not,
+    whether they suffice for flags, max |MLD|, flexion range, flagged frames, DDV (over the
+    measured frames; None when there is none); with ``truth`` (the simulation's true poses
+    assessed alike), the frames the truth flags."""
+    from assessment.flags import exclusion_sentences
+
+    measured = kin.measured.any()
+    figures = {
         "frames": len(kin.frames),
-        "max_abs_mld_mm": float(np.abs(kin.mld_mm).max()),
-        "flexion_range_deg": float(np.ptp(kin.flexion_deg)),
+        "measured_frames": int(kin.measured.sum()),
+        "not_measured": exclusion_sentences(kin),
+        "tracking_sufficient": kin.sufficient,
+        "max_abs_mld_mm": float(np.nanmax(np.abs(kin.mld_mm))) if measured else None,
+        "flexion_range_deg": float(np.nanmax(kin.flexion_deg) - np.nanmin(kin.flexion_deg))
+        if measured
+        else None,
         "flagged_frames": [int(f) for f in kin.frames[kin.flagged]],
-        "ddv_mm2": kin.ddv_mm2,
+        "ddv_mm2": kin.ddv_mm2 if measured else None,
     }
+    if truth is not None:
+        figures["truth_flagged_frames"] = [int(f) for f in truth.frames[truth.flagged]]
+    return figures
 
 
 def recon_stage(
@@ -357,6 +371,7 @@ def registration_stage(
 def assessment_stage(study: Study, title: str = "Knee kinematics", say: Say = print) -> bool:
     """Knee kinematics of the registered poses -> ``assessment/`` (report, plots, metrics,
     4D series)."""
+    from assessment.knee import assess_knee
     from registration.poses import read_poses
     from study.jobs import write_assessment
 
@@ -370,7 +385,11 @@ def assessment_stage(study: Study, title: str = "Knee kinematics", say: Say = pr
         kin = write_assessment(
             labels, poses, folder, side, title=title, volume=volume, overlays=overlays
         ).kinematics
-        return kinematics_summary(kin)
+        truth_path = study.path / "fluoro" / "poses.csv"  # a simulation's true poses
+        truth = None
+        if truth_path.is_file():
+            truth = assess_knee(labels, read_poses(truth_path), side).kinematics
+        return kinematics_summary(kin, truth)
 
     require(study, "registration", "segmentation")
     return run_stage(study, "assessment", lambda: derived_folder(study, "assessment", fill), say)

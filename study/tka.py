@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from assessment.components import assess_components
 from recon.fdk import Progress
 from recon.geometry import DetectorSpec, Geometry
 from recon.io import read_projections, read_volume, write_projections, write_volume
@@ -26,7 +27,7 @@ from recon.volume import Volume
 from registration.boneaxis import Settings, compose
 from registration.implants import read_mesh
 from registration.placement import place_components
-from registration.poses import BonePose, write_poses
+from registration.poses import BonePose, read_poses, write_poses
 from registration.segment import bone_surfaces, segment_bones_with_metal
 from registration.track import ImplantSpec
 from scanner.study import Study
@@ -267,6 +268,7 @@ def assessment_stage(study: Study, say: Say) -> bool:
     def fill(folder: Path) -> dict:
         components = study.path / "fluoro" / "components"
         folder.rmdir()  # assess_files makes its own new folder
+        insert = components / f"{INSERT}.stl"
         kin = assess_files(
             study.path / "registration" / "poses.csv",
             None,
@@ -275,10 +277,13 @@ def assessment_stage(study: Study, say: Say) -> bool:
             implants={
                 TRACKED_NAME[body]: components / f"{part}.stl" for body, part in COMPONENTS.items()
             },
-            insert=components / f"{INSERT}.stl",
+            insert=insert,
             overlays=study.path / "registration" / "overlays",
         ).kinematics
-        return kinematics_summary(kin)
+        femoral = read_mesh(components / f"{COMPONENTS['femur']}.stl")[0]
+        truth = read_poses(study.path / "fluoro" / "poses.csv")
+        truth_kin = assess_components(femoral, read_mesh(insert)[0], truth).kinematics
+        return kinematics_summary(kin, truth_kin)
 
     require(study, "registration")
     return run_stage(study, "assessment", lambda: derived_folder(study, "assessment", fill), say)

@@ -10,6 +10,7 @@ import pytest
 from typer.testing import CliRunner
 
 from assessment.components import assess_components
+from assessment.screening import LIFTED_MM
 from registration.poses import BonePose, write_poses
 from sim.tka import load_tka, read_gait, tka_motion
 from study.cli import app
@@ -57,7 +58,8 @@ def test_the_components_give_the_gaits_angles(knee):
 
 def test_lifting_the_femoral_component_lifts_both_condyles_off_the_plateau(knee):
     """The femoral component moved 2 mm along the plateau's normal: both TP-condyle distances
-    grow by 2 mm, the MLD does not change."""
+    and both gaps grow by 2 mm, the MLD does not change; the swing frames whose condyles then
+    stand more than 5 mm above the insert are no longer measured."""
     knee, motion, _ = knee
     femoral, insert = knee.meshes["femoral_component"], knee.meshes["tibial_insert"]
     before = assess_components(femoral, insert, _poses(motion))
@@ -66,8 +68,18 @@ def test_lifting_the_femoral_component_lifts_both_condyles_off_the_plateau(knee)
     lifted[:, :3, 3] += 2.0 * lift
     after = assess_components(femoral, insert, _poses(motion, lifted)).kinematics
     kin = before.kinematics
-    np.testing.assert_allclose(after.medial_distance_mm - kin.medial_distance_mm, 2.0, atol=1e-9)
-    np.testing.assert_allclose(after.lateral_distance_mm - kin.lateral_distance_mm, 2.0, atol=1e-9)
+    # lifted more than LIFTED_MM on both condyles, a frame is no longer measured
+    off = (kin.medial_gap_mm + 2.0 > LIFTED_MM) & (kin.lateral_gap_mm + 2.0 > LIFTED_MM)
+    assert 0 < off.sum() < FRAMES and np.array_equal(~after.measured, off)
+    assert all(e.what == "femoral component lifted off the insert" for e in after.excluded if e)
+    kept = after.measured
+    np.testing.assert_allclose(after.medial_gap_mm[kept] - kin.medial_gap_mm[kept], 2.0, atol=1e-6)
+    np.testing.assert_allclose(
+        after.medial_distance_mm[kept] - kin.medial_distance_mm[kept], 2.0, atol=1e-9
+    )
+    np.testing.assert_allclose(
+        after.lateral_distance_mm[kept] - kin.lateral_distance_mm[kept], 2.0, atol=1e-9
+    )
 
 
 def test_cbct_assess_takes_the_components_and_refuses_a_left_knee(knee, tmp_path):

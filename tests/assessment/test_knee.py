@@ -3,6 +3,8 @@ whose anatomy and motion are known by construction."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -126,6 +128,20 @@ def test_poses_round_trip_and_bad_poses_name_frame_and_bone(knees, tmp_path):
     (tmp_path / "bad.csv").write_text("\n".join([text[0], ",".join(fields)]) + "\n")
     with pytest.raises(ValueError, match=r"bad.csv: frame 1, bone femur: pose is not rigid"):
         read_poses(tmp_path / "bad.csv")
+    # a file written before the failed and reason columns reads, nothing marked failed; a
+    # failed mark and its reason round-trip; a failed value that is not 0 or 1 is refused
+    old = "\n".join(",".join(row.split(",")[:-2]) for row in text) + "\n"
+    (tmp_path / "old.csv").write_text(old, encoding="utf-8")
+    assert not any(p.failed or p.reason for p in read_poses(tmp_path / "old.csv"))
+    lost = [replace(poses[0], failed=True, reason="NCC 0.308 below 0.5, out of view"), *poses[1:]]
+    marked = read_poses(
+        write_poses(tmp_path / "lost.csv", lost, {"femur": np.zeros(3), "tibia": np.zeros(3)})
+    )
+    assert (marked[0].failed, marked[0].reason) == (True, "NCC 0.308 below 0.5, out of view")
+    assert not marked[1].failed
+    (tmp_path / "odd.csv").write_text(text[0] + "\n" + text[1].rsplit(",", 2)[0] + ",yes,\n")
+    with pytest.raises(ValueError, match=r"odd.csv: line 2: failed: 'yes' is not 0 or 1"):
+        read_poses(tmp_path / "odd.csv")
     nan = [BonePose(0, "femur", np.full((4, 4), np.nan))]
     with pytest.raises(ValueError, match="frame 0, bone femur: pose contains NaN"):
         write_poses(tmp_path / "nan.csv", nan, {"femur": np.zeros(3)})

@@ -9,6 +9,7 @@ import io
 import re
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import matplotlib.image
@@ -18,7 +19,8 @@ import pytest
 from assessment.flags import FlagRun, angle_text, describe_flags, flag_runs
 from assessment.plots import DPI, PLOTS, save_all
 from assessment.report import CSV_COLUMNS, frame_overlays, write_report
-from assessment.results import KneeKinematics
+from assessment.results import Exclusion, KneeKinematics
+from assessment.screening import excluding
 from registration.poses import BonePose
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -99,7 +101,7 @@ def test_describe_flags_sentences(kin):
     assert first.startswith("Medial–lateral difference above 2 mm in frames 12–17")
     assert f"max 2.6 mm at {round(kin.flexion_deg[14])}° flexion" in first
     assert "medial gap larger" in first and "not a diagnosis" in first
-    assert "6 of 30 frames flagged" in sentences[1]
+    assert "6 of 30 measured frames flagged" in sentences[1]
     assert f"{kin.ddv_mm2:.2f} mm²" in sentences[1]
 
 
@@ -115,7 +117,7 @@ def test_describe_flags_none_flagged():
     clear = make_kin(0.5 * np.sin(np.arange(N_FRAMES) / 3))
     (sentence,) = describe_flags(clear)
     assert sentence == (
-        "No medial–lateral difference above 2 mm over the motion "
+        "No medial–lateral difference above 2 mm over the measured frames "
         f"(max |MLD| {np.abs(clear.mld_mm).max():.1f} mm); DDV {clear.ddv_mm2:.2f} mm²."
     )
     assert flag_runs(clear) == []
@@ -197,6 +199,69 @@ def test_the_registered_frames_play_in_the_report(kin, tmp_path, browse):
     assert shown[""] == frames[0].caption  # the script ran: the first frame is shown
     assert shown["play"].startswith("frame ") and shown["play"] != shown[""]  # it advanced
     assert shown["frame=13"] == frames[1].caption
+
+
+def test_frames_not_measured_are_marked_apart_from_the_flags(tmp_path, browse):
+    """Frames 20-22 left out (the tibia not tracked): their metrics are gaps, the Flags box and
+    the summary name them; the filmstrip frames them dashed grey and the flagged frame red; the
+    table greys their rows; in Chromium their caption gives the reason and every plot's ring
+    is hidden there, shown on a measured frame; metrics.csv gives the reason, no number."""
+    lost = Exclusion("tibia not tracked", "NCC 0.210 below 0.5")
+    kin = excluding(make_kin(), tuple(lost if 20 <= k <= 22 else None for k in range(N_FRAMES)))
+    assert np.isnan(kin.mld_mm[20:23]).all() and kin.flagged.sum() == len(BUMP)
+    overlays = tmp_path / "overlays"
+    overlays.mkdir()
+    for frame in (0, 13, 21):
+        matplotlib.image.imsave(overlays / f"frame_{frame:04d}.png", np.full((8, 8, 3), 0.5))
+    poses = [
+        BonePose(frame, bone, np.eye(4), similarity=0.21 if 20 <= frame <= 22 else 0.8)
+        for frame in range(N_FRAMES)
+        for bone in ("femur", "tibia_fibula")
+    ]
+    frames = frame_overlays(overlays, kin, poses)
+    assert [(f.flagged, f.excluded) for f in frames] == [
+        (False, False),
+        (True, False),
+        (False, True),
+    ]
+    written = write_report(kin, tmp_path / "r", title="t", overlays=frames)
+    text = written["report"].read_text(encoding="utf-8")
+    start = text.index('<div class="filmstrip">')
+    strip = text[start : text.index("</div>", start)]
+    assert strip.count('class="flagged"') == 1 and strip.count('class="excluded"') == 1
+    assert ".filmstrip img.excluded { border: 3px dashed #7f8c8d;" in text
+    assert text.count('<tr class="excluded">') == 3 and text.count('<tr class="flagged">') == 6
+    assert "Not measured: tibia not tracked in frames 20–22." in html.unescape(text)
+    assert "tibia not tracked in frames 20–22: metrics from 27 of 30 frames" in html.unescape(text)
+    for fragment, hidden in (("frame=21", True), ("frame=13", False)):
+        dom = browse(written["report"], fragment, budget_ms=1100).dom
+        caption = html.unescape(re.search(r'<span id="motion-caption">([^<]*)</span>', dom)[1])
+        rings = re.findall(r'<i class="marker"[^>]*style="([^"]*)"', dom)
+        assert len(rings) == sum(len(p(kin).markers) for p in PLOTS.values())
+        if hidden:
+            assert caption == frames[2].caption
+            assert caption.endswith("not measured: tibia not tracked (NCC 0.210 below 0.5)")
+            assert all("display: none" in r for r in rings)
+        else:
+            assert caption == frames[1].caption and "flagged" in caption
+            assert not any("display: none" in r for r in rings)
+    with written["metrics"].open(newline="", encoding="utf-8") as f:
+        rows = list(csv.DictReader(f))
+    assert rows[21]["status"] == "tibia not tracked (NCC 0.210 below 0.5)"
+    assert rows[21]["mld_mm"] == rows[21]["flagged"] == "" and rows[13]["flagged"] == "1"
+
+
+def test_unloaded_frames_are_shown_not_flagged():
+    """The MLD bump's frames with both condyles 3 mm above their rest (a knee in swing): no
+    flag, and the Flags box says why."""
+    kin = make_kin()
+    gaps = np.where(np.isin(np.arange(N_FRAMES), list(BUMP)), 3.0, 0.2)
+    swinging = replace(kin, medial_gap_mm=gaps, lateral_gap_mm=gaps + 0.5)
+    assert kin.flagged.sum() == len(BUMP) and not swinging.flagged.any()
+    assert describe_flags(swinging)[-1] == (
+        "Frames 12–17: |MLD| above 2 mm with neither condyle within 1.5 mm of the plateau (the "
+        "knee bears no weight there): not flagged."
+    )
 
 
 def test_metrics_csv(report, kin):
