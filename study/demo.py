@@ -35,6 +35,7 @@ from pathlib import Path
 
 import yaml
 
+from assessment.flags import frames_text
 from calibration.calibrate import calibrate
 from calibration.distortion import DewarpGridSpec
 from calibration.phantom import BBPhantomSpec
@@ -99,8 +100,9 @@ TKA = {"fluoro_panel": 512, "recon_voxel_mm": 0.8}
 """What ``--tka`` changes in either size: the knee replacement's fluoroscopy (gait frames on
 the panel read out 512^2, as bench/registration.py's tka regime) and the MAR
 reconstruction's voxels."""
-TKA_FRAMES_AT_LEAST = 12
-"""A gait sampled more coarsely moves the components too far between frames to follow."""
+TKA_FRAMES_AT_LEAST = 30
+"""Frames the gait is sampled at, at least: at 12 the tray turns up to 28 degrees against the
+femoral component between frames in swing, beyond any start the tracker finds (docs/implants.md)."""
 DETECTOR_FRAMES = 16
 """Dark and flood frames of the demo's panel calibration, each."""
 VARUS_DEG = 3.0
@@ -438,6 +440,22 @@ def run(
     return _summary(study, out, time.perf_counter() - started)
 
 
+def _assessment_text(assess: dict) -> str:
+    """What the demo's summary says of the report: measured frames, flags, the truth's."""
+    if assess["max_abs_mld_mm"] is None:
+        return "no frame measured: tracking insufficient"
+    flagged = frames_text(assess["flagged_frames"]) or "no frame"
+    text = (
+        f"{assess['measured_frames']} of {assess['frames']} frames measured, max |MLD| "
+        f"{assess['max_abs_mld_mm']:.2f} mm, {flagged} flagged"
+    )
+    if not assess["tracking_sufficient"]:
+        text += "; tracking insufficient: no clinical flag"
+    if "truth_flagged_frames" in assess:
+        text += f"; the true poses flag {frames_text(assess['truth_flagged_frames']) or 'none'}"
+    return text
+
+
 def _summary(study: Study, out: Path, seconds: float) -> str:
     stages = study.manifest["stages"]
     recon = stages["recon"]
@@ -445,8 +463,7 @@ def _summary(study: Study, out: Path, seconds: float) -> str:
     assess = stages["assessment"]
     return (
         f"[green]demo finished[/] in {seconds:.0f} s -> {out}\n"
-        f"  report:     {out}/assessment/report.html (max |MLD| "
-        f"{assess['max_abs_mld_mm']:.2f} mm, {len(assess['flagged_frames'])} frames flagged)\n"
+        f"  report:     {out}/assessment/report.html ({_assessment_text(assess)})\n"
         f"  recording:  rerun {out}/recording.rrd\n"
         f"  3D Slicer:  {out}/assessment/export/scene.mrml (ITK transforms and Autoscoper "
         f".tra beside it)\n"
@@ -471,8 +488,7 @@ def _tka_summary(study: Study, out: Path, seconds: float) -> str:
     )
     return (
         f"[green]demo (knee replacement) finished[/] in {seconds:.0f} s -> {out}\n"
-        f"  report:     {out}/assessment/report.html (max |MLD| "
-        f"{assess['max_abs_mld_mm']:.2f} mm, {len(assess['flagged_frames'])} frames flagged)\n"
+        f"  report:     {out}/assessment/report.html ({_assessment_text(assess)})\n"
         f"  volume:     {out}/recon/volume.nii.gz with NMAR (metal {out}/recon/metal.nii.gz); "
         f"RMSE outside the metal {recon['rmse_outside_metal_per_mm']:.5f} /mm "
         f"({recon['rmse_outside_metal_uncorrected_per_mm']:.5f} without MAR)\n"
