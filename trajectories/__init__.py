@@ -5,7 +5,7 @@ hands out (plans, reports, files) is in millimetres and degrees. The public name
 their module on first use.
 """
 
-from recon._exports import lazy
+from recon._exports import lazy  # recon first: its OpenMP wait policy before Pinocchio's libgomp
 
 _EXPORTS = {
     "ScannerModel": "trajectories.model",

@@ -1,0 +1,102 @@
+"""The hot kernels stay fast in the ways a test can see without a clock: each compiles once per
+process, for C-contiguous arrays, in nopython mode with its parallel loops; and OpenMP threads
+wait passively, so a run beside another degrades gracefully (docs/design.md, "Threads")."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import numba
+import numpy as np
+import pytest
+from numba.core.caching import NullCache
+from numba.core.types import Array
+
+from recon import fdk as fdk_module
+from recon import project, ramp
+from recon.fdk import fdk_reconstruct
+from recon.geometry import DetectorSpec, circular_orbit
+from recon.volume import VolumeGrid
+
+PARALLEL = {
+    "backprojection": project._backproject_kernel,
+    "forward projection": project._joseph_kernel,
+    "pixel quads": project.quads_kernel,
+    "row filter's weighting": ramp._pack_kernel,
+    "normalisation": fdk_module._normalise_kernel,
+}
+"""The FDK's and the projector's parallel kernels, by what they do."""
+
+
+@pytest.fixture(scope="module")
+def ran() -> None:
+    """A small FDK and a forward projection: every kernel of :data:`PARALLEL` compiled."""
+    views = circular_orbit(24, 600.0, 1000.0, DetectorSpec(rows=32, cols=32, pixel_pitch_mm=2.0))
+    grid = VolumeGrid.centered((16, 16, 16), 2.0, (0.0, 0.0, 0.0))
+    sino = project.forward_project(np.ones(grid.shape, np.float32), grid, views)
+    fdk_reconstruct(sino, views, grid)
+
+
+@pytest.mark.parametrize("name", sorted(PARALLEL))
+def test_a_hot_kernel_compiles_once_for_contiguous_arrays(ran, name):
+    """One signature per kernel in the process (a second means a second compilation and a
+    slower layout somewhere), and every array argument C-contiguous ('A' arrays cost the
+    vectoriser its unit strides)."""
+    kernel = PARALLEL[name]
+    assert len(kernel.signatures) == 1, (name, kernel.signatures)
+    arrays = [t for t in kernel.signatures[0] if isinstance(t, Array)]
+    assert arrays and all(t.layout == "C" for t in arrays), (name, kernel.signatures[0])
+    assert kernel.targetoptions.get("parallel") and kernel.targetoptions.get("fastmath"), name
+    assert not isinstance(kernel._cache, NullCache), f"{name}: compiled again in every process"
+
+
+@pytest.mark.parametrize(
+    "name",
+    [n if n == "backprojection" else pytest.param(n, marks=pytest.mark.slow) for n in PARALLEL],
+)
+def test_a_hot_kernel_keeps_its_parallel_loops_in_nopython_mode(ran, name):
+    """Compiled afresh with the kernel's own options (the cached one keeps no diagnostics), its
+    loops are parallel loops (parfors) and it runs in nopython mode, no object-mode fallback
+    nor reflected list. A compilation takes 1-7 s: by default the backprojection's (the FDK's
+    time), the others with ``-m slow``."""
+    kernel = PARALLEL[name]
+    fresh = numba.njit(**kernel.targetoptions)(kernel.py_func)
+    signature = kernel.signatures[0]
+    fresh.compile(signature)
+    result = fresh.overloads[signature]
+    assert not result.objectmode and not result.lifted, name
+    diagnostics = result.metadata["parfor_diagnostics"]
+    assert diagnostics.has_setup and len(diagnostics.initial_parfors) >= 1, name
+    assert not any("reflected" in str(t) for t in signature), name
+
+
+_POLICY = """
+import ctypes, sys
+import trajectories.model  # Pinocchio loads libgomp before any kernel runs
+import numpy as np
+from recon.project import pixel_quads
+pixel_quads(np.ones((2, 8, 8), np.float32))
+sys.stdout.flush()
+ctypes.CDLL("libgomp.so.1").omp_display_env(1)
+"""
+
+
+@pytest.mark.parametrize(("given", "spins"), [(None, "0"), ("active", "30000000000")])
+def test_openmp_threads_wait_passively_unless_told_otherwise(given, spins):
+    """A process that loads Pinocchio (and its libgomp) first and then runs a numba kernel has
+    its OpenMP threads sleep between parallel regions (libgomp's spin count 0; unset, it spins
+    300,000 times at every barrier); OMP_WAIT_POLICY set by the user wins."""
+    if numba.config.THREADING_LAYER not in ("default", "omp"):
+        pytest.skip(f"numba's threading layer is {numba.config.THREADING_LAYER}, not OpenMP")
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    if given is not None:
+        env["OMP_WAIT_POLICY"] = given
+    run = subprocess.run(
+        [sys.executable, "-c", _POLICY], capture_output=True, text=True, env=env, check=True
+    )
+    shown = run.stdout + run.stderr
+    if "GOMP_SPINCOUNT" not in shown:
+        pytest.skip("this libgomp does not display its spin count")
+    assert f"GOMP_SPINCOUNT = '{spins}'" in shown
