@@ -103,10 +103,23 @@ def git_commit() -> tuple[str | None, bool | None]:
     return commit, bool(status)
 
 
+def cpu_model() -> str | None:
+    """The CPU's model name (/proc/cpuinfo), e.g. "AMD EPYC 9B14"; None where it is not told."""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or None
+
+
 def machine() -> dict:
     """Facts about this machine and interpreter."""
     return {
         "cpu_count": os.cpu_count(),
+        "cpu_model": cpu_model(),
         "platform": platform.platform(),
         "machine": platform.machine(),
         "processor": platform.processor() or None,

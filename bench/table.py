@@ -429,7 +429,8 @@ def measured_line(record: dict, meta: dict) -> str:
     if meta.get("dirty"):
         commit += " with uncommitted changes"
     cpus = meta.get("cpu_count")
-    where = ", ".join(x for x in (f"{cpus} CPUs" if cpus else "", meta.get("machine") or "") if x)
+    facts = (f"{cpus} CPUs" if cpus else "", meta.get("cpu_model") or "", meta.get("machine") or "")
+    where = ", ".join(x for x in facts if x)
     where = f" ({where})" if where else ""
     return (
         f"Measured {date} at commit {commit}{where}: `{record['command']}`,"

@@ -205,6 +205,7 @@ META = {
     "commit": "abc1234",
     "dirty": False,
     "cpu_count": 2,
+    "cpu_model": "AMD EPYC 9B14",
     "machine": "x86_64",
 }
 
@@ -226,8 +227,8 @@ def test_tables_carry_the_readme_columns_and_formats():
         " | 3e-6 mm, 6e-8° | 0 |" in blocks["plan"]
     )
     assert (
-        "Measured 2026-11-23 at commit abc1234 (2 CPUs, x86_64): `python bench/plan.py`, 21 s."
-        in (blocks["plan"])
+        "Measured 2026-11-23 at commit abc1234 (2 CPUs, AMD EPYC 9B14, x86_64): `python "
+        "bench/plan.py`, 21 s." in (blocks["plan"])
     )
     calibration = blocks["calibration"]
     assert "| measure | value | target |" in calibration
