@@ -379,15 +379,17 @@ def _render(uv, coef, weight, A, s, attenuate, out, chunks):  # pragma: no cover
     visited; the faces are shared out in ``chunks`` (one a thread), each summing into its own
     buffer."""
     rows, cols = out.shape
-    g0 = max(0, math.ceil((uv[:, :, 0].min() + 0.5) * s - 0.5))
-    g1 = min(cols * s - 1, math.floor((uv[:, :, 0].max() + 0.5) * s - 0.5))
-    h0 = max(0, math.ceil((uv[:, :, 1].min() + 0.5) * s - 0.5))
-    h1 = min(rows * s - 1, math.floor((uv[:, :, 1].max() + 0.5) * s - 0.5))
+    u_lo, u_hi, v_lo, v_hi = _bounds(uv)
+    g0 = max(0, math.ceil((u_lo + 0.5) * s - 0.5))
+    g1 = min(cols * s - 1, math.floor((u_hi + 0.5) * s - 0.5))
+    h0 = max(0, math.ceil((v_lo + 0.5) * s - 0.5))
+    h1 = min(rows * s - 1, math.floor((v_hi + 0.5) * s - 0.5))
     if g1 < g0 or h1 < h0:
         return
-    sums = np.zeros((chunks, h1 - h0 + 1, g1 - g0 + 1))
+    sums = np.empty((chunks, h1 - h0 + 1, g1 - g0 + 1))
     per = (uv.shape[0] + chunks - 1) // chunks
     for c in numba.prange(chunks):
+        sums[c] = 0.0
         for f in range(c * per, min((c + 1) * per, uv.shape[0])):
             _add_face(uv[f], coef[f], weight[f], s, g0, g1, h0, h1, sums[c])
     share = 1.0 / (s * s)
@@ -410,6 +412,22 @@ def _render(uv, coef, weight, A, s, attenuate, out, chunks):  # pragma: no cover
                     out[row, g // s] += share * (1.0 - math.exp(-length))
                 else:
                     out[row, g // s] += length
+
+
+@numba.njit(cache=True, inline="always")
+def _bounds(uv):  # pragma: no cover
+    """The least and greatest u and v of the faces' corners (T, 3, 2), in one serial pass: a
+    render's two parallel loops are its only parallel regions (with sleeping OpenMP threads,
+    each region costs a wake-up, 0.1-0.2 ms on a 2-core VM, as much as this pass)."""
+    u_lo, u_hi = math.inf, -math.inf
+    v_lo, v_hi = math.inf, -math.inf
+    for f in range(uv.shape[0]):
+        for k in range(3):
+            u_lo = min(u_lo, uv[f, k, 0])
+            u_hi = max(u_hi, uv[f, k, 0])
+            v_lo = min(v_lo, uv[f, k, 1])
+            v_hi = max(v_hi, uv[f, k, 1])
+    return u_lo, u_hi, v_lo, v_hi
 
 
 @numba.njit(cache=True, inline="always")
