@@ -179,9 +179,7 @@ def describe_flags(kin: KneeKinematics) -> list[str]:
     runs = flag_runs(kin)
     ddv = f"{kin.ddv_mm2:.2f} mm²"
     left_out = [f"Not measured: {s}." for s in exclusion_sentences(kin)]
-    with np.errstate(invalid="ignore"):
-        unloaded = np.abs(kin.mld_mm) > kin.flag_mm
-    unloaded &= kin.measured & ~kin.loaded
+    unloaded = kin.over_limit & ~kin.loaded
     if unloaded.any():
         left_out.append(
             f"{frames_text([int(f) for f in kin.frames[unloaded]]).capitalize()}: |MLD| above "

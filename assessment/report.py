@@ -21,7 +21,7 @@ import numpy as np
 from assessment.flags import angle_text, describe_flags, insufficient_text, measured_text
 from assessment.plots import Plot, frames_beside_4d_png, motion_frames_png, save_all
 from assessment.results import KneeKinematics
-from assessment.viewer import MotionScene, view_html
+from assessment.viewer import MotionScene, json_points, view_html
 from registration.poses import BonePose
 
 CSV_COLUMNS = (
@@ -216,8 +216,8 @@ def frame_overlays(
 def _flag_note(kin: KneeKinematics, k: int) -> str:
     """What a caption says of the ``k``-th assessed frame: not measured and why, or its flag
     ("" when it is measured and not flagged)."""
-    if kin.excluded is not None and kin.excluded[k] is not None:
-        return f"; not measured: {kin.excluded[k]}"
+    if not kin.measured[k]:
+        return f"; not measured: {_status(kin, k)}"
     if not kin.flagged[k]:
         return ""
     return f"; flagged (|MLD| {abs(kin.mld_mm[k]):.2f} mm > {kin.flag_mm:g} mm)"
@@ -435,20 +435,14 @@ its name to start playing, <code>#frame=N</code> to start at frame N.</p>
 """
 
 
-def _points(xy: np.ndarray) -> list[list[float] | None]:
-    """Per frame a marker's place (4 decimals), or None where the frame has no point."""
-    return [
-        np.round(p, 4).tolist() if np.isfinite(p).all() else None for p in np.asarray(xy, float)
-    ]
-
-
 def _figure(name: str, path: Path, plot: Plot | None) -> str:
     """One plot as a figure; with ``plot``, a ring per marked series the player moves."""
     data = base64.b64encode(path.read_bytes()).decode("ascii")
     rings = ""
     if plot is not None:
         rings = "".join(
-            f'<i class="marker" data-xy="{json.dumps(_points(xy))}"></i>' for xy in plot.markers
+            f'<i class="marker" data-xy="{json.dumps(json_points(xy, 4))}"></i>'
+            for xy in plot.markers
         )
     return (
         f'<figure><div class="marked"><img src="data:image/png;base64,{data}" '

@@ -112,11 +112,16 @@ class KneeKinematics:
         return float(np.var(mld)) if mld.size else float("nan")
 
     @property
-    def flagged(self) -> np.ndarray:
-        """Measured, loaded frames whose |MLD| exceeds the threshold, when enough frames are
+    def over_limit(self) -> np.ndarray:
+        """Frames whose |MLD| exceeds the threshold, loaded or not; never a frame not
         measured (boolean per frame)."""
+        with np.errstate(invalid="ignore"):
+            return (np.abs(self.mld_mm) > self.flag_mm) & self.measured
+
+    @property
+    def flagged(self) -> np.ndarray:
+        """Loaded frames over the limit (:attr:`over_limit`), when enough frames are measured
+        (boolean per frame)."""
         if not self.sufficient:
             return np.zeros(len(self.frames), dtype=bool)
-        with np.errstate(invalid="ignore"):
-            above = np.abs(self.mld_mm) > self.flag_mm
-        return above & self.measured & self.loaded
+        return self.over_limit & self.loaded

@@ -158,6 +158,20 @@ def _b64(array: np.ndarray, dtype: str) -> str:
     return base64.b64encode(np.ascontiguousarray(array, dtype=dtype).tobytes()).decode("ascii")
 
 
+def json_points(points: np.ndarray, decimals: int) -> list[list[float] | None]:
+    """Points (N, D) as JSON lists rounded to ``decimals``, None for a point with a NaN (a
+    frame not measured: the page hides its mark).
+
+    Args:
+        points: The points.
+        decimals: Decimals kept.
+    """
+    return [
+        np.round(p, decimals).tolist() if np.isfinite(p).all() else None
+        for p in np.asarray(points, dtype=np.float64)
+    ]
+
+
 def scene_json(scene: MotionScene) -> str:
     """The scene as the view's JSON: bodies (base64 arrays, colour, column-major poses), the
     plane's corners and carrier, the condyle points per frame, and where to look from.
@@ -189,10 +203,7 @@ def scene_json(scene: MotionScene) -> str:
         },
         "condyles": {
             "colors": list(CONDYLE_COLORS),
-            "points": [
-                [np.round(p, 3).tolist() if np.isfinite(p).all() else None for p in frame]
-                for frame in scene.condyles
-            ],
+            "points": [json_points(frame, 3) for frame in scene.condyles],
         },
         "center": np.round(center, 3).tolist(),
         "radius": round(float(np.linalg.norm(points.max(axis=0) - points.min(axis=0))) / 2, 3),
