@@ -17,8 +17,8 @@ from recon._exports import lazy
 # of spinning for it: a spinning thread takes the core another process needs, and tracking
 # beside another run slowed 4.5x (26 -> 116 s) where passive waiting costs 1.2x; alone, waking
 # the threads costs 4 % (bones) to 17 % (components' meshes) of tracking (docs/design.md,
-# "Threads"). libgomp reads this once, when it loads: every package
-# that may load it imports recon first. Set OMP_WAIT_POLICY=active to spin on a dedicated box.
+# "Threads"). libgomp reads this once, when it loads: every package that may load it imports
+# recon first. Set OMP_WAIT_POLICY=active to spin on a dedicated box.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 _EXPORTS = {
