@@ -37,6 +37,7 @@ import numpy as np
 import scipy.fft
 
 from recon.geometry import Geometry
+from recon.motion import BodyMotion, backproject_field
 from recon.project import (
     COUNT_WEIGHT,
     FDK_WEIGHT,
@@ -337,6 +338,7 @@ class FDKAccumulator:
         min_coverage_deg: float = 170.0,
         edge_taper_px: float = 8.0,
         coverage_subsample: int = 4,
+        motion: BodyMotion | None = None,
     ) -> None:
         if redundancy not in ("auto", "parker", "none"):
             raise ValueError(f"redundancy must be 'auto', 'parker' or 'none', got {redundancy!r}")
@@ -368,6 +370,10 @@ class FDKAccumulator:
         self._num = np.zeros(grid.shape, dtype=np.float32)
         self._count = np.zeros(self._coarse.shape, dtype=np.float32)
         self.added = np.zeros(self.n_views, dtype=bool)
+        if motion is not None and len(motion) != self.n_views:
+            raise ValueError(f"the motion has {len(motion)} views; the orbit has {self.n_views}")
+        self.motion = motion
+        self._weights = None if motion is None or len(motion.bodies) == 1 else motion.on(grid)
 
     def add(self, start: int, projections: np.ndarray, views: Geometry | None = None) -> None:
         """Weight, filter and backproject views ``start .. start + n - 1``.
@@ -439,7 +445,19 @@ class FDKAccumulator:
             support[:, r0:r1],
             None if pre is None else pre[:, 0],
         )
-        backproject_weighted(quads, seen, self.grid, FDK_WEIGHT, self._num)
+        if self.motion is None:
+            backproject_weighted(quads, seen, self.grid, FDK_WEIGHT, self._num)
+        elif self._weights is None:  # one rigid body: its views carried by inv(T), exactly
+            carried = Geometry(
+                [
+                    v.transformed(np.linalg.inv(T[0]))
+                    for v, T in zip(seen, self.motion.poses[index], strict=True)
+                ]
+            )
+            backproject_weighted(quads, carried, self.grid, FDK_WEIGHT, self._num)
+        else:
+            poses = self.motion.poses[index]
+            backproject_field(quads, seen, self.grid, poses, self._weights, self._num)
         del quads
         # the views' weighted count: dbeta * SOD * SDD * w / L_perp^2, in degrees
         jac = np.degrees(orbit.dbeta_rad[index]) * orbit.sod_mm[index] * sdd
@@ -478,6 +496,7 @@ def fdk_reconstruct(
     coverage_subsample: int = 4,
     batch_views: int = 16,
     orbit_geometry: Geometry | None = None,
+    motion: BodyMotion | None = None,
     progress: Progress | None = None,
 ) -> FDKResult:
     """Reconstruct line-integral projections with weighted FDK.
@@ -498,6 +517,9 @@ def fdk_reconstruct(
         orbit_geometry: the views whose orbit sets the angular weights and the redundancy
             (e.g. the plan of a scan whose ``geometry`` holds the views as recorded, so that
             the arms' tracking noise does not enter the weights); default ``geometry``.
+        motion: the patient's motion to compensate (recon.motion): each view's rays meet
+            each voxel where the motion field put it then; the views' weighted count stays
+            the still one's (a few mm of motion do not change which views see a voxel).
         progress: optional callback ``progress(views_done, views_total)``.
 
     Returns:
@@ -528,6 +550,7 @@ def fdk_reconstruct(
         min_coverage_deg=min_coverage_deg,
         edge_taper_px=edge_taper_px,
         coverage_subsample=coverage_subsample,
+        motion=motion,
     )
     for start in range(0, n_views, batch_views):
         stop = min(start + batch_views, n_views)

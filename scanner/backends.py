@@ -112,7 +112,7 @@ def open_backend(
     start_q: np.ndarray,
     panel: DetectorSpec,
     sdd_mm: float,
-    subject: Callable[[View], np.ndarray],
+    subject: Callable[[View, float], np.ndarray],
     on_generator_sent: Callable[[str, float], None] | None = None,
 ) -> tuple[Backend, object | None]:
     """The devices of ``spec`` (not yet connected), and the simulated scanner when there is

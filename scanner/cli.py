@@ -176,11 +176,20 @@ def simulate_scan(
     ] = 0.0,
     vibration_deg: Annotated[float, typer.Option(help="RMS panel tilt, degrees")] = 0.0,
     vibration_seed: Annotated[int, typer.Option(help="vibration pattern (repeats per seed)")] = 0,
+    sway_mm: Annotated[
+        float,
+        typer.Option(
+            help="knee: how far the standing patient sways at the knee during the scan, mm "
+            "(0: still; ~1-2 standing, ~3-5 semi-flexed); the truth goes to true_motion.csv"
+        ),
+    ] = 0.0,
+    sway_seed: Annotated[int, typer.Option(help="sway pattern (repeats per seed)")] = 0,
 ) -> None:
     """Scan a digital phantom: projections .mha, the planned geometry .xml (and the acquired
     one, true_geometry.xml, on vibrating arms), phantom volumes for the knee."""
     from scanner import scan_files
     from scanner.outputs import Output, new_outputs
+    from sim.sway import SwaySpec
     from sim.vibration import VibrationSpec
 
     if phantom_config is None:
@@ -190,6 +199,9 @@ def simulate_scan(
     check_range("--voxel-mm", voxel_mm, 0.05, 10.0, "mm")
     check_range("--vibration-mm", vibration_mm, 0.0, None, "mm (0: no vibration)")
     check_range("--vibration-deg", vibration_deg, 0.0, None, "degrees (0: no vibration)")
+    check_range("--sway-mm", sway_mm, 0.0, 20.0, "mm (0: still)")
+    if sway_mm > 0 and phantom != "knee":
+        fail(f"--sway-mm {sway_mm:g}: only the knee phantom's patient sways")
     vibration = None
     if vibration_mm > 0 or vibration_deg > 0:
         try:
@@ -213,6 +225,7 @@ def simulate_scan(
                 seed=seed,
                 noise=noise,
                 vibration=vibration,
+                sway=SwaySpec(peak_mm=sway_mm, seed=sway_seed) if sway_mm > 0 else None,
                 status=lambda msg: bar.console.print(f"  {msg}"),
                 progress=views_done(bar, "projecting the phantom"),
             )

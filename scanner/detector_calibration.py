@@ -119,11 +119,11 @@ def calibrate_detector(
     )
 
 
-def beam_clear(panel: DetectorSpec) -> Callable[[View], np.ndarray]:
-    """Nothing in the beam: zero line integrals on every pixel of ``panel`` (the simulated
-    panel's subject while it is calibrated)."""
+def beam_clear(panel: DetectorSpec) -> Callable[[View, float], np.ndarray]:
+    """Nothing in the beam: zero line integrals on every pixel of ``panel`` at any time (the
+    simulated panel's subject while it is calibrated)."""
     clear = np.zeros((panel.rows, panel.cols))
-    return lambda _view: clear
+    return lambda _view, _t_s=0.0: clear
 
 
 def calibrate_session(

@@ -160,6 +160,8 @@ class ScanRun:
         progress: called after every stored view.
         on_view: called with each stored view (e.g. the rerun recording).
         truth: the true view matrix of the last pulse, where a simulator knows it.
+        true_poses: the patient's bodies' true poses at the last pulse (``T_world_body`` by
+            body), where a simulator knows them.
         close_backend: close the devices when the run ends (False: the caller closes them,
             e.g. after parking the arms).
         stop: the operator's stop request (a session routes the stop signals to it:
@@ -178,6 +180,7 @@ class ScanRun:
     progress: Callable[[Progress], None] = lambda _p: None
     on_view: Callable[[ViewRecord, np.ndarray], None] = lambda _r, _img: None
     truth: Callable[[], np.ndarray | None] = lambda: None
+    true_poses: Callable[[], dict[str, np.ndarray] | None] = lambda: None
     close_backend: bool = True
     stop: StopRequest = field(default_factory=StopRequest)
     maps: PanelMaps | None = None
@@ -404,6 +407,7 @@ class ScanRun:
             ms=exposure.technique.ms,
             exposure_sequence=exposure.sequence,
             true_matrix=self.truth(),
+            true_poses=self.true_poses(),
         )
         raw = np.asarray(frame.counts, dtype=np.float32)  # exact for 16-bit counts
         pending = self.store.start_put(record, line_integrals, raw)

@@ -17,12 +17,14 @@ from recon.config import load_config, load_protocol
 from recon.fdk import Progress
 from recon.geometry import Geometry
 from recon.io import write_projections, write_volume
+from recon.motion import BodyMotion, write_motion_csv
 from recon.rtk_xml import write_rtk_geometry
 from recon.volume import Volume
 from scanner.study import sha256, software_version
 from sim.phantoms.bb import project_bb
 from sim.phantoms.knee import KneePhantomSpec
 from sim.scan import add_noise, photons_per_pixel, simulate_knee_scan
+from sim.sway import SwaySpec
 from sim.vibration import VibrationSpec, vibrate
 
 Status = Callable[[str], None]
@@ -44,10 +46,14 @@ def write_scan(
     manifest: dict,
     acquired: Geometry | None = None,
     volumes: dict[str, Volume] | None = None,
+    times_s: np.ndarray | None = None,
+    true_poses: dict[str, np.ndarray] | None = None,
 ) -> list[Path]:
     """Write a scan: projections (and raw counts) as .mha, the planned views as geometry.xml
     (what the scanner knows), the acquired views as true_geometry.xml when they differ
-    (simulation ground truth), phantom volumes, and scan.json with every file's sha256."""
+    (simulation ground truth), each view's time as view_times.csv, the swaying patient's true
+    motion as true_motion.csv (recon.motion), phantom volumes, and scan.json with every
+    file's sha256."""
     pitch = planned[0].pitch_u_mm
     written = [
         write_projections(folder / "projections.mha", projections, pitch),
@@ -57,6 +63,14 @@ def write_scan(
         written.append(write_rtk_geometry(folder / "true_geometry.xml", acquired))
     if counts is not None:
         written.append(write_projections(folder / "counts.mha", counts, pitch))
+    if times_s is not None:
+        rows = "".join(f"{i},{t:.6f}\n" for i, t in enumerate(times_s))
+        (folder / "view_times.csv").write_text("view,time_s\n" + rows, encoding="utf-8")
+        written.append(folder / "view_times.csv")
+    if true_poses is not None:
+        bodies = tuple(sorted(true_poses))
+        motion = BodyMotion(bodies, np.stack([true_poses[b] for b in bodies], axis=1))
+        written.append(write_motion_csv(folder / "true_motion.csv", motion))
     for name, volume in (volumes or {}).items():
         written.append(write_volume(folder / name, volume))
     manifest = dict(manifest, files={p.name: sha256(p) for p in written})
@@ -74,11 +88,13 @@ def simulate_to_folder(
     seed: int = 0,
     noise: bool = True,
     vibration: VibrationSpec | None = None,
+    sway: SwaySpec | None = None,
     status: Status | None = None,
     progress: Progress | None = None,
 ) -> list[Path]:
-    """Scan the knee or BB phantom with a protocol (optionally on vibrating arms) into a new
-    folder; ``progress(done, total)`` counts the knee's views projected."""
+    """Scan the knee or BB phantom with a protocol (optionally on vibrating arms, the knee's
+    patient optionally swaying) into a new folder; ``progress(done, total)`` counts the
+    knee's views projected."""
     protocol = load_protocol(protocol_path)
     if phantom not in ("knee", "bb"):
         raise ValueError(f"phantom must be 'knee' or 'bb', got {phantom!r}")
@@ -93,6 +109,7 @@ def simulate_to_folder(
         "protocol": protocol.model_dump(mode="json"),
         "phantom": {"kind": phantom, **spec.model_dump(mode="json")},
         "vibration": vibration.model_dump(mode="json") if vibration else None,
+        "sway": sway.model_dump(mode="json") if sway else None,
         "seed": seed,
         "noise": noise,
     }
@@ -104,12 +121,23 @@ def simulate_to_folder(
             noise=noise,
             seed=seed,
             geometry=acquired,
+            sway=sway,
             status=status,
             progress=progress,
         )
         manifest |= {"voxel_mm": voxel_mm, "photons_per_pixel": scan.photons_per_pixel}
         volumes = {"phantom.nii.gz": scan.attenuation, "labels.nii.gz": scan.labels}
-        return write_scan(out, scan.projections, scan.counts, planned, manifest, acquired, volumes)
+        return write_scan(
+            out,
+            scan.projections,
+            scan.counts,
+            planned,
+            manifest,
+            acquired,
+            volumes,
+            scan.times_s,
+            scan.true_poses,
+        )
     if status is not None:
         status(f"projecting the steel-ball phantom into {len(planned)} views")
     line_integrals = project_bb(spec, acquired)

@@ -36,9 +36,11 @@ from scanner.stop import StopRequest, stop_signals
 from scanner.storage import ScanStore, ViewRecord
 from scanner.study import MANIFEST, Study, StudyError
 from sim.backend import SimBackendSpec, SimFaults, volume_subject
+from sim.detector import Subject
 from sim.phantoms.bb import project_bb
 from sim.phantoms.knee import KneePhantomSpec, knee_grid, rasterize_knee
 from sim.phantoms.tka import TkaPhantomSpec
+from sim.sway import Sway, SwayingKnee, SwaySpec
 from trajectories.config import ScannerConfig
 from trajectories.model import ScannerModel
 from trajectories.move import park_pose
@@ -186,12 +188,13 @@ def plan_study(
     return plan
 
 
-def subject(inputs: SessionInputs, say: Say) -> Callable[[View], np.ndarray]:
+def subject(inputs: SessionInputs, say: Say, scan_s: float = 1.0) -> Subject:
     """The phantom as the simulated panel sees it: the steel balls exactly, the knee
-    rasterised and projected, the knee replacement's meshes polychromatically at the
-    protocol's tube voltage."""
+    rasterised and projected (its patient swaying as the backend's ``sway`` says, over a scan
+    of ``scan_s`` seconds), the knee replacement's meshes polychromatically at the protocol's
+    tube voltage."""
     if isinstance(inputs.phantom, BBPhantomSpec):
-        return lambda view: project_bb(inputs.phantom, Geometry([view]))[0]
+        return lambda view, _t_s=0.0: project_bb(inputs.phantom, Geometry([view]))[0]
     if isinstance(inputs.phantom, TkaPhantomSpec):
         from sim.tka_ct import tka_scene, tka_subject  # its meshes and spectrum: only here
 
@@ -204,8 +207,15 @@ def subject(inputs: SessionInputs, say: Say) -> Callable[[View], np.ndarray]:
         below_mm=0.5 * LEG_HEIGHT_MM,
     )
     say(f"rasterising the knee phantom ({grid.size_xyz} voxels of {inputs.phantom_voxel_mm} mm)")
-    _, mu = rasterize_knee(inputs.phantom, grid)
-    return volume_subject(Volume(mu, grid, "1/mm"))
+    labels, mu = rasterize_knee(inputs.phantom, grid)
+    sway = inputs.backend.sway if isinstance(inputs.backend, SimBackendSpec) else SwaySpec()
+    if sway.peak_mm == 0:
+        return volume_subject(Volume(mu, grid, "1/mm"))
+    say(f"the patient sways by up to {sway.peak_mm:g} mm at the knee during the scan")
+    moving = Sway(sway, inputs.phantom, scan_s)
+    return SwayingKnee(
+        Volume(mu, grid, "1/mm"), Volume(labels, grid, "label"), inputs.phantom, moving
+    )
 
 
 def run_session(
@@ -326,7 +336,7 @@ def scan_stage(
         plan.q[0],
         panel,
         inputs.protocol.orbit.sdd_mm,
-        subject(inputs, say),
+        seen := subject(inputs, say, plan.scan_duration_s),
         on_generator_sent=lambda body, t_s: commands.append((t_s, body)),
     )
     try:
@@ -335,6 +345,11 @@ def scan_stage(
         _close(backend)
         raise
     truth = (lambda: simulated.detector.true_views[-1].matrix) if simulated else (lambda: None)
+    true_poses = (
+        (lambda: seen.poses_at(simulated.detector.true_times_s[-1]))
+        if simulated and isinstance(seen, SwayingKnee)
+        else (lambda: None)
+    )
     recorder = ScanRecorder(study, plan.joint_names, panel.pixel_pitch_mm, stage)
     on_view = recorder.view
     if sink is not None:
@@ -357,6 +372,7 @@ def scan_stage(
         progress=progress,
         on_view=on_view,
         truth=truth,
+        true_poses=true_poses,
         close_backend=False,
         stop=stop,
         maps=maps,

@@ -10,6 +10,7 @@ Layout under ``scan/`` (``calibration_scan/`` for the steel-ball phantom's scan)
     geometry.xml                 the views as recorded (the arms' measured joints), RTK XML
     planned_geometry.xml         the plan's views
     true_geometry.xml            simulation only: the views the structure really realised
+    true_motion.csv              simulation only: the patient's bodies per view (recon.motion)
     joint_states.csv             joints at every exposure (plan joint units)
     exposure_log.csv             view, clock time, kV, mA, ms, generator sequence
 
@@ -33,6 +34,7 @@ import numpy as np
 
 from recon.geometry import DetectorSpec, Geometry, View
 from recon.io import encode_projections, read_projections, write_projections
+from recon.motion import BodyMotion, write_motion_csv
 from recon.rtk_xml import write_rtk_geometry
 from scanner.study import (
     PendingWrite,
@@ -71,6 +73,7 @@ class ViewRecord:
     ms: float
     exposure_sequence: int
     true_matrix: np.ndarray | None = None
+    true_poses: dict[str, np.ndarray] | None = None
 
     @property
     def mas(self) -> float:
@@ -81,6 +84,8 @@ class ViewRecord:
         for key in ("q", "matrix", "source_mm", "true_matrix"):
             if out[key] is not None:
                 out[key] = np.asarray(out[key]).tolist()
+        if self.true_poses is not None:
+            out["true_poses"] = {b: np.asarray(T).tolist() for b, T in self.true_poses.items()}
         return out
 
     @classmethod
@@ -89,9 +94,18 @@ class ViewRecord:
         fields, numbers that are not finite, arrays of the wrong shape."""
         data = dict(data)
         data.pop("files", None)
+        poses = data.pop("true_poses", None)
+        if poses is not None:
+            if not isinstance(poses, dict):
+                raise ValueError("true_poses is not an object of 4x4 poses")
+            poses = {str(b): np.asarray(T, dtype=np.float64) for b, T in poses.items()}
+            for body, T in poses.items():
+                if T.shape != (4, 4) or not np.isfinite(T).all():
+                    raise ValueError(f"true_poses of {body} is not a finite 4x4 pose")
+        data["true_poses"] = poses
         shapes = {"q": (None,), "matrix": (3, 4), "source_mm": (3,), "true_matrix": (3, 4)}
         for key, value in data.items():
-            if value is None and key == "true_matrix":
+            if key == "true_poses" or (value is None and key == "true_matrix"):
                 continue
             array = np.asarray(value, dtype=np.float64)
             if not np.isfinite(array).all():
@@ -355,6 +369,15 @@ class ScanStore:
             )
             self.study.write(
                 f"{self.folder}/true_geometry.xml", lambda p: write_rtk_geometry(p, truth)
+            )
+        if all(self.records[k].true_poses is not None for k in order):
+            bodies = tuple(sorted(self.records[0].true_poses))
+            motion = BodyMotion(
+                bodies,
+                np.array([[self.records[k].true_poses[b] for b in bodies] for k in order]),
+            )
+            self.study.write(
+                f"{self.folder}/true_motion.csv", lambda p: write_motion_csv(p, motion)
             )
         header = "view,clock_s," + ",".join(self.joint_names)
         rows = [

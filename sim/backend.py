@@ -14,7 +14,6 @@ times (bench/soak.py times the way to SAFE from it).
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -26,10 +25,11 @@ from recon.geometry import DetectorSpec, Geometry, View
 from recon.project import JosephProjector
 from recon.volume import Volume
 from sim.arms import GROUPS, MockArm, SimWorld, VirtualClock
-from sim.detector import SimDetector
+from sim.detector import SimDetector, Subject
 from sim.generator import MockGenerator
 from sim.panel import SimPanelSpec
 from sim.spellman import MockSpellman
+from sim.sway import SwaySpec
 from sim.vibration import VibrationSpec, vibrate_at
 from trajectories.model import ScannerModel
 from trajectories.plan import view_at
@@ -111,6 +111,9 @@ class SimBackendSpec(BaseModel):
         "panel is calibrated at the start of each session",
     )
     max_map_age_days: float = Field(7.0, gt=0.0, description="oldest detector maps a scan uses")
+    sway: SwaySpec = Field(
+        SwaySpec(), description="the knee phantom's patient sways during its scans (sim.sway)"
+    )
 
     @model_validator(mode="after")
     def _camera_gone_needs_the_camera(self) -> SimBackendSpec:
@@ -122,12 +125,13 @@ class SimBackendSpec(BaseModel):
         return self
 
 
-def volume_subject(volume: Volume) -> Callable[[View], np.ndarray]:
-    """Line integrals of an attenuation volume (1/mm) through one view (recon projector)."""
+def volume_subject(volume: Volume) -> Subject:
+    """Line integrals of a still attenuation volume (1/mm) through one view (recon
+    projector), at any time."""
 
     projector = JosephProjector(volume.data, volume.grid)  # padded once for every view
 
-    def render(view: View) -> np.ndarray:
+    def render(view: View, t_s: float = 0.0) -> np.ndarray:
         return projector.project(Geometry([view]))[0]
 
     return render
@@ -154,7 +158,7 @@ def simulated_scanner(
     start_q: np.ndarray,
     panel: DetectorSpec,
     sdd_mm: float,
-    subject: Callable[[View], np.ndarray],
+    subject: Subject,
     spec: SimBackendSpec,
 ) -> SimulatedScanner:
     """Build the simulated devices, standing at ``start_q`` unless ``spec.start_pose`` says

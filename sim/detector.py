@@ -37,6 +37,10 @@ class SimFrame(NamedTuple):
     t_s: float
 
 
+Subject = Callable[[View, float], np.ndarray]
+"""Line integrals (rows, cols) of the imaged object through a view at a clock time, s."""
+
+
 class FrameTimeout(TimeoutError):
     """No frame arrived (the panel was not armed, or a dropped frame)."""
 
@@ -47,7 +51,8 @@ class SimDetector:
     Args:
         panel: rows, columns and pixel pitch as read out.
         true_view: the view the scanner really realises now.
-        subject: line integrals of the imaged object through a view, (rows, cols).
+        subject: line integrals of the imaged object through a view at a time (the clock's,
+            s), (rows, cols).
         now: the clock (frame time stamps).
         sdd_mm: nominal source-detector distance, mm (the conversion gain's reference).
         seed: noise seed (also the panel's defects).
@@ -55,14 +60,15 @@ class SimDetector:
         drop_frame_at: exposure number (0-based) whose frame never arrives (fault injection).
         log: event log callback (device, event).
 
-    ``true_views`` keeps the view of every pulse (ground truth).
+    ``true_views`` and ``true_times_s`` keep the view and the clock of every pulse (ground
+    truth).
     """
 
     def __init__(
         self,
         panel: DetectorSpec,
         true_view: Callable[[], View],
-        subject: Callable[[View], np.ndarray],
+        subject: Subject,
         now: Callable[[], float],
         *,
         sdd_mm: float,
@@ -81,11 +87,12 @@ class SimDetector:
         self.drop_frame_at = drop_frame_at
         self._log = log or (lambda _who, _what: None)
         self._lock = threading.Lock()
-        self._pending: tuple[View, ExposureSpec, int] | None = None
+        self._pending: tuple[View, float, ExposureSpec, int] | None = None
         self._armed = False
         self._pulsed = threading.Event()
         self.exposures = 0
         self.true_views: list[View] = []
+        self.true_times_s: list[float] = []
         self.connected = False
         spec = sensor or SimPanelSpec()
         reference = photons_per_pixel(REFERENCE_TECHNIQUE, panel, sdd_mm)
@@ -106,14 +113,15 @@ class SimDetector:
 
     def exposed(self, kv: float, ma: float, ms: float, *_: object) -> None:
         """A pulse was delivered now: capture the true view and the technique."""
-        view = self._true_view()
+        view, t_s = self._true_view(), self._now()
         with self._lock:
             number = self.exposures
             self.exposures += 1
             self.true_views.append(view)
+            self.true_times_s.append(t_s)
             if self._armed:
                 technique = ExposureSpec(tube_kv=kv, tube_ma=ma, pulse_ms=ms)
-                self._pending = (view, technique, number)
+                self._pending = (view, t_s, technique, number)
                 self._armed = False
                 self._pulsed.set()
         self._log("detector", f"integrated exposure {number}")
@@ -143,11 +151,11 @@ class SimDetector:
             self._darks += 1
             rng = np.random.default_rng([self.seed, 1, self._darks])
             return SimFrame(self.sensor.read(None, rng), self._now())
-        view, technique, number = pending
+        view, t_s, technique, number = pending
         if number == self.drop_frame_at:
             self._log("detector", f"dropped frame {number}")
             raise FrameTimeout(f"detector: frame of exposure {number} lost (injected fault)")
-        line_integrals = np.asarray(self._subject(view), dtype=np.float64)
+        line_integrals = np.asarray(self._subject(view, t_s), dtype=np.float64)
         photons = photons_per_pixel(technique, self.panel, view.sdd_mm)
         rng = np.random.default_rng([self.seed, zlib.crc32(view.matrix.tobytes())])
         detected = rng.poisson(photons * np.exp(-line_integrals))

@@ -23,6 +23,10 @@ from recon.geometry import DetectorSpec, Geometry
 from recon.project import JosephProjector
 from recon.volume import Volume, VolumeGrid
 from sim.phantoms.knee import KneePhantomSpec, knee_grid, rasterize_knee
+from sim.sway import Sway, SwayingKnee, SwaySpec
+
+SCAN_S = 18.0
+"""A scan's length when nothing else says, s (the robot's 360-degree knee scan)."""
 
 PROJECT_BATCH_VIEWS = 30
 """Views projected at a time (a progress report after each batch)."""
@@ -93,6 +97,9 @@ class SimulatedScan:
         attenuation: the phantom, 1/mm, on the simulation grid.
         labels: the phantom's labels (registration.labels.LABELS) on the same grid.
         photons_per_pixel: mean unattenuated photons per pixel per view (0 when noise-free).
+        times_s: each view's time from the scan's start, s.
+        true_poses: the swaying patient's bodies, ``T_world_body`` (views, 4, 4) by body; None
+            when the patient stood still.
     """
 
     projections: np.ndarray
@@ -101,6 +108,8 @@ class SimulatedScan:
     attenuation: Volume
     labels: Volume
     photons_per_pixel: float
+    times_s: np.ndarray
+    true_poses: dict[str, np.ndarray] | None = None
 
 
 def simulate_knee_scan(
@@ -113,10 +122,12 @@ def simulate_knee_scan(
     seed: int = 0,
     geometry: Geometry | None = None,
     grid: VolumeGrid | None = None,
+    sway: SwaySpec | None = None,
+    scan_s: float = SCAN_S,
     status: Callable[[str], None] | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> SimulatedScan:
-    """Scan the knee phantom with ``protocol``.
+    """Scan the knee phantom with ``protocol``, its views evenly spread over ``scan_s``.
 
     Args:
         protocol: views, panel and technique.
@@ -129,6 +140,8 @@ def simulate_knee_scan(
         geometry: the views actually acquired (e.g. sim.vibration.vibrate of the plan);
             default the protocol's planned views.
         grid: the simulation grid; default sim.phantoms.knee.knee_grid at ``voxel_mm``.
+        sway: the patient's sway during the scan (sim.sway); None or 0 mm: still.
+        scan_s: the scan's length, s.
         status: optional callback receiving a line per stage.
         progress: optional ``progress(done, total)`` over the views projected.
     """
@@ -140,13 +153,25 @@ def simulate_knee_scan(
     say(f"rasterising the knee phantom on {grid.size_xyz} voxels of {voxel_mm} mm")
     labels, mu = rasterize_knee(phantom, grid, supersample=supersample)
     say(f"projecting {len(geometry)} views of {geometry.rows} x {geometry.cols} pixels")
-    projector = JosephProjector(mu, grid)
     line_integrals = np.empty((len(geometry), geometry.rows, geometry.cols), np.float32)
-    for first in range(0, len(geometry), PROJECT_BATCH_VIEWS):
-        part = geometry[first : first + PROJECT_BATCH_VIEWS]
-        line_integrals[first : first + len(part)] = projector.project(part)
-        if progress is not None:
-            progress(first + len(part), len(geometry))
+    times = np.linspace(0.0, scan_s, len(geometry))
+    true_poses = None
+    if sway is not None and sway.peak_mm > 0:
+        say(f"the patient sways by up to {sway.peak_mm:g} mm at the knee")
+        moving = Sway(sway, phantom, scan_s)
+        knee = SwayingKnee(Volume(mu, grid, "1/mm"), Volume(labels, grid, "label"), phantom, moving)
+        for i, (view, t) in enumerate(zip(geometry, times, strict=True)):
+            line_integrals[i] = knee(view, float(t))
+            if progress is not None and (i + 1) % PROJECT_BATCH_VIEWS == 0:
+                progress(i + 1, len(geometry))
+        true_poses = moving.poses(times)
+    else:
+        projector = JosephProjector(mu, grid)
+        for first in range(0, len(geometry), PROJECT_BATCH_VIEWS):
+            part = geometry[first : first + PROJECT_BATCH_VIEWS]
+            line_integrals[first : first + len(part)] = projector.project(part)
+            if progress is not None:
+                progress(first + len(part), len(geometry))
     counts, photons = None, 0.0
     if noise:
         photons = photons_per_pixel(protocol.exposure, protocol.detector, protocol.orbit.sdd_mm)
@@ -159,4 +184,6 @@ def simulate_knee_scan(
         attenuation=Volume(mu, grid, "1/mm"),
         labels=Volume(labels, grid, "label"),
         photons_per_pixel=photons,
+        times_s=times,
+        true_poses=true_poses,
     )

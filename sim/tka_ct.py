@@ -175,11 +175,11 @@ def tka_scene(spec: TkaPhantomSpec) -> TkaScene:
     return TkaScene(spec, tuple(layers), poses)
 
 
-def tka_subject(scene: TkaScene, kvp: float) -> Callable[[View], np.ndarray]:
+def tka_subject(scene: TkaScene, kvp: float) -> Callable[[View, float], np.ndarray]:
     """The scene as the simulated panel sees it at ``kvp``: polychromatic line integrals per
-    view (the panel draws the photons' noise)."""
+    view (the panel draws the photons' noise); the patient stands still at any time."""
     spectrum = tube_spectrum(kvp)
-    return lambda view: scene.line_integrals(view, spectrum)
+    return lambda view, t_s=0.0: scene.line_integrals(view, spectrum)
 
 
 def beam_behind_leg(kvp: float) -> Spectrum:

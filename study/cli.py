@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import os
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
@@ -161,8 +162,25 @@ def recon(
             "mask is written beside the volume as *_metal"
         ),
     ] = False,
+    compensate_motion: Annotated[
+        bool,
+        typer.Option(
+            "--compensate-motion",
+            help="estimate the patient's motion from the projections and reconstruct through "
+            "it; the motion is written beside the volume as *_motion.csv (view, body, 4x4 "
+            "T_world_body row-major) and its QA figure as *_motion.png",
+        ),
+    ] = False,
+    times: Annotated[
+        Path | None,
+        typer.Option(
+            help="with --compensate-motion: a CSV of per-view times (a clock_s or time_s "
+            "column, e.g. a study's scan/exposure_log.csv); default: views stand for time"
+        ),
+    ] = None,
 ) -> None:
-    """Reconstruct RTK-format projections with weighted FDK."""
+    """Reconstruct RTK-format projections with weighted FDK (through the patient's motion
+    with --compensate-motion)."""
     from recon.io import VOLUME_SUFFIXES
     from scanner.outputs import Output, new_outputs
     from study import jobs
@@ -172,12 +190,27 @@ def recon(
         check_range("--spacing-mm", spacing_mm, 0.01, 100.0, "mm")
     if size is not None and min(size) < 1:
         fail(f"--size {' '.join(map(str, size))}: give three voxel counts of 1 or more (x y z)")
+    if times is not None and not compensate_motion:
+        fail("--times is for --compensate-motion (the motion's time axis)")
     outputs = [Output(out, "--out", suffixes=VOLUME_SUFFIXES)]
     if preview is not None:
         outputs.append(Output(preview, "--preview", suffixes=(".png",)))
+    if compensate_motion:
+        suffix = next((s for s in VOLUME_SUFFIXES if out.name.lower().endswith(s)), "")
+        base = out.name[: len(out.name) - len(suffix)]
+        outputs.append(Output(out.with_name(f"{base}_motion.csv"), "--out (its motion)"))
+        outputs.append(Output(out.with_name(f"{base}_motion.png"), "--out (its QA figure)"))
     try:
         with new_outputs(*outputs) as written, views_progress() as bar:
             start = time.perf_counter()
+            motion_out = (written[-2], written[-1]) if compensate_motion else None
+            bars: dict[str, Callable[[int, int], None]] = {}
+
+            def fitted(stage: str, done: int, total: int) -> None:
+                if stage not in bars:
+                    bars[stage] = views_done(bar, f"motion, {stage}: views registered")
+                bars[stage](done, total)
+
             result = jobs.reconstruct_files(
                 projections,
                 geometry,
@@ -193,7 +226,12 @@ def recon(
                 protocol_path=protocol,
                 orbit_path=orbit,
                 mar=mar,
-                say=lambda m: console.print(f"  MAR: {m}", highlight=False),
+                say=lambda m: console.print(
+                    f"  {'MAR' if mar else 'motion'}: {m}", highlight=False
+                ),
+                motion_out=motion_out,
+                times_path=times,
+                fit_progress=fitted,
             )
     except (ValueError, OSError) as err:
         fail(str(err))
@@ -933,6 +971,14 @@ def demo(
             "reduction, the components placed on the metal and tracked through the gait"
         ),
     ] = False,
+    sway_mm: Annotated[
+        float,
+        typer.Option(
+            help="how far the standing patient sways at the knee during the static scan, mm "
+            "(0: perfectly still; ~1-2 standing, ~3-5 semi-flexed); the recon stage estimates "
+            "and compensates it"
+        ),
+    ] = 1.5,
 ) -> None:
     """Run the main job on the simulated scanner, into one study folder: plan, calibrate,
     scan, reconstruct, segment, simulate fluoroscopy, track the bones, assess, record."""
@@ -940,8 +986,11 @@ def demo(
     from scanner.study import StudyError
     from study import demo as demo_job
 
+    check_range("--sway-mm", sway_mm, 0.0, demo_job.MAX_SWAY_MM, "mm (0: still)")
     try:
-        prepared = demo_job.open_demo(out, CONFIGS, quick=quick, resume=resume, seed=seed, tka=tka)
+        prepared = demo_job.open_demo(
+            out, CONFIGS, quick=quick, resume=resume, seed=seed, tka=tka, sway_mm=sway_mm
+        )
     except (ValueError, OSError, StudyError) as err:
         fail(str(err))
     try:

@@ -74,6 +74,18 @@ def _bar(bars: Bars | None, description: str, unit: str) -> Progress:
     return bars(description, unit) if bars is not None else lambda _done, _total: None
 
 
+def _fit_bars(bars: Bars | None) -> Callable[[str, int, int], None]:
+    """A progress callback of the motion estimate's fits: a bar per fit."""
+    made: dict[str, Progress] = {}
+
+    def update(fit: str, done: int, total: int) -> None:
+        if fit not in made:
+            made[fit] = _bar(bars, f"recon: motion, {fit}: views registered", "views")
+        made[fit](done, total)
+
+    return update
+
+
 FULL = {
     "views": 180,
     "panel": 256,
@@ -130,6 +142,11 @@ TKA_STAGES = (*STAGES[:7], "placement", *STAGES[7:])
 """``--tka``'s stages: the components are placed on the metal after the segmentation."""
 
 
+STANDING_SWAY_MM = 1.5
+"""The demo patient's sway at the knee during the static scan, mm (a person standing still)."""
+MAX_SWAY_MM = 20.0
+"""Largest sway the simulator takes, mm (sim.sway.SwaySpec)."""
+
 PHANTOM_FILES = {"knee": "knee.yaml", "bb": "bb_helix.yaml", "tka": "tka.yaml"}
 """Each simulated subject's config in configs/phantoms/."""
 
@@ -179,7 +196,9 @@ def acquire(
     bb = load_config(configs / "phantoms" / "bb_helix.yaml", BBPhantomSpec)
     backend = load_config(configs / "backends" / "sim.yaml", SimBackendSpec)
     maps = study.path / "detector"
-    backend = backend.model_copy(update={"seed": seed, "detector_maps": str(maps)})
+    sway = backend.sway.model_copy(update={"peak_mm": size.get("sway_mm", 0.0), "seed": seed})
+    update = {"seed": seed, "detector_maps": str(maps), "sway": sway}
+    backend = backend.model_copy(update=update)
 
     def inputs(p: ScanProtocol, phantom: str) -> SessionInputs:
         base = read_inputs(
@@ -264,7 +283,12 @@ def acquire(
         scanned = time.perf_counter()
         result = live.finish()
         recon_stage(
-            study, size["recon_voxel_mm"], say=say_scan, result=result, written=live.volume_path
+            study,
+            size["recon_voxel_mm"],
+            say=say_scan,
+            result=result,
+            written=live.volume_path,
+            fit_progress=_fit_bars(bars),
         )
         say_scan(f"recon stage written {time.perf_counter() - scanned:.1f} s after the scan")
 
@@ -329,6 +353,7 @@ def open_demo(
     resume: bool = False,
     seed: int = 0,
     tka: bool = False,
+    sway_mm: float = STANDING_SWAY_MM,
 ) -> Demo:
     """The demo's study, before anything runs: new at ``out`` (a new or empty folder), or the
     one to continue (``resume``; its own seed). Raises StudyError or ConfigError.
@@ -340,8 +365,12 @@ def open_demo(
         resume: Continue the study at ``out``: redo only its incomplete stages.
         seed: The noise seed of a new demo (:func:`acquire`).
         tka: The knee replacement (:data:`TKA_STAGES`) instead of the native knee.
+        sway_mm: How far the standing patient sways at the knee during the static scan, mm
+            (0: perfectly still; the knee replacement's scene always stands still).
     """
-    size = QUICK if quick else FULL
+    if not 0.0 <= sway_mm <= MAX_SWAY_MM:
+        raise ValueError(f"sway_mm must be in [0, {MAX_SWAY_MM:g}] mm, got {sway_mm!r}")
+    size = {**(QUICK if quick else FULL), "sway_mm": 0.0 if tka else float(sway_mm)}
     if tka:
         size = {**size, **TKA, "tka": True}
         size["frames"] = max(size["frames"], TKA_FRAMES_AT_LEAST)
@@ -355,7 +384,9 @@ def open_demo(
         study = Study.open(out)
         made = study.manifest["config"].get("demo", {})
         if made.get("size") != size:
-            raise StudyError(f"{out} was made with other demo settings (--quick or --tka differs)")
+            raise StudyError(
+                f"{out} was made with other demo settings (--quick, --tka or --sway-mm differs)"
+            )
         return Demo(study, size, made.get("seed", 0), settings)
     demo = {"size": size, "varus_deg": VARUS_DEG, "seed": seed}
     return Demo(Study.create(out, {"demo": demo}), size, seed, settings)
@@ -407,7 +438,8 @@ def run(
             study,
             size["recon_voxel_mm"],
             _bar(bars, "recon: views backprojected", "views"),
-            stage("recon", "weighted FDK with the calibrated geometry"),
+            stage("recon", "weighted FDK with the calibrated geometry, through the patient's sway"),
+            fit_progress=_fit_bars(bars),
         )
         segmentation_stage(study, stage("segmentation", "bones from the reconstruction"))
         registration_stage(

@@ -30,6 +30,7 @@ from recon.fdk import FDKResult, Progress, check_axis_on_panel, default_grid, fd
 from recon.geometry import Geometry
 from recon.io import read_projections, read_volume, write_volume
 from recon.mar import nmar
+from recon.motion import read_view_times
 from recon.preview import save_orthogonal_slices
 from recon.rtk_xml import read_rtk_geometry
 from recon.static_volume import StaticUnit, read_attenuation
@@ -79,6 +80,41 @@ def check_is_plan(geometry: Geometry, protocol: ScanProtocol, path: Path) -> Non
             )
 
 
+def _compensated(
+    projections: np.ndarray,
+    geometry: Geometry,
+    grid: VolumeGrid,
+    orbit: Geometry | None,
+    times: np.ndarray | None,
+    motion_out: tuple[Path, Path],
+    fdk: Callable[[np.ndarray, VolumeGrid], FDKResult],
+    say: Callable[[str], None],
+    progress: Callable[[str, int, int], None] | None,
+) -> FDKResult:
+    """FDK through the motion estimated from the projections; the motion CSV and the QA
+    figure written to ``motion_out``; ValueError (nothing written) beyond compensation."""
+    from recon.motion import write_motion_csv
+    from registration.motion_figure import save_motion_figure
+    from registration.scan_motion import estimate_motion
+
+    estimate = estimate_motion(
+        projections, geometry, grid, times_s=times, orbit_geometry=orbit, say=say, progress=progress
+    )
+    for note in estimate.notes:
+        say(note)
+    if not estimate.compensable:
+        raise ValueError(f"the patient {estimate.verdict()}")
+    say(estimate.verdict())
+    before = fdk(projections, grid)
+    result = fdk_reconstruct(
+        projections, geometry, grid, orbit_geometry=orbit, motion=estimate.motion
+    )
+    csv_path, figure = motion_out
+    write_motion_csv(csv_path, estimate.motion)
+    save_motion_figure(estimate, before.volume, result.volume, figure)
+    return result
+
+
 def reconstruct_files(
     projections_path: Path,
     geometry_path: Path,
@@ -96,6 +132,9 @@ def reconstruct_files(
     orbit_path: Path | None = None,
     mar: bool = False,
     say: Callable[[str], None] = lambda _m: None,
+    motion_out: tuple[Path, Path] | None = None,
+    times_path: Path | None = None,
+    fit_progress: Callable[[str, int, int], None] | None = None,
 ) -> FDKResult:
     """Reconstruct an RTK projection stack + geometry XML into a volume file (and a PNG).
 
@@ -103,7 +142,11 @@ def reconstruct_files(
     needs ``size_xyz``. ``orbit_path`` (RTK XML, e.g. a scan's planned views) sets FDK's
     angular weights instead of the geometry's own orbit. ``mar``: normalised metal artefact
     reduction (recon.mar; its metal mask is written beside the volume as ``*_metal``).
-    Nothing is written if any input is wrong.
+    ``motion_out`` (a CSV and a PNG path): estimate the patient's motion from the projections
+    and reconstruct through it (registration.scan_motion), writing the motion and its QA
+    figure there; ``times_path``: a CSV with the per-view times (a ``clock_s`` or ``time_s``
+    column, e.g. a study's scan/exposure_log.csv). Nothing is written if any input is wrong,
+    nor when the motion is beyond what compensation is trusted for.
     """
     for path in (out, preview):
         if path is not None and path.exists():
@@ -142,6 +185,14 @@ def reconstruct_files(
     metal_path = out.with_name(f"{base}_metal{dot}{suffixes}")
     if mar and metal_path.exists():
         raise FileExistsError(f"{metal_path} exists: nothing is overwritten")
+    times = None
+    if motion_out is not None:
+        from registration.scan_motion import check_scan
+
+        if mar:
+            raise ValueError("--compensate-motion and --mar exclude each other (not built yet)")
+        times = None if times_path is None else read_view_times(times_path)
+        check_scan(stack.data, geometry, times)
 
     def fdk(projections: np.ndarray, on: VolumeGrid) -> FDKResult:
         return fdk_reconstruct(
@@ -155,7 +206,11 @@ def reconstruct_files(
         )
 
     metal = None
-    if mar:
+    if motion_out is not None:
+        result = _compensated(
+            stack.data, geometry, grid, orbit, times, motion_out, fdk, say, fit_progress
+        )
+    elif mar:
         reduced = nmar(stack.data, geometry, grid, fdk=fdk, say=say)
         result = replace(reduced.fdk, volume=reduced.volume)
         metal = Volume(reduced.metal.astype(np.uint8), grid, "label")
@@ -188,16 +243,19 @@ def write_assessment(
     title: str = "Knee kinematics",
     volume: Path | None = None,
     overlays: Path | None = None,
+    scan_rows: dict[str, str] | None = None,
 ) -> KneeAssessment:
     """Assess the motion and write the report, metrics.csv, plots, the 4D series (meshes
     per frame and a rerun recording) and the hand-off for other tools (``export/``: ITK
     transforms, Autoscoper .tra, a 3D Slicer scene with the static ``volume`` when given) into
     the new folder ``out``. ``overlays``: the registration's overlays folder, played in the
-    report."""
+    report; ``scan_rows``: what the report's summary says of the static scan (e.g. the
+    patient's motion during it)."""
     result = assess_knee(labels, poses, side, tka=tka, plateau_offset_mm=plateau_offset_mm)
     motion, meshes = bone_motion(poses, labels, "poses")
     plane = "polyethylene insert" if tka else "fitted tibial plateau"
     extra = {"TP plane": f"{plane}, offset {plateau_offset_mm:g} mm along its normal"}
+    extra |= scan_rows or {}
     _write_outputs(result, poses, motion, meshes, out, title, extra, volume, overlays)
     return result
 

@@ -28,6 +28,7 @@ from recon.dicom import write_dicom_series
 from recon.fdk import FDKResult, Progress, fdk_reconstruct
 from recon.geometry import Geometry
 from recon.io import read_projections, read_volume, write_volume
+from recon.motion import BodyMotion, read_motion_csv, read_view_times, write_motion_csv
 from recon.preview import save_orthogonal_slices
 from recon.rtk_xml import read_rtk_geometry
 from recon.volume import VolumeGrid
@@ -39,6 +40,7 @@ from study.recording import record_volume
 if TYPE_CHECKING:
     from assessment.results import KneeKinematics
     from registration.boneaxis import Settings
+    from registration.scan_motion import MotionEstimate
 
 Say = Callable[[str], None]
 
@@ -162,11 +164,21 @@ class ScanGeometry:
         return self.weights is None
 
     def fdk(
-        self, projections: np.ndarray, grid: VolumeGrid, progress: Progress | None = None
+        self,
+        projections: np.ndarray,
+        grid: VolumeGrid,
+        progress: Progress | None = None,
+        motion: BodyMotion | None = None,
     ) -> FDKResult:
-        """Weighted FDK of projections of this scan on ``grid``."""
+        """Weighted FDK of projections of this scan on ``grid`` (through the patient's
+        ``motion`` when given)."""
         return fdk_reconstruct(
-            projections, self.rays, grid, orbit_geometry=self.weights, progress=progress
+            projections,
+            self.rays,
+            grid,
+            orbit_geometry=self.weights,
+            motion=motion,
+            progress=progress,
         )
 
 
@@ -202,11 +214,19 @@ def recon_stage(
     say: Say = print,
     result: FDKResult | None = None,
     written: Path | None = None,
+    compensate: bool = True,
+    fit_progress: Callable[[str, int, int], None] | None = None,
 ) -> bool:
     """Weighted FDK of ``scan/`` on :func:`recon_geometry` -> ``recon/`` (NIfTI, MetaImage,
     DICOM series, preview, recording; against the phantom when simulated). ``result`` is the
     reconstruction made during the scan (:mod:`study.live_recon`), taken as it is, and
-    ``written`` its volume already on disk (moved into the stage as ``volume.mha``)."""
+    ``written`` its volume already on disk (moved into the stage as ``volume.mha``).
+
+    ``compensate``: the patient's motion is estimated from the projections and the volume
+    reconstructed through it (registration.scan_motion; the scan's volume made during it is
+    kept as ``live_volume.mha``), the motion written as ``motion.csv`` with its QA figure
+    ``motion.png``, its peak per body recorded; a motion beyond what compensation is trusted
+    for fails the stage with the words to repeat the scan."""
 
     def fill(folder: Path) -> dict:
         nonlocal result
@@ -216,15 +236,24 @@ def recon_stage(
         recorded, planned, calibrated = views.recorded, views.planned, views.calibrated
         grid = recon_grid(protocol, voxel_mm)
         streamed = result is not None
+        estimate = None
+        if compensate:
+            estimate = _motion(study, stack.data, views, grid, say, fit_progress)
         if result is None:
             result = views.fdk(stack.data, grid, progress)
         elif result.volume.grid != grid:
             raise ValueError(f"the reconstruction's grid {result.volume.grid} is not {grid}")
+        live = result
+        if estimate is not None:
+            result = views.fdk(stack.data, grid, progress, estimate.motion)
         volume = result.volume
+        kept = "live_volume.mha" if estimate is not None else "volume.mha"
         if written is not None:
-            os.replace(written, folder / "volume.mha")
+            os.replace(written, folder / kept)
             shutil.rmtree(written.parent)
-        else:
+        elif estimate is not None:
+            write_volume(folder / kept, live.volume)
+        if estimate is not None or written is None:
             write_volume(folder / "volume.mha", volume)
         write_volume(folder / "volume.nii.gz", volume)
         knee = simulated_knee(study)
@@ -238,17 +267,24 @@ def recon_stage(
             "voxel_mm": voxel_mm,
             "during_scan": streamed,
         }
+        if estimate is not None:
+            details["motion"] = _motion_outputs(study, estimate, live, result, folder)
         if knee is not None:  # simulation: against the phantom, and the other geometries
             labels, truth = rasterize_knee(knee, grid, supersample=2)
             inside = (labels > 0) & result.mask
             rmse = {details["geometry"]: _rmse(volume.data, truth, inside)}
+            if estimate is not None:
+                rmse["uncompensated"] = _rmse(live.volume.data, truth, inside)
             others = {"recorded": recorded}
             true_path = study.path / "scan" / "true_geometry.xml"
             if true_path.exists():
                 others["true"] = read_rtk_geometry(true_path, stack.header)
             for name, other in others.items():
                 if name not in rmse:
-                    other_result = fdk_reconstruct(stack.data, other, grid, orbit_geometry=planned)
+                    motion = None if estimate is None else estimate.motion
+                    other_result = fdk_reconstruct(
+                        stack.data, other, grid, orbit_geometry=planned, motion=motion
+                    )
                     data = other_result.volume.data
                     rmse[name] = _rmse(data, truth, inside)
             details |= {f"rmse_{name}_per_mm": value for name, value in rmse.items()}
@@ -257,6 +293,80 @@ def recon_stage(
 
     require(study, "scan")
     return run_stage(study, "recon", lambda: derived_folder(study, "recon", fill), say)
+
+
+def _motion(
+    study: Study,
+    projections: np.ndarray,
+    views: ScanGeometry,
+    grid: VolumeGrid,
+    say: Say,
+    progress: Callable[[str, int, int], None] | None,
+) -> MotionEstimate:
+    """The patient's motion during the study's scan (its exposure log's times); ValueError
+    with the words to repeat the scan when it is beyond compensation."""
+    from registration.scan_motion import estimate_motion
+
+    log = study.path / "scan" / "exposure_log.csv"
+    times = read_view_times(log) if log.is_file() else None
+    estimate = estimate_motion(
+        projections,
+        views.rays,
+        grid,
+        times_s=times,
+        orbit_geometry=views.weights,
+        say=say,
+        progress=progress,
+    )
+    for note in estimate.notes:
+        say(note)
+    say(f"the patient {estimate.verdict()}")
+    if not estimate.compensable:
+        raise ValueError(f"the patient {estimate.verdict()}")
+    return estimate
+
+
+def _motion_outputs(
+    study: Study, estimate: MotionEstimate, before: FDKResult, after: FDKResult, folder: Path
+) -> dict:
+    """motion.csv and motion.png in ``folder``; the figures study.json keeps (against the
+    simulation's true motion where the scan has it)."""
+    from registration.motion_figure import save_motion_figure
+
+    write_motion_csv(folder / "motion.csv", estimate.motion)
+    save_motion_figure(estimate, before.volume, after.volume, folder / "motion.png")
+    figures = {
+        "bodies": list(estimate.motion.bodies),
+        "peak_mm": {b: round(v, 2) for b, v in estimate.peak_mm.items()},
+        "peak_view": estimate.peak_view,
+        "verdict": estimate.verdict(),
+        "notes": list(estimate.notes),
+        "seconds": estimate.seconds,
+    }
+    truth = study.path / "scan" / "true_motion.csv"
+    if truth.is_file():
+        figures["error_mm"] = motion_error(estimate, truth)
+    return figures
+
+
+def motion_error(estimate: MotionEstimate, truth_csv: Path) -> dict:
+    """Median and 95th percentile over views of the mean distance between the estimated and
+    the true positions of each body's bone-surface points, mm (a one-body estimate against
+    each true body)."""
+    bodies, poses = read_motion_csv(truth_csv)
+    true = dict(zip(bodies, np.moveaxis(poses, 1, 0), strict=True))
+    errors = []
+    for k, body in enumerate(estimate.motion.bodies):
+        for name, points in estimate.surface_points.items():
+            if name != body:
+                continue
+            h = np.hstack((points, np.ones((len(points), 1))))
+            mine = np.einsum("nij,pj->npi", estimate.motion.poses[:, k, :3], h)
+            for true_body in [body] if body in true else list(true):
+                theirs = np.einsum("nij,pj->npi", true[true_body][:, :3], h)
+                errors.append(np.linalg.norm(mine - theirs, axis=2).mean(axis=1))
+    e = np.concatenate(errors)
+    return {"median": round(float(np.median(e)), 3), "p95": round(float(np.percentile(e, 95)), 3)}
 
 
 def segmentation_stage(study: Study, say: Say = print) -> bool:
@@ -382,8 +492,17 @@ def assessment_stage(study: Study, title: str = "Knee kinematics", say: Say = pr
         folder.rmdir()  # write_assessment makes its own new folder
         volume = study.path / "recon" / "volume.nii.gz"
         overlays = study.path / "registration" / "overlays"
+        moved = study.stage("recon").get("motion")
+        rows = {"Static scan": f"the patient {moved['verdict']}"} if moved else None
         kin = write_assessment(
-            labels, poses, folder, side, title=title, volume=volume, overlays=overlays
+            labels,
+            poses,
+            folder,
+            side,
+            title=title,
+            volume=volume,
+            overlays=overlays,
+            scan_rows=rows,
         ).kinematics
         truth_path = study.path / "fluoro" / "poses.csv"  # a simulation's true poses
         truth = None

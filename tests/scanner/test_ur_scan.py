@@ -144,7 +144,7 @@ def test_every_device_over_its_own_protocol_scans_like_the_simulated_one(tmp_pat
     sensor = SimDetector(
         panel,
         lambda: next(views) if scanning.is_set() else plan.achieved[0],
-        lambda view: knee(view) if scanning.is_set() else np.zeros((d.rows, d.cols)),
+        lambda view, t_s: knee(view, t_s) if scanning.is_set() else np.zeros((d.rows, d.cols)),
         time.monotonic,
         sdd_mm=protocol.orbit.sdd_mm,
     )

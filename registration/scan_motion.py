@@ -1,0 +1,551 @@
+"""A patient's motion during a static scan, estimated from the scan's own projections.
+
+No markers and no prior scan: the bones of a first reconstruction are registered to every
+projection (2D/3D, the way Berger et al., Med Phys 2016, did for weight-bearing knees), coarse
+to fine, and the reconstruction is made again through the motion found:
+
+1. **First volume.** Weighted FDK on a grid of :attr:`MotionSettings.voxel_mm` over the
+   requested field, sharpened by one iterative correction (the FDK of what its own
+   reprojection misses): FDK's cone-beam and ramp-window departures from the projections bias
+   the registration (measured on the demo knee at 4 mm of sway: the in-plane error at the bone
+   surface 0.40 -> 0.12 mm for the thigh, 0.18 -> 0.10 mm for the shank).
+2. **One body.** Each view's rigid pose of the whole leg (6 parameters) by Gauss-Newton on the
+   line integrals, ``|p_i - A_i(T) f|^2`` over the pixels whose rays stay inside the trusted
+   field (:func:`trusted_pixels`), the Jacobian by finite differences of the Joseph projector.
+   The poses are then re-centred so that their mean is the identity: the volume shows the
+   patient's average pose.
+3. **Two bodies.** The volume compensated for that motion is segmented
+   (registration.segment): the thigh (femur, patella) and the shank (tibia, fibula) take each
+   voxel in the proportion of its distance to their bones (a logistic blend over
+   :attr:`MotionSettings.blend_mm`: soft tissue follows the nearest bone, no seam); every
+   view's two poses (12 parameters) are fitted as in step 2 from the one-body poses. Where the
+   segmentation finds no femur and tibia the leg stays one body, and the estimate says so.
+4. The caller reconstructs through the motion (recon.fdk with ``motion=``): each voxel
+   projects through the blend of the bodies' moved matrices.
+
+Per-view times are not needed by the fit (every view is fitted on its own, from its
+neighbour's pose); where a scan has them they are kept for the plots, else views stand for
+time. A still scan comes back as identity poses within noise, and its compensated volume is
+plain FDK's within noise (tests/registration/test_scan_motion.py).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+from scipy.spatial.transform import Rotation
+
+from recon.fdk import FDKResult, estimate_orbit, fdk_reconstruct
+from recon.geometry import Geometry
+from recon.motion import BodyMotion
+from recon.project import JosephProjector
+from recon.volume import Volume, VolumeGrid
+from registration.labels import LABELS
+from registration.segment import _soft_tissue_level, segment_bones
+
+BODY_LABELS: dict[str, tuple[int, ...]] = {
+    "thigh": (LABELS["femur"], LABELS["patella"]),
+    "shank": (LABELS["tibia"], LABELS["fibula"]),
+}
+"""The bones each moving body carries."""
+LEG = "leg"
+"""The one body of a leg whose joint the segmentation could not separate."""
+
+MIN_VIEWS = 60
+"""Fewest views the estimate runs on: each view is fitted on its own, but the volume it is
+fitted to needs an orbit's worth of views."""
+
+MAX_COMPENSABLE_MM = 6.0
+"""Largest displacement at the bone surface (from the average pose) the compensation is trusted
+for, mm: a "semi-flexed" sway peaks at 3-5 mm; beyond, bones blur in the first volume past
+what its segmentation and the fit start from, and a scan is to be repeated."""
+
+_STEP = np.array([0.3, 0.3, 0.3, *np.radians([0.3, 0.3, 0.3])])
+"""Finite-difference steps of the six parameters: mm, and radians."""
+_LEVER_MM = 50.0
+"""Rotations are damped as the displacement they cause this far from the body's centre."""
+_NEGLIGIBLE = 1e-3
+"""A body's share below which a voxel is wholly the other body's (each body's projector then
+holds only its part of the field)."""
+_DAMPING = 1e-6
+"""Levenberg-Marquardt damping, relative to the mean of the normal matrix's diagonal."""
+
+
+@dataclass(frozen=True)
+class MotionSettings:
+    """How the motion is estimated.
+
+    Attributes:
+        voxel_mm: grid of the volume the bodies are registered from, mm (about the pixel
+            pitch at the isocentre: finer is slower, coarser biases the fit); the one-body
+            stage runs at twice it, on projections binned to match.
+        margin_mm: rays within this distance of the field's ends along the rotation axis are
+            left out (FDK's data are incomplete there), mm.
+        blend_mm: width of the thigh-shank blend, mm.
+        two_body_rounds: rounds of the two-body fit, each from a volume reconstructed
+            through the motion of the round before (0: the whole leg as one body).
+    """
+
+    voxel_mm: float = 1.0
+    margin_mm: float = 20.0
+    blend_mm: float = 4.0
+    two_body_rounds: int = 2
+
+    def __post_init__(self) -> None:
+        for name, low in (("voxel_mm", 0.05), ("margin_mm", 0.0), ("blend_mm", 0.1)):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= low):
+                raise ValueError(f"{name} must be >= {low} mm, got {value!r}")
+        if self.two_body_rounds < 0:
+            raise ValueError(f"two_body_rounds must be >= 0, got {self.two_body_rounds!r}")
+
+
+@dataclass(frozen=True)
+class MotionEstimate:
+    """The motion found, and what it amounts to.
+
+    Attributes:
+        motion: the bodies' poses per view and their weights (on the estimation grid).
+        times_s: per-view times, s (None: the scan has none; views stand for time).
+        displacement_mm: per view and body, the largest displacement of the body's bone
+            surface from its average pose, mm (N, K).
+        surface_points: per body, the bone-surface points (world mm, average pose) measured.
+        notes: what the estimate had to decide (plain sentences).
+        seconds: per stage, wall time.
+    """
+
+    motion: BodyMotion
+    times_s: np.ndarray | None
+    displacement_mm: np.ndarray
+    surface_points: dict[str, np.ndarray]
+    notes: tuple[str, ...] = ()
+    seconds: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def peak_mm(self) -> dict[str, float]:
+        """Largest displacement per body over the scan, mm."""
+        return {
+            b: float(self.displacement_mm[:, k].max()) for k, b in enumerate(self.motion.bodies)
+        }
+
+    @property
+    def peak_view(self) -> int:
+        """The view where some body moved most."""
+        return int(np.unravel_index(np.argmax(self.displacement_mm), self.displacement_mm.shape)[0])
+
+    @property
+    def compensable(self) -> bool:
+        """Every body stayed within :data:`MAX_COMPENSABLE_MM` of its average pose."""
+        return max(self.peak_mm.values()) <= MAX_COMPENSABLE_MM
+
+    def verdict(self) -> str:
+        """One plain sentence on the motion: how much, where, and whether to trust it."""
+        peak, view = float(self.displacement_mm.max()), self.peak_view
+        if not self.compensable:
+            return (
+                f"moved {peak:.0f} mm at view {view}, more than the {MAX_COMPENSABLE_MM:g} mm "
+                "motion compensation is trusted for: repeat the scan"
+            )
+        parts = ", ".join(f"{b} {v:.1f} mm" for b, v in self.peak_mm.items())
+        return f"moved up to {peak:.1f} mm (at view {view}; {parts}): compensated"
+
+
+def _pose(theta: np.ndarray, center: np.ndarray) -> np.ndarray:
+    """4x4 rigid motion of 6 parameters: a rotation vector (rad) about ``center`` and a
+    translation of it (mm)."""
+    T = np.eye(4)
+    R = Rotation.from_rotvec(theta[3:]).as_matrix()
+    T[:3, :3] = R
+    T[:3, 3] = center + theta[:3] - R @ center
+    return T
+
+
+def _params(T: np.ndarray, center: np.ndarray) -> np.ndarray:
+    """The 6 parameters of :func:`_pose` of ``T``."""
+    R = T[:3, :3]
+    return np.concatenate((T[:3, 3] - center + R @ center, Rotation.from_matrix(R).as_rotvec()))
+
+
+def recentred(poses: np.ndarray, centers: np.ndarray) -> np.ndarray:
+    """Poses (N, K, 4, 4) moved so that each body's mean pose is the identity: the volume
+    reconstructed through them shows the patient's average pose."""
+    out = np.empty_like(poses)
+    for k in range(poses.shape[1]):
+        mean = np.mean([_params(T, centers[k]) for T in poses[:, k]], axis=0)
+        out[:, k] = poses[:, k] @ np.linalg.inv(_pose(mean, centers[k]))
+    return out
+
+
+def tissue_box(volume: Volume, margin_mm: float = 10.0) -> VolumeGrid:
+    """The part of ``volume``'s grid holding tissue (above half the soft-tissue level) plus
+    ``margin_mm``, on the same voxels: the estimate leaves the field's air out."""
+    tissue = volume.data > 0.5 * _soft_tissue_level(volume.data)
+    grid = volume.grid
+    pad = np.ceil(margin_mm / np.asarray(grid.spacing_mm[::-1])).astype(int)
+    index = np.argwhere(tissue)
+    low = np.maximum(index.min(axis=0) - pad, 0)
+    high = np.minimum(index.max(axis=0) + pad + 1, grid.shape)
+    origin = np.asarray(grid.origin_mm) + low[::-1] * np.asarray(grid.spacing_mm)
+    return VolumeGrid(tuple(int(n) for n in high - low), grid.spacing_mm, tuple(origin))
+
+
+def trusted_pixels(
+    geometry: Geometry, volume: Volume, mask: np.ndarray, margin_mm: float
+) -> np.ndarray:
+    """Per view, the pixels (bool (N, rows, cols)) whose rays the volume explains.
+
+    Where a long leg leaves the reconstructed field (FDK's ``mask``) along the orbit's axis,
+    the rays go on through tissue the volume does not hold, and FDK's data are incomplete
+    near the field's ends. At each end whose last ``margin_mm`` hold tissue, the tissue is
+    taken to go on beyond as the cylinder about the orbit's axis that holds that end's tissue;
+    a ray is left out if its chord through that cylinder reaches past the end less
+    ``margin_mm``.
+    """
+    axis = estimate_orbit(geometry).axis
+    b1 = np.cross(axis, np.eye(3)[int(np.argmin(np.abs(axis)))])
+    b1 /= np.linalg.norm(b1)
+    frame = np.stack((b1, np.cross(axis, b1), axis))
+    x, y, z = np.meshgrid(*volume.grid.axes_mm(), indexing="ij")
+    local = (np.stack((x, y, z), axis=-1) @ frame.T).transpose(2, 1, 0, 3)
+    tissue = (volume.data > 0.5 * _soft_tissue_level(volume.data)) & mask
+    heights = local[..., 2][mask]
+    low, high = heights.min() + margin_mm, heights.max() - margin_mm
+    out = np.ones((len(geometry), geometry.rows, geometry.cols), dtype=bool)
+    rows, cols = np.mgrid[0 : geometry.rows, 0 : geometry.cols]
+    for end, beyond in ((low, -1.0), (high, 1.0)):
+        slab = tissue & (beyond * (local[..., 2] - end) > 0)
+        if not slab.any():
+            continue  # the object ends inside the field here
+        footprint = local[slab][:, :2]
+        center = 0.5 * (footprint.min(axis=0) + footprint.max(axis=0))
+        radius = float(np.linalg.norm(footprint - center, axis=1).max()) + max(
+            volume.grid.spacing_mm
+        )
+        for i, view in enumerate(geometry):
+            s = frame @ view.source_mm
+            d = view.pixel_to_world(cols.ravel(), rows.ravel()) @ frame.T - s
+            sx, sy = s[0] - center[0], s[1] - center[1]
+            a = d[:, 0] ** 2 + d[:, 1] ** 2
+            b = 2 * (sx * d[:, 0] + sy * d[:, 1])
+            disc = b**2 - 4 * a * (sx**2 + sy**2 - radius**2)
+            root = np.sqrt(np.maximum(disc, 0.0))
+            z1 = s[2] + (-b - root) / (2 * a) * d[:, 2]
+            z2 = s[2] + (-b + root) / (2 * a) * d[:, 2]
+            reach = np.maximum(z1, z2) if beyond > 0 else np.minimum(z1, z2)
+            past = (disc > 0) & (beyond * (reach - end) > 0)
+            out[i] &= ~past.reshape(geometry.rows, geometry.cols)
+    return out
+
+
+def _cropped(volume: np.ndarray, grid: VolumeGrid) -> tuple[np.ndarray, VolumeGrid]:
+    """The slab of axial slices holding any non-zero voxel (a body's part of the volume)."""
+    filled = np.flatnonzero(np.abs(volume).max(axis=(1, 2)) > 0)
+    if filled.size == 0:
+        return volume[:2], VolumeGrid(
+            (grid.shape[2], grid.shape[1], 2), grid.spacing_mm, grid.origin_mm
+        )
+    z0, z1 = max(int(filled[0]) - 2, 0), min(int(filled[-1]) + 3, volume.shape[0])
+    origin = np.asarray(grid.origin_mm) + np.array([0.0, 0.0, z0 * grid.spacing_mm[2]])
+    sub = VolumeGrid((z1 - z0, *grid.shape[1:]), grid.spacing_mm, tuple(origin))
+    return np.ascontiguousarray(volume[z0:z1]), sub
+
+
+class _Fit:
+    """Gauss-Newton of every view's body poses against one volume split into bodies."""
+
+    def __init__(
+        self,
+        volume: np.ndarray,
+        grid: VolumeGrid,
+        weights: np.ndarray,
+        centers: np.ndarray,
+        projections: np.ndarray,
+        geometry: Geometry,
+        trusted: np.ndarray,
+    ) -> None:
+        self.parts = [JosephProjector(*_cropped(volume * w, grid)) for w in weights]
+        self.centers, self.projections, self.geometry = centers, projections, geometry
+        self.trusted = trusted
+
+    def render(self, i: int, poses: np.ndarray) -> np.ndarray:
+        """Line integrals of view ``i`` with the bodies at ``poses`` (K, 4, 4)."""
+        view = self.geometry[i]
+        return sum(p.project_moved(view, T) for p, T in zip(self.parts, poses, strict=True))
+
+    def view(self, i: int, poses: np.ndarray, iterations: int) -> np.ndarray:
+        """The poses (K, 4, 4) of view ``i`` fitted from ``poses``."""
+        view, mask = self.geometry[i], self.trusted[i]
+        measured = self.projections[i][mask]
+        k = len(self.parts)
+        theta = np.concatenate([_params(T, c) for T, c in zip(poses, self.centers, strict=True)])
+        scale = np.tile(np.array([1.0, 1.0, 1.0, _LEVER_MM, _LEVER_MM, _LEVER_MM]), k)
+        for _ in range(iterations):
+            base = [
+                part.project_moved(view, _pose(theta[6 * b : 6 * b + 6], self.centers[b]))[mask]
+                for b, part in enumerate(self.parts)
+            ]
+            residual = measured - sum(base)
+            J = np.empty((residual.size, 6 * k), dtype=np.float64)
+            for b, part in enumerate(self.parts):
+                for j in range(6):
+                    moved = theta[6 * b : 6 * b + 6].copy()
+                    moved[j] += _STEP[j]
+                    image = part.project_moved(view, _pose(moved, self.centers[b]))[mask]
+                    J[:, 6 * b + j] = (image - base[b]) / (_STEP[j] * scale[6 * b + j])
+            normal = J.T @ J
+            normal[np.diag_indices_from(normal)] += _DAMPING * np.trace(normal) / (6 * k)
+            theta = theta + np.linalg.solve(normal, J.T @ residual) / scale
+        return np.stack([_pose(theta[6 * b : 6 * b + 6], self.centers[b]) for b in range(k)])
+
+    def all_views(
+        self,
+        start: np.ndarray | None,
+        iterations: int,
+        progress: Callable[[int, int], None] | None,
+    ) -> np.ndarray:
+        """Every view's poses (N, K, 4, 4), each fitted from ``start``'s; with ``start`` None,
+        the first from the identity and each next one from the view before it (the patient
+        moves little between views)."""
+        n, k = len(self.geometry), len(self.parts)
+        out = np.empty((n, k, 4, 4))
+        for i in range(n):
+            if start is not None:
+                first = start[i]
+            else:
+                first = out[i - 1] if i else np.tile(np.eye(4), (k, 1, 1))
+            out[i] = self.view(i, first, iterations)
+            if progress is not None:
+                progress(i + 1, n)
+        return out
+
+
+def _sharpened(
+    projections: np.ndarray,
+    geometry: Geometry,
+    grid: VolumeGrid,
+    motion: BodyMotion | None,
+    orbit_geometry: Geometry | None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """FDK through ``motion`` plus the FDK of what its reprojection misses (one iterative
+    correction), float32 on ``grid`` (voxels FDK masks are 0), and FDK's mask."""
+    first = fdk_reconstruct(
+        projections, geometry, grid, orbit_geometry=orbit_geometry, motion=motion
+    )
+    volume = first.volume.data * first.mask
+    weights = (
+        np.ones((1, *grid.shape), np.float32)
+        if motion is None or len(motion.bodies) == 1
+        else motion.on(grid)
+    )
+    poses = np.tile(np.eye(4), (len(geometry), 1, 1, 1)) if motion is None else motion.poses
+    parts = [JosephProjector(*_cropped(volume * w, grid)) for w in weights]
+    missed = np.array(projections, dtype=np.float32, copy=True)
+    for i, view in enumerate(geometry):
+        for part, T in zip(parts, poses[i], strict=True):
+            missed[i] -= part.project_moved(view, T)
+    correction = fdk_reconstruct(
+        missed, geometry, grid, orbit_geometry=orbit_geometry, motion=motion
+    )
+    return (volume + correction.volume.data * first.mask).astype(np.float32), first.mask
+
+
+def body_weights(labels: Volume, blend_mm: float) -> np.ndarray | None:
+    """Thigh and shank shares of each voxel (2, nz, ny, nx), float32: a logistic of the
+    difference of the distances to their bones over ``blend_mm``; None unless both bodies
+    have bone."""
+    masks = [np.isin(labels.data, values) for values in BODY_LABELS.values()]
+    if not all(m.any() for m in masks):
+        return None
+    spacing = labels.grid.spacing_mm[::-1]
+    thigh, shank = (ndimage.distance_transform_edt(~m, sampling=spacing) for m in masks)
+    share = 1.0 / (1.0 + np.exp(np.clip((thigh - shank) / blend_mm, -60.0, 60.0)))
+    share = np.where(share < _NEGLIGIBLE, 0.0, np.where(share > 1.0 - _NEGLIGIBLE, 1.0, share))
+    return np.stack((share, 1.0 - share)).astype(np.float32)
+
+
+def _surface(mask: np.ndarray, grid: VolumeGrid, count: int = 600) -> np.ndarray:
+    """Up to ``count`` points (world mm) of the mask's surface voxels, evenly drawn."""
+    edge = mask & ~ndimage.binary_erosion(mask)
+    index = np.argwhere(edge)
+    if len(index) > count:
+        index = index[np.linspace(0, len(index) - 1, count).astype(int)]
+    return grid.index_to_world(index[:, ::-1].astype(np.float64))
+
+
+def check_scan(projections: np.ndarray, geometry: Geometry, times_s: np.ndarray | None) -> None:
+    """ValueError (naming the field, the value and the limit) for a scan the estimate cannot
+    run on: too few views, projections that do not match the geometry, times that are not one
+    increasing value per view."""
+    if len(geometry) < MIN_VIEWS:
+        raise ValueError(
+            f"the scan has {len(geometry)} views; motion estimation needs at least {MIN_VIEWS} "
+            "(an orbit's worth to reconstruct what every view is registered to)"
+        )
+    shape = (len(geometry), geometry.rows, geometry.cols)
+    if np.shape(projections) != shape:
+        raise ValueError(f"projections have shape {np.shape(projections)}; the geometry {shape}")
+    if times_s is not None:
+        t = np.asarray(times_s, dtype=np.float64)
+        if t.shape != (len(geometry),) or not np.isfinite(t).all():
+            raise ValueError(f"times: one finite time per view expected, got shape {t.shape}")
+        if np.any(np.diff(t) <= 0):
+            first = int(np.flatnonzero(np.diff(t) <= 0)[0]) + 1
+            raise ValueError(f"times must increase view by view; view {first} is at {t[first]} s")
+
+
+def estimation_grid(grid: VolumeGrid, voxel_mm: float) -> VolumeGrid:
+    """``grid``'s extent in cubic voxels of ``voxel_mm``."""
+    spacing = voxel_mm
+    extent = np.asarray(grid.spacing_mm) * np.asarray(grid.size_xyz)
+    size = tuple(max(8, round(e / spacing)) for e in extent)
+    return VolumeGrid.centered(size, spacing, tuple(grid.center_mm))
+
+
+def _binned(
+    projections: np.ndarray, geometry: Geometry, factor: int
+) -> tuple[np.ndarray, Geometry]:
+    """Projections and views with ``factor x factor`` pixels averaged."""
+    if factor == 1:
+        return projections, geometry
+    n, rows, cols = projections.shape
+    r, c = rows // factor, cols // factor
+    cut = projections[:, : r * factor, : c * factor]
+    binned = cut.reshape(n, r, factor, c, factor).mean(axis=(2, 4), dtype=np.float32)
+    return binned, Geometry([v.binned(factor) for v in geometry])
+
+
+def estimate_motion(
+    projections: np.ndarray,
+    geometry: Geometry,
+    grid: VolumeGrid,
+    *,
+    times_s: np.ndarray | None = None,
+    orbit_geometry: Geometry | None = None,
+    settings: MotionSettings = MotionSettings(),
+    say: Callable[[str], None] | None = None,
+    progress: Callable[[str, int, int], None] | None = None,
+) -> MotionEstimate:
+    """The patient's motion during a scan, from its projections (module docstring).
+
+    Args:
+        projections: line integrals (N, rows, cols).
+        geometry: the views the projections were taken through.
+        grid: the field to reconstruct (its extent is the estimate's).
+        times_s: per-view times, s; None: views stand for time (and the estimate says so).
+        orbit_geometry: the views whose orbit sets FDK's weights (as in recon.fdk).
+        settings: how to estimate.
+        say: a line per stage.
+        progress: ``progress(stage, views_done, views_total)`` during the fits.
+
+    Raises:
+        ValueError: :func:`check_scan`'s, or a first volume without bone.
+    """
+    tell = say or (lambda _m: None)
+    check_scan(projections, geometry, times_s)
+    notes = []
+    if times_s is None:
+        notes.append("the geometry carries no per-view times: motion is given per view index")
+    proj = np.asarray(projections, dtype=np.float32)
+    n = len(geometry)
+    seconds: dict[str, float] = {}
+
+    def fitted(stage: str, fit: _Fit, start: np.ndarray | None, iterations: int) -> np.ndarray:
+        report = None if progress is None else lambda d, t: progress(stage, d, t)
+        return recentred(fit.all_views(start, iterations, report), fit.centers)
+
+    # one body, at half the resolution: the motion the two bodies share, to start from
+    voxel = max(settings.voxel_mm, max(grid.spacing_mm))  # no finer than the field asked for
+    coarse = estimation_grid(grid, 2.0 * voxel)
+    factor = _binning(geometry, coarse)
+    small, views = _binned(proj, geometry, factor)
+    small_orbit = None if orbit_geometry is None else _binned(proj[:1], orbit_geometry, factor)[1]
+    with _timed(seconds, "one body"):
+        field = fdk_reconstruct(small, views, coarse, orbit_geometry=small_orbit)
+        coarse = tissue_box(Volume(field.volume.data, coarse, "1/mm"))
+        tell(f"one body: {coarse.size_xyz} voxels of {coarse.spacing_mm[0]:g} mm, {n} views")
+        volume, mask = _sharpened(small, views, coarse, None, small_orbit)
+        try:
+            labels = segment_bones(Volume(volume, coarse, "1/mm"))
+            bone = np.isin(labels.data, [v for vals in BODY_LABELS.values() for v in vals])
+        except ValueError as err:
+            if "without bone" in str(err):
+                raise ValueError(
+                    f"no bone to register in the first volume ({err}): motion is estimated "
+                    "from the bones"
+                ) from None
+            bone = volume > 0.5 * np.percentile(volume, 99)
+        center = coarse.index_to_world(np.argwhere(bone).mean(axis=0)[::-1])
+        leg = np.ones((1, *coarse.shape), np.float32)
+        trusted = trusted_pixels(views, Volume(volume, coarse, "1/mm"), mask, settings.margin_mm)
+        fit = _Fit(volume, coarse, leg, center[None], small, views, trusted)
+        poses = fitted("one body", fit, None, 2)
+    motion = BodyMotion((LEG,), poses)
+    surfaces = {LEG: _surface(bone, coarse)}
+    fine = estimation_grid(coarse, voxel)
+    for round_ in range(settings.two_body_rounds):
+        stage = f"two bodies, round {round_ + 1}"
+        with _timed(seconds, stage):
+            volume, mask = _sharpened(proj, geometry, fine, motion, orbit_geometry)
+            if round_ == 0:
+                trusted = trusted_pixels(
+                    geometry, Volume(volume, fine, "1/mm"), mask, settings.margin_mm
+                )
+                try:
+                    labels = segment_bones(Volume(volume, fine, "1/mm"))
+                    weights = body_weights(labels, settings.blend_mm)
+                except ValueError as err:
+                    notes.append(f"the leg is one body: its bones were not separated ({err})")
+                    break
+                if weights is None:
+                    notes.append("the leg is one body: the femur or the tibia was not found")
+                    break
+                masks = [np.isin(labels.data, v) for v in BODY_LABELS.values()]
+                centers = np.array(
+                    [fine.index_to_world(np.argwhere(m).mean(axis=0)[::-1]) for m in masks]
+                )
+                surfaces = {b: _surface(m, fine) for b, m in zip(BODY_LABELS, masks, strict=True)}
+                start = np.repeat(motion.poses, 2, axis=1)
+            else:
+                start = motion.poses
+            tell(f"{stage}: the thigh and the shank registered to each of {n} views")
+            fit = _Fit(volume, fine, weights, centers, proj, geometry, trusted)
+            motion = BodyMotion(tuple(BODY_LABELS), fitted(stage, fit, start, 1), weights, fine)
+    displacement = motion.displacement_mm(surfaces)
+    times = None if times_s is None else np.asarray(times_s, dtype=np.float64)
+    return MotionEstimate(motion, times, displacement, surfaces, tuple(notes), seconds)
+
+
+def _binning(geometry: Geometry, grid: VolumeGrid) -> int:
+    """The pixel binning that brings the panel's pitch at the isocentre nearest the grid's
+    voxel (>= 1)."""
+    orbit = estimate_orbit(geometry)
+    view = geometry[0]
+    at_iso = view.pitch_u_mm * float(np.median(orbit.sod_mm)) / view.sdd_mm
+    return max(1, round(grid.spacing_mm[0] / at_iso))
+
+
+@contextlib.contextmanager
+def _timed(seconds: dict[str, float], name: str) -> Iterator[None]:
+    """Add the wall time of the block to ``seconds[name]``."""
+    start = time.perf_counter()
+    try:
+        yield
+    finally:
+        seconds[name] = round(time.perf_counter() - start, 2)
+
+
+def compensated_fdk(
+    projections: np.ndarray,
+    geometry: Geometry,
+    grid: VolumeGrid,
+    estimate: MotionEstimate,
+    **fdk_options,
+) -> FDKResult:
+    """Weighted FDK on ``grid`` through the estimated motion (recon.fdk's options)."""
+    return fdk_reconstruct(projections, geometry, grid, motion=estimate.motion, **fdk_options)
