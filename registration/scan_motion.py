@@ -61,10 +61,11 @@ MIN_VIEWS = 60
 """Fewest views the estimate runs on: each view is fitted on its own, but the volume it is
 fitted to needs an orbit's worth of views."""
 
-MAX_COMPENSABLE_MM = 6.0
-"""Largest displacement at the bone surface (from the average pose) the compensation is trusted
-for, mm: a "semi-flexed" sway peaks at 3-5 mm; beyond, bones blur in the first volume past
-what its segmentation and the fit start from, and a scan is to be repeated."""
+MAX_COMPENSABLE_MM = 8.0
+"""Largest displacement of a bone's surface (from the average pose) the compensation is trusted
+for, mm: a "semi-flexed" sway peaks at 3-5 mm at the knee, and 1.2-1.6 times that at the far
+ends of the bones in the field; beyond, bones blur in the first volume past what its
+segmentation and the fit start from, and a scan is to be repeated."""
 
 _STEP = np.array([0.3, 0.3, 0.3, *np.radians([0.3, 0.3, 0.3])])
 """Finite-difference steps of the six parameters: mm, and radians."""
@@ -74,6 +75,12 @@ _NEGLIGIBLE = 1e-3
 """A body's share below which a voxel is wholly the other body's (each body's projector then
 holds only its part of the field)."""
 _DAMPING = 1e-6
+_COARSEST_MM = 2.0
+"""The one-body stage runs at twice the estimate's voxel, but no coarser than this, mm: the
+bones' cortex must still stand out of the soft tissue there."""
+_BETTER = 0.01
+"""A fitted motion is kept when it brings the projections' reprojection residual at least
+this share below the still patient's."""
 """Levenberg-Marquardt damping, relative to the mean of the normal matrix's diagonal."""
 
 
@@ -84,7 +91,7 @@ class MotionSettings:
     Attributes:
         voxel_mm: grid of the volume the bodies are registered from, mm (about the pixel
             pitch at the isocentre: finer is slower, coarser biases the fit); the one-body
-            stage runs at twice it, on projections binned to match.
+            stage runs at twice it (at most 2 mm), on projections binned to match.
         margin_mm: rays within this distance of the field's ends along the rotation axis are
             left out (FDK's data are incomplete there), mm.
         blend_mm: width of the thigh-shank blend, mm.
@@ -118,6 +125,9 @@ class MotionEstimate:
         surface_points: per body, the bone-surface points (world mm, average pose) measured.
         notes: what the estimate had to decide (plain sentences).
         seconds: per stage, wall time.
+        reprojection_rms: how far the projections are from the reprojection of the volume made
+            through no motion (``still``) and through the motion fitted (``moving``), over the
+            trusted pixels (line integrals).
     """
 
     motion: BodyMotion
@@ -126,6 +136,7 @@ class MotionEstimate:
     surface_points: dict[str, np.ndarray]
     notes: tuple[str, ...] = ()
     seconds: dict[str, float] = field(default_factory=dict)
+    reprojection_rms: dict[str, float] = field(default_factory=dict)
 
     @property
     def peak_mm(self) -> dict[str, float]:
@@ -325,15 +336,15 @@ class _Fit:
         return out
 
 
-def _sharpened(
+def _missed(
     projections: np.ndarray,
     geometry: Geometry,
     grid: VolumeGrid,
     motion: BodyMotion | None,
     orbit_geometry: Geometry | None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """FDK through ``motion`` plus the FDK of what its reprojection misses (one iterative
-    correction), float32 on ``grid`` (voxels FDK masks are 0), and FDK's mask."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """FDK through ``motion`` (float32 on ``grid``, voxels FDK masks 0), FDK's mask, and what
+    the volume's reprojection through the motion misses of the projections."""
     first = fdk_reconstruct(
         projections, geometry, grid, orbit_geometry=orbit_geometry, motion=motion
     )
@@ -349,10 +360,23 @@ def _sharpened(
     for i, view in enumerate(geometry):
         for part, T in zip(parts, poses[i], strict=True):
             missed[i] -= part.project_moved(view, T)
+    return volume, first.mask, missed
+
+
+def _sharpened(
+    projections: np.ndarray,
+    geometry: Geometry,
+    grid: VolumeGrid,
+    motion: BodyMotion | None,
+    orbit_geometry: Geometry | None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """FDK through ``motion`` plus the FDK of what its reprojection misses (one iterative
+    correction), float32 on ``grid`` (voxels FDK masks are 0), and FDK's mask."""
+    volume, mask, missed = _missed(projections, geometry, grid, motion, orbit_geometry)
     correction = fdk_reconstruct(
         missed, geometry, grid, orbit_geometry=orbit_geometry, motion=motion
     )
-    return (volume + correction.volume.data * first.mask).astype(np.float32), first.mask
+    return (volume + correction.volume.data * mask).astype(np.float32), mask
 
 
 def body_weights(labels: Volume, blend_mm: float) -> np.ndarray | None:
@@ -461,7 +485,7 @@ def estimate_motion(
 
     # one body, at half the resolution: the motion the two bodies share, to start from
     voxel = max(settings.voxel_mm, max(grid.spacing_mm))  # no finer than the field asked for
-    coarse = estimation_grid(grid, 2.0 * voxel)
+    coarse = estimation_grid(grid, max(voxel, min(2.0 * voxel, _COARSEST_MM)))
     factor = _binning(geometry, coarse)
     small, views = _binned(proj, geometry, factor)
     small_orbit = None if orbit_geometry is None else _binned(proj[:1], orbit_geometry, factor)[1]
@@ -516,9 +540,25 @@ def estimate_motion(
             tell(f"{stage}: the thigh and the shank registered to each of {n} views")
             fit = _Fit(volume, fine, weights, centers, proj, geometry, trusted)
             motion = BodyMotion(tuple(BODY_LABELS), fitted(stage, fit, start, 1), weights, fine)
+    with _timed(seconds, "consistency"):
+        # motion is kept only where the projections agree with a volume made through it
+        # better than with the still one's: noise in a still scan's fit is not motion
+        volume, mask, missed = _missed(proj, geometry, fine, None, orbit_geometry)
+        seen = trusted_pixels(geometry, Volume(volume, fine, "1/mm"), mask, settings.margin_mm)
+        misses = {"still": float(np.sqrt(np.mean(missed[seen] ** 2)))}
+        missed = _missed(proj, geometry, fine, motion, orbit_geometry)[2]
+        misses["moving"] = float(np.sqrt(np.mean(missed[seen] ** 2)))
+    if misses["moving"] >= misses["still"] * (1.0 - _BETTER):
+        notes.append(
+            "no motion found: the projections agree as well with the still patient "
+            f"(reprojection RMS {misses['still']:.4g}) as with the motion fitted "
+            f"({misses['moving']:.4g})"
+        )
+        still = np.tile(np.eye(4), (n, len(motion.bodies), 1, 1))
+        motion = BodyMotion(motion.bodies, still, motion.weights, motion.grid)
     displacement = motion.displacement_mm(surfaces)
     times = None if times_s is None else np.asarray(times_s, dtype=np.float64)
-    return MotionEstimate(motion, times, displacement, surfaces, tuple(notes), seconds)
+    return MotionEstimate(motion, times, displacement, surfaces, tuple(notes), seconds, misses)
 
 
 def _binning(geometry: Geometry, grid: VolumeGrid) -> int:
