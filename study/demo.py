@@ -96,6 +96,7 @@ FULL = {
     "fluoro_voxel_mm": 0.5,
     "frames": 30,
     "max_flexion_deg": 90.0,
+    "motion_rounds": 2,
 }
 QUICK = {
     "views": 90,
@@ -107,6 +108,7 @@ QUICK = {
     "fluoro_voxel_mm": 0.5,
     "frames": 8,
     "max_flexion_deg": 40.0,
+    "motion_rounds": 1,
 }
 TKA = {"fluoro_panel": 512, "recon_voxel_mm": 0.8}
 """What ``--tka`` changes in either size: the knee replacement's fluoroscopy (gait frames on
@@ -289,6 +291,7 @@ def acquire(
             result=result,
             written=live.volume_path,
             fit_progress=_fit_bars(bars),
+            motion_rounds=size["motion_rounds"],
         )
         say_scan(f"recon stage written {time.perf_counter() - scanned:.1f} s after the scan")
 
@@ -440,6 +443,7 @@ def run(
             _bar(bars, "recon: views backprojected", "views"),
             stage("recon", "weighted FDK with the calibrated geometry, through the patient's sway"),
             fit_progress=_fit_bars(bars),
+            motion_rounds=size["motion_rounds"],
         )
         segmentation_stage(study, stage("segmentation", "bones from the reconstruction"))
         registration_stage(
@@ -488,6 +492,24 @@ def _assessment_text(assess: dict) -> str:
     return text
 
 
+def _motion_text(study: Study, out: Path) -> str:
+    """What the demo's summary says of the patient's sway during the static scan."""
+    recon = study.manifest["stages"]["recon"]
+    motion = recon.get("motion")
+    if motion is None:
+        return ""
+    swayed = study.manifest["config"]["demo"]["size"].get("sway_mm", 0.0)
+    text = f"  sway:       the patient swayed {swayed:g} mm at the knee; {motion['verdict']}"
+    if "rmse_uncompensated_per_mm" in recon:
+        text += (
+            f"; RMSE vs phantom {recon['rmse_uncompensated_per_mm']:.5f} /mm before, "
+            f"{recon['rmse_calibrated_per_mm']:.5f} after"
+        )
+    if "error_mm" in motion:
+        text += f"; motion error median {motion['error_mm']['median']:.2f} mm"
+    return f"{text} ({out}/recon/motion.png)\n"
+
+
 def _summary(study: Study, out: Path, seconds: float) -> str:
     stages = study.manifest["stages"]
     recon = stages["recon"]
@@ -503,6 +525,7 @@ def _summary(study: Study, out: Path, seconds: float) -> str:
         f"{out}/recon/slices.png; RMSE vs phantom {recon['rmse_calibrated_per_mm']:.5f} /mm "
         f"with the calibrated geometry ({recon['rmse_recorded_per_mm']:.5f} recorded, "
         f"{recon['rmse_true_per_mm']:.5f} true)\n"
+        f"{_motion_text(study, out)}"
         f"  registration: TRE mean {reg['tre_mm']:.2f} mm (median {reg['tre_mm_median']:.2f}), "
         f"RSR {reg['rsr_pct']:.1f} %  ({out}/registration/poses.csv)\n"
         f"  study:      {out}/study.json (every stage, every file's sha256)"

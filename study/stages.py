@@ -216,6 +216,7 @@ def recon_stage(
     written: Path | None = None,
     compensate: bool = True,
     fit_progress: Callable[[str, int, int], None] | None = None,
+    motion_rounds: int = 2,
 ) -> bool:
     """Weighted FDK of ``scan/`` on :func:`recon_geometry` -> ``recon/`` (NIfTI, MetaImage,
     DICOM series, preview, recording; against the phantom when simulated). ``result`` is the
@@ -225,8 +226,9 @@ def recon_stage(
     ``compensate``: the patient's motion is estimated from the projections and the volume
     reconstructed through it (registration.scan_motion; the scan's volume made during it is
     kept as ``live_volume.mha``), the motion written as ``motion.csv`` with its QA figure
-    ``motion.png``, its peak per body recorded; a motion beyond what compensation is trusted
-    for fails the stage with the words to repeat the scan."""
+    ``motion.png``, its peak per body recorded (``motion_rounds``: rounds of the two-body
+    fit); a motion beyond what compensation is trusted for fails the stage with the words to
+    repeat the scan."""
 
     def fill(folder: Path) -> dict:
         nonlocal result
@@ -238,7 +240,7 @@ def recon_stage(
         streamed = result is not None
         estimate = None
         if compensate:
-            estimate = _motion(study, stack.data, views, grid, say, fit_progress)
+            estimate = _motion(study, stack.data, views, grid, say, fit_progress, motion_rounds)
         if result is None:
             result = views.fdk(stack.data, grid, progress)
         elif result.volume.grid != grid:
@@ -302,10 +304,11 @@ def _motion(
     grid: VolumeGrid,
     say: Say,
     progress: Callable[[str, int, int], None] | None,
+    rounds: int,
 ) -> MotionEstimate:
     """The patient's motion during the study's scan (its exposure log's times); ValueError
     with the words to repeat the scan when it is beyond compensation."""
-    from registration.scan_motion import estimate_motion
+    from registration.scan_motion import MotionSettings, estimate_motion
 
     log = study.path / "scan" / "exposure_log.csv"
     times = read_view_times(log) if log.is_file() else None
@@ -315,6 +318,7 @@ def _motion(
         grid,
         times_s=times,
         orbit_geometry=views.weights,
+        settings=MotionSettings(two_body_rounds=rounds),
         say=say,
         progress=progress,
     )
@@ -342,6 +346,7 @@ def _motion_outputs(
         "verdict": estimate.verdict(),
         "notes": list(estimate.notes),
         "seconds": estimate.seconds,
+        "reprojection_rms": {k: round(v, 5) for k, v in estimate.reprojection_rms.items()},
     }
     truth = study.path / "scan" / "true_motion.csv"
     if truth.is_file():

@@ -17,7 +17,7 @@ from numba.core.caching import NullCache
 from numba.core.types import Array
 
 from recon import fdk as fdk_module
-from recon import project, ramp
+from recon import motion, project, ramp
 from recon.fdk import fdk_reconstruct
 from recon.geometry import DetectorSpec, circular_orbit
 from recon.volume import VolumeGrid
@@ -28,17 +28,22 @@ PARALLEL = {
     "pixel quads": project.quads_kernel,
     "row filter's weighting": ramp._pack_kernel,
     "normalisation": fdk_module._normalise_kernel,
+    "motion field's backprojection": motion._field_kernel,
 }
 """The FDK's and the projector's parallel kernels, by what they do."""
 
 
 @pytest.fixture(scope="module")
 def ran() -> None:
-    """A small FDK and a forward projection: every kernel of :data:`PARALLEL` compiled."""
+    """A small FDK (plain and through a motion field) and a forward projection: every kernel
+    of :data:`PARALLEL` compiled."""
     views = circular_orbit(24, 600.0, 1000.0, DetectorSpec(rows=32, cols=32, pixel_pitch_mm=2.0))
     grid = VolumeGrid.centered((16, 16, 16), 2.0, (0.0, 0.0, 0.0))
     sino = project.forward_project(np.ones(grid.shape, np.float32), grid, views)
     fdk_reconstruct(sino, views, grid)
+    poses = np.tile(np.eye(4), (len(views), 2, 1, 1))
+    weights = np.full((2, *grid.shape), 0.5, np.float32)
+    fdk_reconstruct(sino, views, grid, motion=motion.BodyMotion(("a", "b"), poses, weights, grid))
 
 
 @pytest.mark.parametrize("name", sorted(PARALLEL))
