@@ -54,6 +54,7 @@ QUICK: dict[str, list[str]] = {
         "2",
     ],
     "mar": ["--views", "90"],
+    "motion": ["--small", "--seeds", "1", "--sizes", "0", "4"],
     "recon": ["--small"],
     "registration": ["--quick"],
     "scan": ["--small"],

@@ -103,15 +103,6 @@ class BodyMotion:
             out[:, k] = np.linalg.norm(moved - p[None], axis=2).max(axis=1)
         return out
 
-    def still(self) -> bool:
-        """Every pose is the identity (to 1e-9)."""
-        return bool(np.allclose(self.poses, np.eye(4), atol=1e-9))
-
-
-def identity_motion(views: int, bodies: tuple[str, ...] = ("leg",)) -> BodyMotion:
-    """A motion that does not move (one body unless weights are added)."""
-    return BodyMotion(bodies[:1], np.tile(np.eye(4), (views, 1, 1, 1)))
-
 
 def write_motion_csv(path: Path, motion: BodyMotion) -> Path:
     """Write ``view,body,t00..t33`` rows (:data:`MOTION_COLUMNS`)."""

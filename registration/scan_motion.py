@@ -41,7 +41,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
-from recon.fdk import FDKResult, estimate_orbit, fdk_reconstruct
+from recon.fdk import estimate_orbit, fdk_reconstruct
 from recon.geometry import Geometry
 from recon.motion import BodyMotion
 from recon.project import JosephProjector
@@ -283,11 +283,6 @@ class _Fit:
         self.parts = [JosephProjector(*_cropped(volume * w, grid)) for w in weights]
         self.centers, self.projections, self.geometry = centers, projections, geometry
         self.trusted = trusted
-
-    def render(self, i: int, poses: np.ndarray) -> np.ndarray:
-        """Line integrals of view ``i`` with the bodies at ``poses`` (K, 4, 4)."""
-        view = self.geometry[i]
-        return sum(p.project_moved(view, T) for p, T in zip(self.parts, poses, strict=True))
 
     def view(self, i: int, poses: np.ndarray, iterations: int) -> np.ndarray:
         """The poses (K, 4, 4) of view ``i`` fitted from ``poses``."""
@@ -578,14 +573,3 @@ def _timed(seconds: dict[str, float], name: str) -> Iterator[None]:
         yield
     finally:
         seconds[name] = round(time.perf_counter() - start, 2)
-
-
-def compensated_fdk(
-    projections: np.ndarray,
-    geometry: Geometry,
-    grid: VolumeGrid,
-    estimate: MotionEstimate,
-    **fdk_options,
-) -> FDKResult:
-    """Weighted FDK on ``grid`` through the estimated motion (recon.fdk's options)."""
-    return fdk_reconstruct(projections, geometry, grid, motion=estimate.motion, **fdk_options)

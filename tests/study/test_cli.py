@@ -17,6 +17,7 @@ from recon.config import load_protocol
 from recon.fdk import fdk_reconstruct
 from recon.geometry import DetectorSpec
 from recon.io import read_projections, read_volume, write_projections
+from recon.motion import read_motion_csv
 from recon.rtk_xml import PanelHeader, read_rtk_geometry, write_rtk_geometry
 from scanner.cli import CONFIGS
 from sim.phantoms.knee import KneePhantomSpec, rasterize_knee
@@ -472,3 +473,72 @@ def test_batch_help_states_the_connect_timeout_batch_uses():
 
     result = runner.invoke(app, ["batch", "--help"], terminal_width=200)
     assert f"CONNECT_TIMEOUT_S, {batch.CONNECT_TIMEOUT_S:g} s" in " ".join(result.output.split())
+
+
+@pytest.fixture(scope="module")
+def swaying_scan(tmp_path_factory) -> Path:
+    """90 views of 128 x 128 pixels of 4.8 mm while the patient sways 3 mm at the knee."""
+    tmp = tmp_path_factory.mktemp("sway")
+    data = yaml.safe_load((CONFIGS / "protocols" / "demo_knee.yaml").read_text(encoding="utf-8"))
+    data["detector"] = {"rows": 128, "cols": 128, "pixel_pitch_mm": 4.8}
+    data["orbit"]["views"] = 90
+    protocol = tmp / "small.yaml"
+    protocol.write_text(yaml.safe_dump(data))
+    out = tmp / "scan"
+    args = ["simulate-scan", "--protocol", str(protocol), "--out", str(out), "--sway-mm", "3"]
+    result = runner.invoke(app, [*args, "--voxel-mm", "1.0"])
+    assert result.exit_code == 0, result.output
+    return out
+
+
+def test_recon_compensates_a_swaying_scan_and_writes_its_motion(swaying_scan, tmp_path):
+    """The motion beside the volume (one row per view and body) with its QA figure; the
+    truth of the simulation beside the projections."""
+    out = tmp_path / "knee.nii.gz"
+    grid = ["--size", "70", "70", "80", "--spacing-mm", "2", "--origin-mm", "-69", "-73", "411"]
+    result = runner.invoke(
+        app,
+        [
+            "recon",
+            "--projections",
+            str(swaying_scan / "projections.mha"),
+            "--geometry",
+            str(swaying_scan / "geometry.xml"),
+            "--out",
+            str(out),
+            *grid,
+            "--compensate-motion",
+            "--times",
+            str(swaying_scan / "view_times.csv"),
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    assert "moved up to" in result.output
+    bodies, poses = read_motion_csv(tmp_path / "knee_motion.csv")
+    assert len(poses) == 90 and len(bodies) in (1, 2)
+    assert (tmp_path / "knee_motion.png").stat().st_size > 10_000
+    true_bodies, _ = read_motion_csv(swaying_scan / "true_motion.csv")
+    assert true_bodies == ("shank", "thigh")
+
+
+def test_recon_refuses_a_scan_too_short_for_motion_and_writes_nothing(scan_folder, tmp_path):
+    """The tiny scan's 40 views: refused (exit 2) naming the views and the limit; --times
+    alone is refused too."""
+    stack = read_projections(scan_folder / "projections.mha")
+    geometry = read_rtk_geometry(scan_folder / "geometry.xml", stack.header)
+    write_projections(tmp_path / "p.mha", stack.data[:40], geometry[0].pitch_u_mm)
+    write_rtk_geometry(tmp_path / "g.xml", geometry[:40])
+    out = tmp_path / "v.nii.gz"
+    base = [
+        "recon",
+        "--projections",
+        str(tmp_path / "p.mha"),
+        "--geometry",
+        str(tmp_path / "g.xml"),
+    ]
+    result = runner.invoke(app, [*base, "--out", str(out), "--compensate-motion"])
+    assert result.exit_code == 2, result.output
+    assert "40 views" in result.output and "at least 60" in result.output
+    assert not out.exists() and not (tmp_path / "v_motion.csv").exists()
+    result = runner.invoke(app, [*base, "--out", str(out), "--times", str(tmp_path / "t.csv")])
+    assert result.exit_code == 2 and "--times is for --compensate-motion" in result.output
