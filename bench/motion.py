@@ -230,7 +230,8 @@ def demo_tre(still: Path, swaying: Path) -> dict:
         manifest = json.loads((folder / "study.json").read_text(encoding="utf-8"))
         stages = manifest["stages"]
         out[name] = {
-            "tre_median_mm": stages["registration"].get("tre_median_mm"),
+            "tre_mean_mm": stages["registration"].get("tre_mm"),
+            "tre_median_mm": stages["registration"].get("tre_mm_median"),
             "sway_mm": manifest["config"]["demo"]["size"].get("sway_mm"),
             "recon_motion": stages["recon"].get("motion"),
         }
@@ -239,8 +240,8 @@ def demo_tre(still: Path, swaying: Path) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--sizes", type=float, nargs="+", default=[0.0, 1.0, 2.0, 4.0])
-    parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
+    parser.add_argument("--sizes", type=float, nargs="*", default=[0.0, 1.0, 2.0, 4.0])
+    parser.add_argument("--seeds", type=int, nargs="*", default=[1, 2, 3])
     parser.add_argument("--small", action="store_true")
     parser.add_argument("--timing", action="store_true")
     parser.add_argument("--demos", type=Path, nargs=2, metavar=("STILL", "SWAYING"))

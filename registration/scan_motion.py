@@ -158,6 +158,8 @@ class MotionEstimate:
     def verdict(self) -> str:
         """One plain sentence on the motion: how much, where, and whether to trust it."""
         peak, view = float(self.displacement_mm.max()), self.peak_view
+        if peak == 0.0:
+            return "stood still: no motion found in the projections"
         if not self.compensable:
             return (
                 f"moved {peak:.0f} mm at view {view}, more than the {MAX_COMPENSABLE_MM:g} mm "
