@@ -505,7 +505,7 @@ def _motion_text(study: Study, out: Path) -> str:
             f"; RMSE vs phantom {recon['rmse_uncompensated_per_mm']:.5f} /mm before, "
             f"{recon['rmse_calibrated_per_mm']:.5f} after"
         )
-    if "error_mm" in motion:
+    if "error_mm" in motion and motion.get("estimated", True):
         text += f"; motion error median {motion['error_mm']['median']:.2f} mm"
     return f"{text} ({out}/recon/motion.png)\n"
 

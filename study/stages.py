@@ -238,9 +238,13 @@ def recon_stage(
         recorded, planned, calibrated = views.recorded, views.planned, views.calibrated
         grid = recon_grid(protocol, voxel_mm)
         streamed = result is not None
-        estimate = None
+        estimate, unestimated = None, None
         if compensate:
-            estimate = _motion(study, stack.data, views, grid, say, fit_progress, motion_rounds)
+            try:
+                estimate = _motion(study, stack.data, views, grid, say, fit_progress, motion_rounds)
+            except MotionNotEstimated as err:
+                unestimated = str(err)
+                say(f"motion not estimated, the volume is plain FDK's: {unestimated}")
         if result is None:
             result = views.fdk(stack.data, grid, progress)
         elif result.volume.grid != grid:
@@ -271,6 +275,8 @@ def recon_stage(
         }
         if estimate is not None:
             details["motion"] = _motion_outputs(study, estimate, live, result, folder)
+        elif unestimated is not None:
+            details["motion"] = {"verdict": f"was not followed: {unestimated}", "estimated": False}
         if knee is not None:  # simulation: against the phantom, and the other geometries
             labels, truth = rasterize_knee(knee, grid, supersample=2)
             inside = (labels > 0) & result.mask
@@ -297,6 +303,10 @@ def recon_stage(
     return run_stage(study, "recon", lambda: derived_folder(study, "recon", fill), say)
 
 
+class MotionNotEstimated(ValueError):
+    """The scan's motion could not be estimated (too few views, no bone to register)."""
+
+
 def _motion(
     study: Study,
     projections: np.ndarray,
@@ -307,21 +317,25 @@ def _motion(
     rounds: int,
 ) -> MotionEstimate:
     """The patient's motion during the study's scan (its exposure log's times); ValueError
-    with the words to repeat the scan when it is beyond compensation."""
+    with the words to repeat the scan when it is beyond compensation;
+    :class:`MotionNotEstimated` for a scan the estimate cannot run on (too few views, no bone)."""
     from registration.scan_motion import MotionSettings, estimate_motion
 
     log = study.path / "scan" / "exposure_log.csv"
     times = read_view_times(log) if log.is_file() else None
-    estimate = estimate_motion(
-        projections,
-        views.rays,
-        grid,
-        times_s=times,
-        orbit_geometry=views.weights,
-        settings=MotionSettings(two_body_rounds=rounds),
-        say=say,
-        progress=progress,
-    )
+    try:
+        estimate = estimate_motion(
+            projections,
+            views.rays,
+            grid,
+            times_s=times,
+            orbit_geometry=views.weights,
+            settings=MotionSettings(two_body_rounds=rounds),
+            say=say,
+            progress=progress,
+        )
+    except ValueError as err:
+        raise MotionNotEstimated(str(err)) from None
     for note in estimate.notes:
         say(note)
     say(f"the patient {estimate.verdict()}")
@@ -498,7 +512,10 @@ def assessment_stage(study: Study, title: str = "Knee kinematics", say: Say = pr
         volume = study.path / "recon" / "volume.nii.gz"
         overlays = study.path / "registration" / "overlays"
         moved = study.stage("recon").get("motion")
-        rows = {"Static scan": f"the patient {moved['verdict']}"} if moved else None
+        rows = None
+        if moved:
+            words = "the patient's motion" if moved.get("estimated") is False else "the patient"
+            rows = {"Static scan": f"{words} {moved['verdict']}"}
         kin = write_assessment(
             labels,
             poses,
