@@ -45,7 +45,11 @@ from recon.config import load_protocol  # noqa: E402
 from recon.fdk import fdk_reconstruct  # noqa: E402
 from recon.volume import Volume, VolumeGrid  # noqa: E402
 from registration.labels import LABELS  # noqa: E402
-from registration.scan_motion import MotionSettings, estimate_motion  # noqa: E402
+from registration.scan_motion import (  # noqa: E402
+    MotionSettings,
+    estimate_motion,
+    surface_errors_mm,
+)
 from registration.segment import segment_bones  # noqa: E402
 from sim.phantoms.knee import KneePhantomSpec, knee_grid, rasterize_knee  # noqa: E402
 from sim.scan import simulate_knee_scan  # noqa: E402
@@ -55,7 +59,6 @@ LEG_MM = 480.0
 BOX_MM = (140.0, 140.0, 320.0)
 BOX_OFFSET_MM = (0.0, 0.0, 40.0)
 BONES = ("femur", "tibia", "fibula", "patella")
-BODY_OF = {"thigh": ("thigh",), "shank": ("shank",), "leg": ("thigh", "shank")}
 SURFACE_LABELS = {
     "thigh": (LABELS["femur"], LABELS["patella"]),
     "shank": (LABELS["tibia"], LABELS["fibula"]),
@@ -116,25 +119,6 @@ def surface(labels: np.ndarray, grid: VolumeGrid, values, count: int = 400) -> n
     return grid.index_to_world(edge[:, ::-1].astype(float))
 
 
-def motion_errors(estimate, truth: dict, labels, grid, sources) -> tuple[np.ndarray, np.ndarray]:
-    """Per view and true body: mean distance (3D, and across the rays) between where the
-    estimate and the truth put the body's surface points, mm."""
-    full, across = [], []
-    for k, body in enumerate(estimate.motion.bodies):
-        for true_body in BODY_OF[body]:
-            points = surface(labels, grid, SURFACE_LABELS[true_body])
-            h = np.hstack((points, np.ones((len(points), 1))))
-            mine = np.einsum("nij,pj->npi", estimate.motion.poses[:, k, :3], h)
-            theirs = np.einsum("nij,pj->npi", truth[true_body][:, :3], h)
-            diff = mine - theirs
-            ray = theirs - sources[:, None]
-            ray /= np.linalg.norm(ray, axis=2, keepdims=True)
-            side = diff - (diff * ray).sum(axis=2, keepdims=True) * ray
-            full.append(np.linalg.norm(diff, axis=2).mean(axis=1))
-            across.append(np.linalg.norm(side, axis=2).mean(axis=1))
-    return np.concatenate(full), np.concatenate(across)
-
-
 def run_case(size: dict, sway_mm: float, seed: int, still_cache: dict) -> dict:
     spec = KneePhantomSpec()
     prot = protocol(size["views"], size["pixels"])
@@ -171,7 +155,8 @@ def run_case(size: dict, sway_mm: float, seed: int, still_cache: dict) -> dict:
         b: np.tile(np.eye(4), (len(scan.geometry), 1, 1)) for b in ("thigh", "shank")
     }
     sources = np.asarray(scan.geometry.sources_mm)
-    full, across = motion_errors(estimate, truth, labels, grid, sources)
+    points = {b: surface(labels, grid, SURFACE_LABELS[b]) for b in truth}
+    full, across = surface_errors_mm(estimate.motion, points, truth, sources)
     return {
         "phantom": "knee",
         "sway_mm": sway_mm,

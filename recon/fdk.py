@@ -88,7 +88,8 @@ class Orbit:
         )
 
 
-def _plane_basis(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def plane_basis(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors completing the unit ``axis`` to a right-handed orthonormal frame."""
     helper = np.eye(3)[int(np.argmin(np.abs(axis)))]
     b1 = np.cross(axis, helper)
     b1 /= np.linalg.norm(b1)
@@ -119,7 +120,7 @@ def estimate_orbit(geometry: Geometry) -> Orbit:
     mean_axes = [np.mean([getattr(v, e) for v in geometry], axis=0) @ axis for e in ("e_v", "e_u")]
     if mean_axes[int(abs(mean_axes[1]) > abs(mean_axes[0]))] < 0:
         axis = -axis
-    b1, b2 = _plane_basis(axis)
+    b1, b2 = plane_basis(axis)
     src = np.asarray(geometry.sources_mm)
     xy = np.column_stack((src @ b1, src @ b2))
     # algebraic circle fit: x^2 + y^2 = 2 c.x + k
@@ -209,7 +210,7 @@ def parker_weights(geometry: Geometry, orbit: Orbit) -> np.ndarray:
     beta = sweep * (orbit.beta_rad - orbit.beta_rad[a])
     span = beta[b - 1]
     delta = 0.5 * (span - np.pi)
-    b1, b2 = _plane_basis(orbit.axis)
+    b1, b2 = plane_basis(orbit.axis)
     out = np.empty((len(geometry), geometry.cols))
     cols = np.arange(geometry.cols, dtype=np.float64)
     gamma_max = 0.0

@@ -41,7 +41,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial.transform import Rotation
 
-from recon.fdk import estimate_orbit, fdk_reconstruct
+from recon.fdk import estimate_orbit, fdk_reconstruct, plane_basis
 from recon.geometry import Geometry
 from recon.motion import BodyMotion
 from recon.project import JosephProjector
@@ -221,30 +221,30 @@ def trusted_pixels(
     ``margin_mm``.
     """
     axis = estimate_orbit(geometry).axis
-    b1 = np.cross(axis, np.eye(3)[int(np.argmin(np.abs(axis)))])
-    b1 /= np.linalg.norm(b1)
-    frame = np.stack((b1, np.cross(axis, b1), axis))
+    frame = np.stack((*plane_basis(axis), axis))
     x, y, z = np.meshgrid(*volume.grid.axes_mm(), indexing="ij")
     local = (np.stack((x, y, z), axis=-1) @ frame.T).transpose(2, 1, 0, 3)
     tissue = (volume.data > 0.5 * _soft_tissue_level(volume.data)) & mask
     heights = local[..., 2][mask]
-    low, high = heights.min() + margin_mm, heights.max() - margin_mm
-    out = np.ones((len(geometry), geometry.rows, geometry.cols), dtype=bool)
-    rows, cols = np.mgrid[0 : geometry.rows, 0 : geometry.cols]
-    for end, beyond in ((low, -1.0), (high, 1.0)):
+    ends = []  # (height of the end, +1 above / -1 below, cylinder centre, radius)
+    for end, beyond in ((heights.min() + margin_mm, -1.0), (heights.max() - margin_mm, 1.0)):
         slab = tissue & (beyond * (local[..., 2] - end) > 0)
         if not slab.any():
             continue  # the object ends inside the field here
         footprint = local[slab][:, :2]
         center = 0.5 * (footprint.min(axis=0) + footprint.max(axis=0))
-        radius = float(np.linalg.norm(footprint - center, axis=1).max()) + max(
-            volume.grid.spacing_mm
-        )
-        for i, view in enumerate(geometry):
-            s = frame @ view.source_mm
-            d = view.pixel_to_world(cols.ravel(), rows.ravel()) @ frame.T - s
+        radius = float(np.linalg.norm(footprint - center, axis=1).max())
+        ends.append((end, beyond, center, radius + max(volume.grid.spacing_mm)))
+    out = np.ones((len(geometry), geometry.rows, geometry.cols), dtype=bool)
+    if not ends:
+        return out
+    rows, cols = np.mgrid[0 : geometry.rows, 0 : geometry.cols]
+    for i, view in enumerate(geometry):
+        s = frame @ view.source_mm
+        d = view.pixel_to_world(cols.ravel(), rows.ravel()) @ frame.T - s
+        a = d[:, 0] ** 2 + d[:, 1] ** 2
+        for end, beyond, center, radius in ends:
             sx, sy = s[0] - center[0], s[1] - center[1]
-            a = d[:, 0] ** 2 + d[:, 1] ** 2
             b = 2 * (sx * d[:, 0] + sy * d[:, 1])
             disc = b**2 - 4 * a * (sx**2 + sy**2 - radius**2)
             root = np.sqrt(np.maximum(disc, 0.0))
@@ -260,9 +260,7 @@ def _cropped(volume: np.ndarray, grid: VolumeGrid) -> tuple[np.ndarray, VolumeGr
     """The slab of axial slices holding any non-zero voxel (a body's part of the volume)."""
     filled = np.flatnonzero(np.abs(volume).max(axis=(1, 2)) > 0)
     if filled.size == 0:
-        return volume[:2], VolumeGrid(
-            (grid.shape[2], grid.shape[1], 2), grid.spacing_mm, grid.origin_mm
-        )
+        return volume[:2], VolumeGrid((2, *grid.shape[1:]), grid.spacing_mm, grid.origin_mm)
     z0, z1 = max(int(filled[0]) - 2, 0), min(int(filled[-1]) + 3, volume.shape[0])
     origin = np.asarray(grid.origin_mm) + np.array([0.0, 0.0, z0 * grid.spacing_mm[2]])
     sub = VolumeGrid((z1 - z0, *grid.shape[1:]), grid.spacing_mm, tuple(origin))
@@ -346,11 +344,7 @@ def _missed(
         projections, geometry, grid, orbit_geometry=orbit_geometry, motion=motion
     )
     volume = first.volume.data * first.mask
-    weights = (
-        np.ones((1, *grid.shape), np.float32)
-        if motion is None or len(motion.bodies) == 1
-        else motion.on(grid)
-    )
+    weights = np.ones((1, *grid.shape), np.float32) if motion is None else motion.on(grid)
     poses = np.tile(np.eye(4), (len(geometry), 1, 1, 1)) if motion is None else motion.poses
     parts = [JosephProjector(*_cropped(volume * w, grid)) for w in weights]
     missed = np.array(projections, dtype=np.float32, copy=True)
@@ -399,6 +393,33 @@ def _surface(mask: np.ndarray, grid: VolumeGrid, count: int = 600) -> np.ndarray
     return grid.index_to_world(index[:, ::-1].astype(np.float64))
 
 
+def surface_errors_mm(
+    motion: BodyMotion,
+    points: dict[str, np.ndarray],
+    truth: dict[str, np.ndarray],
+    sources_mm: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """How far ``motion`` is from the ``truth`` (``T_world_body`` (N, 4, 4) by body): per view
+    and true body, the mean distance between where the two put the body's ``points`` (world
+    mm, average pose; by true body), mm, and with the views' sources (N, 3) the same across
+    each view's rays (what the view sees). A body of the motion the truth does not have (the
+    one-body ``leg``) is compared with every true body."""
+    full, across = [], []
+    for k, body in enumerate(motion.bodies):
+        for true_body in [body] if body in truth else list(truth):
+            h = np.hstack((points[true_body], np.ones((len(points[true_body]), 1))))
+            mine = np.einsum("nij,pj->npi", motion.poses[:, k, :3], h)
+            theirs = np.einsum("nij,pj->npi", truth[true_body][:, :3], h)
+            diff = mine - theirs
+            full.append(np.linalg.norm(diff, axis=2).mean(axis=1))
+            if sources_mm is not None:
+                ray = theirs - np.asarray(sources_mm)[:, None]
+                ray /= np.linalg.norm(ray, axis=2, keepdims=True)
+                side = diff - (diff * ray).sum(axis=2, keepdims=True) * ray
+                across.append(np.linalg.norm(side, axis=2).mean(axis=1))
+    return np.concatenate(full), np.concatenate(across) if across else None
+
+
 def check_scan(projections: np.ndarray, geometry: Geometry, times_s: np.ndarray | None) -> None:
     """ValueError (naming the field, the value and the limit) for a scan the estimate cannot
     run on: too few views, projections that do not match the geometry, times that are not one
@@ -422,10 +443,9 @@ def check_scan(projections: np.ndarray, geometry: Geometry, times_s: np.ndarray 
 
 def estimation_grid(grid: VolumeGrid, voxel_mm: float) -> VolumeGrid:
     """``grid``'s extent in cubic voxels of ``voxel_mm``."""
-    spacing = voxel_mm
     extent = np.asarray(grid.spacing_mm) * np.asarray(grid.size_xyz)
-    size = tuple(max(8, round(e / spacing)) for e in extent)
-    return VolumeGrid.centered(size, spacing, tuple(grid.center_mm))
+    size = tuple(max(8, round(e / voxel_mm)) for e in extent)
+    return VolumeGrid.centered(size, voxel_mm, tuple(grid.center_mm))
 
 
 def _binned(

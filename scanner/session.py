@@ -330,13 +330,14 @@ def scan_stage(
     if store.stored:
         say(f"{len(store.stored)} views already stored and verified")
     commands: list[tuple[float, str]] = []  # the generator's command log of this session
+    seen = subject(inputs, say, plan.scan_duration_s)
     backend, simulated = open_backend(
         inputs.backend,
         model,
         plan.q[0],
         panel,
         inputs.protocol.orbit.sdd_mm,
-        seen := subject(inputs, say, plan.scan_duration_s),
+        seen,
         on_generator_sent=lambda body, t_s: commands.append((t_s, body)),
     )
     try:

@@ -29,6 +29,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial.transform import Rotation
 
 from recon.geometry import View
+from recon.motion import BodyMotion
 from recon.project import JosephProjector
 from recon.volume import Volume
 from registration.labels import LABELS
@@ -109,8 +110,8 @@ class Sway:
         waves = {name: (_waves(rng, DRIFT_HZ, 3), _waves(rng, TREMOR_HZ, 2)) for name in _UNIT_DEG}
         object.__setattr__(self, "_waves", waves)
         t = np.linspace(0.0, self.duration_s, 2001)
-        object.__setattr__(self, "_mean", {k: 0.0 for k in _UNIT_DEG})
-        object.__setattr__(self, "_mean", {k: float(v.mean()) for k, v in self._angles(t).items()})
+        mean = {k: float(v.mean()) for k, v in self._waved(t).items()}
+        object.__setattr__(self, "_mean", mean)
         object.__setattr__(self, "_scale", 1.0)
         if self.spec.peak_mm > 0:
             for _ in range(3):  # displacement is nearly linear in the small angles
@@ -119,15 +120,18 @@ class Sway:
         else:
             object.__setattr__(self, "_scale", 0.0)
 
-    def _angles(self, t_s: np.ndarray) -> dict[str, np.ndarray]:
-        """Unscaled angles (degrees) per time, zero mean over the scan."""
+    def _waved(self, t_s: np.ndarray) -> dict[str, np.ndarray]:
+        """Unscaled angles (degrees) per time: the sums of their drift and tremor waves."""
         out = {}
         for name, (drift, tremor) in self._waves.items():
             rows = np.vstack((drift, tremor * np.array([1.0, self.spec.tremor_share, 1.0])))
             phase = 2 * np.pi * rows[:, 0, None] * t_s[None] + rows[:, 2, None]
             out[name] = _UNIT_DEG[name] * (rows[:, 1, None] * np.sin(phase)).sum(axis=0)
-            out[name] -= self._mean[name]
         return out
+
+    def _angles(self, t_s: np.ndarray) -> dict[str, np.ndarray]:
+        """Unscaled angles (degrees) per time, zero mean over the scan."""
+        return {k: v - self._mean[k] for k, v in self._waved(t_s).items()}
 
     def angles_deg(self, t_s: np.ndarray) -> dict[str, np.ndarray]:
         """The five angles (degrees) at times ``t_s`` (s from the scan's start): the shank's
@@ -163,12 +167,9 @@ class Sway:
     def displacement_mm(self, t_s: np.ndarray) -> dict[str, np.ndarray]:
         """Largest displacement of each body's sizing points per time, mm (N,)."""
         poses = self.poses(t_s)
-        out = {}
-        for body, points in self.size_points().items():
-            h = np.hstack((points, np.ones((len(points), 1))))
-            moved = np.einsum("nij,pj->npi", poses[body][:, :3], h)
-            out[body] = np.linalg.norm(moved - points[None], axis=2).max(axis=1)
-        return out
+        motion = BodyMotion(BODIES, np.stack([poses[b] for b in BODIES], axis=1))
+        moved = motion.displacement_mm(self.size_points())
+        return {b: moved[:, k] for k, b in enumerate(BODIES)}
 
     def peak_displacement_mm(self, t_s: np.ndarray | None = None) -> float:
         """Largest displacement of any body's sizing points over ``t_s`` (default: the scan)."""

@@ -30,14 +30,16 @@ from recon.fdk import FDKResult, Progress, check_axis_on_panel, default_grid, fd
 from recon.geometry import Geometry
 from recon.io import read_projections, read_volume, write_volume
 from recon.mar import nmar
-from recon.motion import read_view_times
+from recon.motion import read_view_times, write_motion_csv
 from recon.preview import save_orthogonal_slices
 from recon.rtk_xml import read_rtk_geometry
 from recon.static_volume import StaticUnit, read_attenuation
 from recon.volume import Volume, VolumeGrid
 from registration.frames import read_frames
 from registration.implants import read_mesh
+from registration.motion_figure import save_motion_figure
 from registration.poses import BonePose, read_poses
+from registration.scan_motion import MotionEstimate, MotionSettings, estimate_motion
 from registration.segment import bone_surfaces, segment_bones
 from registration.track import fluoroscopy_view
 from scanner.scan_files import new_folder
@@ -80,6 +82,50 @@ def check_is_plan(geometry: Geometry, protocol: ScanProtocol, path: Path) -> Non
             )
 
 
+class MotionBeyondCompensation(ValueError):
+    """The patient moved more than motion compensation is trusted for: repeat the scan."""
+
+
+def compensable_motion(
+    projections: np.ndarray,
+    geometry: Geometry,
+    grid: VolumeGrid,
+    *,
+    times: np.ndarray | None,
+    orbit: Geometry | None,
+    say: Callable[[str], None],
+    progress: Callable[[str, int, int], None] | None,
+    settings: MotionSettings | None = None,
+) -> MotionEstimate:
+    """The patient's motion estimated from the projections (registration.scan_motion), its
+    notes and verdict said; :class:`MotionBeyondCompensation` (the verdict's words to repeat
+    the scan) when it is beyond compensation, ValueError for a scan it cannot run on."""
+    estimate = estimate_motion(
+        projections,
+        geometry,
+        grid,
+        times_s=times,
+        orbit_geometry=orbit,
+        settings=settings or MotionSettings(),
+        say=say,
+        progress=progress,
+    )
+    for note in estimate.notes:
+        say(note)
+    if not estimate.compensable:
+        raise MotionBeyondCompensation(f"the patient {estimate.verdict()}")
+    say(f"the patient {estimate.verdict()}")
+    return estimate
+
+
+def write_motion(
+    estimate: MotionEstimate, before: Volume, after: Volume, csv_path: Path, figure: Path
+) -> None:
+    """The motion's file (recon.motion) and its QA figure (registration.motion_figure)."""
+    write_motion_csv(csv_path, estimate.motion)
+    save_motion_figure(estimate, before, after, figure)
+
+
 def _compensated(
     projections: np.ndarray,
     geometry: Geometry,
@@ -93,25 +139,14 @@ def _compensated(
 ) -> FDKResult:
     """FDK through the motion estimated from the projections; the motion CSV and the QA
     figure written to ``motion_out``; ValueError (nothing written) beyond compensation."""
-    from recon.motion import write_motion_csv
-    from registration.motion_figure import save_motion_figure
-    from registration.scan_motion import estimate_motion
-
-    estimate = estimate_motion(
-        projections, geometry, grid, times_s=times, orbit_geometry=orbit, say=say, progress=progress
+    estimate = compensable_motion(
+        projections, geometry, grid, times=times, orbit=orbit, say=say, progress=progress
     )
-    for note in estimate.notes:
-        say(note)
-    if not estimate.compensable:
-        raise ValueError(f"the patient {estimate.verdict()}")
-    say(estimate.verdict())
     before = fdk(projections, grid)
     result = fdk_reconstruct(
         projections, geometry, grid, orbit_geometry=orbit, motion=estimate.motion
     )
-    csv_path, figure = motion_out
-    write_motion_csv(csv_path, estimate.motion)
-    save_motion_figure(estimate, before.volume, result.volume, figure)
+    write_motion(estimate, before.volume, result.volume, *motion_out)
     return result
 
 
@@ -185,14 +220,9 @@ def reconstruct_files(
     metal_path = out.with_name(f"{base}_metal{dot}{suffixes}")
     if mar and metal_path.exists():
         raise FileExistsError(f"{metal_path} exists: nothing is overwritten")
-    times = None
-    if motion_out is not None:
-        from registration.scan_motion import check_scan
-
-        if mar:
-            raise ValueError("--compensate-motion and --mar exclude each other (not built yet)")
-        times = None if times_path is None else read_view_times(times_path)
-        check_scan(stack.data, geometry, times)
+    if motion_out is not None and mar:
+        raise ValueError("--compensate-motion and --mar exclude each other (not built yet)")
+    times = None if times_path is None else read_view_times(times_path)
 
     def fdk(projections: np.ndarray, on: VolumeGrid) -> FDKResult:
         return fdk_reconstruct(

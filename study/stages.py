@@ -28,7 +28,7 @@ from recon.dicom import write_dicom_series
 from recon.fdk import FDKResult, Progress, fdk_reconstruct
 from recon.geometry import Geometry
 from recon.io import read_projections, read_volume, write_volume
-from recon.motion import BodyMotion, read_motion_csv, read_view_times, write_motion_csv
+from recon.motion import BodyMotion, read_motion_csv, read_view_times
 from recon.preview import save_orthogonal_slices
 from recon.rtk_xml import read_rtk_geometry
 from recon.volume import VolumeGrid
@@ -319,29 +319,25 @@ def _motion(
     """The patient's motion during the study's scan (its exposure log's times); ValueError
     with the words to repeat the scan when it is beyond compensation;
     :class:`MotionNotEstimated` for a scan the estimate cannot run on (too few views, no bone)."""
-    from registration.scan_motion import MotionSettings, estimate_motion
+    from registration.scan_motion import MotionSettings
+    from study.jobs import MotionBeyondCompensation, compensable_motion
 
     log = study.path / "scan" / "exposure_log.csv"
-    times = read_view_times(log) if log.is_file() else None
     try:
-        estimate = estimate_motion(
+        return compensable_motion(
             projections,
             views.rays,
             grid,
-            times_s=times,
-            orbit_geometry=views.weights,
-            settings=MotionSettings(two_body_rounds=rounds),
+            times=read_view_times(log) if log.is_file() else None,
+            orbit=views.weights,
             say=say,
             progress=progress,
+            settings=MotionSettings(two_body_rounds=rounds),
         )
+    except MotionBeyondCompensation:
+        raise
     except ValueError as err:
         raise MotionNotEstimated(str(err)) from None
-    for note in estimate.notes:
-        say(note)
-    say(f"the patient {estimate.verdict()}")
-    if not estimate.compensable:
-        raise ValueError(f"the patient {estimate.verdict()}")
-    return estimate
 
 
 def _motion_outputs(
@@ -349,10 +345,11 @@ def _motion_outputs(
 ) -> dict:
     """motion.csv and motion.png in ``folder``; the figures study.json keeps (against the
     simulation's true motion where the scan has it)."""
-    from registration.motion_figure import save_motion_figure
+    from study.jobs import write_motion
 
-    write_motion_csv(folder / "motion.csv", estimate.motion)
-    save_motion_figure(estimate, before.volume, after.volume, folder / "motion.png")
+    write_motion(
+        estimate, before.volume, after.volume, folder / "motion.csv", folder / "motion.png"
+    )
     figures = {
         "bodies": list(estimate.motion.bodies),
         "peak_mm": {b: round(v, 2) for b, v in estimate.peak_mm.items()},
@@ -372,19 +369,13 @@ def motion_error(estimate: MotionEstimate, truth_csv: Path) -> dict:
     """Median and 95th percentile over views of the mean distance between the estimated and
     the true positions of each body's bone-surface points, mm (a one-body estimate against
     each true body)."""
+    from registration.scan_motion import LEG, surface_errors_mm
+
     bodies, poses = read_motion_csv(truth_csv)
-    true = dict(zip(bodies, np.moveaxis(poses, 1, 0), strict=True))
-    errors = []
-    for k, body in enumerate(estimate.motion.bodies):
-        for name, points in estimate.surface_points.items():
-            if name != body:
-                continue
-            h = np.hstack((points, np.ones((len(points), 1))))
-            mine = np.einsum("nij,pj->npi", estimate.motion.poses[:, k, :3], h)
-            for true_body in [body] if body in true else list(true):
-                theirs = np.einsum("nij,pj->npi", true[true_body][:, :3], h)
-                errors.append(np.linalg.norm(mine - theirs, axis=2).mean(axis=1))
-    e = np.concatenate(errors)
+    truth = dict(zip(bodies, np.moveaxis(poses, 1, 0), strict=True))
+    surfaces = estimate.surface_points
+    points = {b: surfaces[b] if b in surfaces else surfaces[LEG] for b in truth}
+    e, _ = surface_errors_mm(estimate.motion, points, truth)
     return {"median": round(float(np.median(e)), 3), "p95": round(float(np.percentile(e, 95)), 3)}
 
 
