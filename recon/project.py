@@ -511,8 +511,18 @@ def backproject(projections: np.ndarray, geometry: Geometry, grid: VolumeGrid) -
             f"({len(geometry)}, {geometry.rows}, {geometry.cols})"
         )
     check_in_front(geometry, grid)
-    # A^T y = V_voxel / pixel_area * y / (w^2 cos theta), cos theta = w * sdd / |x - s|
-    per_view = np.array(
+    out = np.zeros(grid.shape, dtype=np.float32)
+    backproject_weighted(
+        proj, geometry, grid, ADJOINT_WEIGHT, out, scale=adjoint_scale(geometry, grid)
+    )
+    return out
+
+
+def adjoint_scale(geometry: Geometry, grid: VolumeGrid) -> np.ndarray:
+    """Per-view factors (float32) that make :data:`ADJOINT_WEIGHT` backprojection onto ``grid``
+    the forward projector's adjoint: A^T y = V_voxel / pixel_area * y / (w^2 cos theta), with
+    cos theta = w * sdd / |x - s|."""
+    return np.array(
         [
             grid.voxel_volume_mm3
             / (v.pitch_u_mm * v.pitch_v_mm * np.linalg.norm(np.cross(v.e_u, v.e_v)) * v.sdd_mm)
@@ -520,6 +530,3 @@ def backproject(projections: np.ndarray, geometry: Geometry, grid: VolumeGrid) -
         ],
         dtype=np.float32,
     )
-    out = np.zeros(grid.shape, dtype=np.float32)
-    backproject_weighted(proj * per_view[:, None, None], geometry, grid, ADJOINT_WEIGHT, out)
-    return out
