@@ -53,6 +53,7 @@ QUICK: dict[str, list[str]] = {
         "--voxel-mm",
         "2",
     ],
+    "iterative": ["--quick"],
     "mar": ["--views", "90"],
     "motion": ["--small", "--seeds", "1", "--sizes", "0", "4"],
     "recon": ["--small"],

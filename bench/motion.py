@@ -41,16 +41,17 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from measures import bone_dice, peak_resident_mb, ssim  # noqa: E402
+
 from recon.config import load_protocol  # noqa: E402
 from recon.fdk import fdk_reconstruct  # noqa: E402
-from recon.volume import Volume, VolumeGrid  # noqa: E402
+from recon.volume import VolumeGrid  # noqa: E402
 from registration.labels import LABELS  # noqa: E402
 from registration.scan_motion import (  # noqa: E402
     MotionSettings,
     estimate_motion,
     surface_errors_mm,
 )
-from registration.segment import segment_bones  # noqa: E402
 from sim.phantoms.knee import KneePhantomSpec, knee_grid, rasterize_knee  # noqa: E402
 from sim.scan import simulate_knee_scan  # noqa: E402
 from sim.sway import SwaySpec  # noqa: E402
@@ -63,14 +64,6 @@ SURFACE_LABELS = {
     "thigh": (LABELS["femur"], LABELS["patella"]),
     "shank": (LABELS["tibia"], LABELS["fibula"]),
 }
-
-
-def peak_resident_mb() -> float:
-    """This process's peak resident set, MB (VmHWM)."""
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmHWM:"):
-            return int(line.split()[1]) / 1024.0
-    raise RuntimeError("no VmHWM in /proc/self/status")
 
 
 def protocol(views: int, pixels: int):
@@ -87,27 +80,6 @@ def protocol(views: int, pixels: int):
 def box(voxel_mm: float, isocenter) -> VolumeGrid:
     size = tuple(round(e / voxel_mm) for e in BOX_MM)
     return VolumeGrid.centered(size, voxel_mm, tuple(np.asarray(isocenter) + BOX_OFFSET_MM))
-
-
-def ssim(volume: np.ndarray, truth: np.ndarray, region: np.ndarray) -> float:
-    from skimage.metrics import structural_similarity
-
-    zs, ys, xs = (np.flatnonzero(region.any(axis=axes)) for axes in ((1, 2), (0, 2), (0, 1)))
-    cut = np.s_[zs[0] : zs[-1] + 1, ys[0] : ys[-1] + 1, xs[0] : xs[-1] + 1]
-    span = float(truth[cut].max() - truth[cut].min())
-    return float(structural_similarity(volume[cut], truth[cut], data_range=span))
-
-
-def bone_dice(volume: Volume, truth_labels: np.ndarray) -> float | None:
-    try:
-        labels = segment_bones(volume).data
-    except ValueError:
-        return None
-    scores = []
-    for bone in BONES:
-        a, b = labels == LABELS[bone], truth_labels == LABELS[bone]
-        scores.append(2 * float((a & b).sum()) / max(float(a.sum() + b.sum()), 1.0))
-    return float(np.mean(scores))
 
 
 def surface(labels: np.ndarray, grid: VolumeGrid, values, count: int = 400) -> np.ndarray:

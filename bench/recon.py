@@ -33,6 +33,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from measures import central_region, peak_resident_mb, ssim  # noqa: E402
+
 from recon.geometry import (  # noqa: E402
     DetectorSpec,
     Geometry,
@@ -132,14 +134,6 @@ def worker(toolkit: str, folder: Path, case: str) -> None:
     print(json.dumps({"seconds": seconds, "peak_mb": peak_resident_mb()}))
 
 
-def peak_resident_mb() -> float:
-    """This process's peak resident set (VmHWM; ru_maxrss would carry the parent's over exec)."""
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmHWM:"):
-            return int(line.split()[1]) / 1024.0
-    raise RuntimeError("no VmHWM in /proc/self/status")
-
-
 def run_worker(toolkit: str, folder: Path, case: str) -> dict:
     done = subprocess.run(
         [sys.executable, __file__, "--worker", toolkit, str(folder), case],
@@ -206,25 +200,6 @@ def knee_inputs(cfg: dict, root: Path, log) -> list[tuple[str, str, Path]]:
 
 
 # -- metrics ------------------------------------------------------------------------------------
-
-
-def central_region(shape: tuple[int, int, int], fraction: float = 0.75) -> np.ndarray:
-    """Cylinder of ``fraction`` of the half-width, over ``fraction`` of the height."""
-    nz, ny, nx = shape
-    z, y, x = np.ogrid[:nz, :ny, :nx]
-    r2 = ((x - (nx - 1) / 2) / (nx / 2)) ** 2 + ((y - (ny - 1) / 2) / (ny / 2)) ** 2
-    return (r2 <= fraction**2) & (np.abs(z - (nz - 1) / 2) <= fraction * nz / 2)
-
-
-def ssim(volume: np.ndarray, truth: np.ndarray, region: np.ndarray) -> float:
-    from skimage.metrics import structural_similarity
-
-    zs, ys, xs = (np.flatnonzero(region.any(axis=axes)) for axes in ((1, 2), (0, 2), (0, 1)))
-    box = np.s_[zs[0] : zs[-1] + 1, ys[0] : ys[-1] + 1, xs[0] : xs[-1] + 1]
-    span = float(truth[box].max() - truth[box].min())
-    return float(structural_similarity(volume[box], truth[box], data_range=span))
-
-
 def axial_drop(volume: np.ndarray, truth: np.ndarray, slab: int) -> float:
     """Relative loss of the mean value near the object's ends in z against its middle:
     1 - (recon/truth in the end slabs) / (recon/truth mid-object).

@@ -12,7 +12,7 @@ import math
 import re
 from collections.abc import Iterator
 from pathlib import Path
-from typing import TypeVar
+from typing import Literal, TypeVar
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -129,6 +129,26 @@ class ExposureSpec(BaseModel):
         return self.tube_ma * self.pulse_ms * 1e-3
 
 
+class ReconstructionSpec(BaseModel):
+    """How a protocol's scans are reconstructed (recon.iterative for sart and tv)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    method: Literal["fdk", "sart", "tv"] = Field(
+        "fdk", description="fdk (weighted FDK), sart (OS-SART from FDK) or tv (OS-SART + TV)"
+    )
+    iterations: int = Field(12, ge=1, le=200, description="sart/tv: most iterations")
+    tv_weight_per_mm: float | None = Field(
+        None, ge=0.0, description="tv: TV step's strength, 1/mm (None: from the data's noise)"
+    )
+
+    @model_validator(mode="after")
+    def _weight_for_tv(self) -> ReconstructionSpec:
+        if self.tv_weight_per_mm is not None and self.method != "tv":
+            raise ValueError(f"tv_weight_per_mm is for method tv, not {self.method}")
+        return self
+
+
 class ScanProtocol(BaseModel):
     """A scan protocol: which views, on which panel, with which technique."""
 
@@ -142,6 +162,7 @@ class ScanProtocol(BaseModel):
     dose_limit_mas: float = Field(
         250.0, gt=0.0, le=5000.0, description="limit on the whole scan's tube load, mAs"
     )
+    reconstruction: ReconstructionSpec = Field(default_factory=ReconstructionSpec)
 
     @model_validator(mode="after")
     def _dose_within_limit(self) -> ScanProtocol:

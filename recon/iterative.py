@@ -22,14 +22,16 @@ object (:func:`noise_sigma`).
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
 from skimage.restoration import denoise_tv_chambolle
 
-from recon.fdk import FDKResult, Progress, fdk_reconstruct
-from recon.geometry import Geometry
+from recon.config import ReconstructionSpec
+from recon.fdk import FDKResult, Progress, estimate_orbit, fdk_reconstruct
+from recon.geometry import DetectorSpec, Geometry, short_scan_arc_deg
 from recon.project import (
     ADJOINT_WEIGHT,
     JosephProjector,
@@ -41,8 +43,12 @@ from recon.volume import Volume, VolumeGrid
 
 Method = Literal["fdk", "sart", "tv"]
 METHODS: tuple[str, ...] = ("fdk", "sart", "tv")
-TV_PER_NOISE = 0.5
+TV_PER_NOISE = 0.25
 """Default TV weight per unit of the FDK start's voxel noise (:func:`noise_sigma`)."""
+MIN_SPARSE_VIEWS = 20
+"""Fewest views a sparse subset of a scan (:func:`sparse_views`) may keep."""
+SENSITIVITY_BATCH = 16
+"""Views backprojected together for the voxels' sensitivity (as FDK's batches)."""
 MIN_RAY_VOXELS = 1.0
 """Rays shorter than this many voxels through the grid are left out of the SART step (a ray
 grazing a corner would divide its residual by almost nothing)."""
@@ -103,6 +109,9 @@ class IterativeResult:
         residuals: per iteration, the root-mean-square residual (p - A x) over the rays
             through the grid before the iteration's updates (line integral, dimensionless).
         stopped: "tolerance" or "iterations".
+        seconds: per iteration, wall time (s); the preparation before the first (each ray's
+            length, the voxels' sensitivity: one projection and one backprojection) is not
+            in it.
     """
 
     fdk: FDKResult
@@ -111,6 +120,7 @@ class IterativeResult:
     changes: tuple[float, ...] = field(default=())
     residuals: tuple[float, ...] = field(default=())
     stopped: str = "iterations"
+    seconds: tuple[float, ...] = field(default=())
 
     @property
     def iterations(self) -> int:
@@ -120,6 +130,15 @@ class IterativeResult:
     def as_fdk(self) -> FDKResult:
         """The FDK result with this volume in place of FDK's (coverage and mask kept)."""
         return replace(self.fdk, volume=self.volume)
+
+
+def protocol_settings(spec: ReconstructionSpec) -> IterativeSettings | None:
+    """A protocol's reconstruction as iterative settings; None for FDK."""
+    if spec.method == "fdk":
+        return None
+    return IterativeSettings(
+        spec.method, iterations=spec.iterations, tv_weight=spec.tv_weight_per_mm
+    )
 
 
 def noise_sigma(volume: np.ndarray, mask: np.ndarray | None = None) -> float:
@@ -142,6 +161,45 @@ def subsets(n_views: int, views_per_subset: int) -> list[np.ndarray]:
     (M = ceil(n_views / views_per_subset)), so every subset spans the whole orbit."""
     count = max(1, math.ceil(n_views / views_per_subset))
     return [np.arange(k, n_views, count) for k in range(count)]
+
+
+def sparse_views(geometry: Geometry, every: int) -> np.ndarray:
+    """Indices of every ``every``-th view (0, K, 2K, ...), refused unless at least
+    :data:`MIN_SPARSE_VIEWS` remain and one pass still sweeps 180 degrees plus the fan."""
+    if every < 1:
+        raise ValueError(f"--views-every {every}: give 1 or more")
+    keep = np.arange(0, len(geometry), every)
+    if len(keep) < MIN_SPARSE_VIEWS:
+        raise ValueError(
+            f"--views-every {every} keeps {len(keep)} of {len(geometry)} views: at least "
+            f"{MIN_SPARSE_VIEWS} must remain (give {max(1, len(geometry) // MIN_SPARSE_VIEWS)} "
+            "or less)"
+        )
+    view = geometry[0]
+    panel = DetectorSpec(rows=view.rows, cols=view.cols, pixel_pitch_mm=view.pitch_u_mm)
+    need = short_scan_arc_deg(view.sdd_mm, panel)
+    arc = estimate_orbit(geometry[keep]).span_deg
+    if arc < need - 1e-6:
+        raise ValueError(
+            f"--views-every {every} leaves an arc of {arc:.1f} deg: at least 180 deg plus the "
+            f"fan, {need:.1f} deg, must remain"
+        )
+    return keep
+
+
+def iterations_said(result: IterativeResult) -> str:
+    """One line on how an iterative reconstruction went."""
+    settings = result.settings
+    weight = "" if settings.method == "sart" else f", TV weight {settings.tv_weight:.3g} 1/mm"
+    why = (
+        f"the volume changed by less than {settings.tolerance:g}"
+        if result.stopped == "tolerance"
+        else "the iterations given"
+    )
+    return (
+        f"{settings.method.upper()}: {result.iterations} iteration(s){weight}; stopped at {why} "
+        f"(last change {result.changes[-1]:.2g}, residual {result.residuals[-1]:.3g})"
+    )
 
 
 def iterative_reconstruct(
@@ -192,16 +250,20 @@ def iterative_reconstruct(
     settings = replace(settings, tv_weight=weight if settings.method == "tv" else None)
 
     groups = subsets(len(geometry), settings.views_per_subset)
-    views = [Geometry([geometry[int(i)] for i in group]) for group in groups]
-    lengths = JosephProjector(np.ones(grid.shape, np.float32), grid).project(geometry)
-    usable = lengths >= MIN_RAY_VOXELS * min(grid.spacing_mm)
-    inverse_length = np.where(usable, 1.0 / np.where(usable, lengths, 1.0), 0.0).astype(np.float32)
-    del lengths
+    views = [geometry[group] for group in groups]
+    # each ray's length through the grid, inverted where it is usable (0 elsewhere)
+    inverse_length = JosephProjector(np.ones(grid.shape, np.float32), grid).project(geometry)
+    usable = inverse_length >= MIN_RAY_VOXELS * min(grid.spacing_mm)
+    np.divide(1.0, inverse_length, out=inverse_length, where=usable)
+    inverse_length[~usable] = 0.0
     per_view = adjoint_scale(geometry, grid)
     sensitivity = np.zeros(grid.shape, np.float32)
-    backproject_weighted(
-        usable.astype(np.float32), geometry, grid, ADJOINT_WEIGHT, sensitivity, scale=per_view
-    )
+    for first in range(0, len(geometry), SENSITIVITY_BATCH):  # bounds the pixel quads' memory
+        batch = slice(first, first + SENSITIVITY_BATCH)
+        rays = usable[batch].astype(np.float32)
+        backproject_weighted(
+            rays, geometry[batch], grid, ADJOINT_WEIGHT, sensitivity, scale=per_view[batch]
+        )
     seen = sensitivity > 1e-6 * float(sensitivity.max())
     step = np.zeros(grid.shape, np.float32)
     step[seen] = settings.relaxation / sensitivity[seen]
@@ -212,7 +274,9 @@ def iterative_reconstruct(
     residuals: list[float] = []
     stopped = "iterations"
     total = settings.iterations * len(groups)
+    seconds: list[float] = []
     for iteration in range(settings.iterations):
+        began = time.perf_counter()
         before = x.copy()
         squares, rays = 0.0, 0
         for k, (group, sub) in enumerate(zip(groups, views, strict=True)):
@@ -236,6 +300,7 @@ def iterative_reconstruct(
         residuals.append(math.sqrt(squares / max(rays, 1)))
         norm = float(np.linalg.norm(x))
         changes.append(float(np.linalg.norm(x - before)) / norm if norm > 0 else 0.0)
+        seconds.append(time.perf_counter() - began)
         if changes[-1] < settings.tolerance:
             stopped = "tolerance"
             if progress is not None:
@@ -249,4 +314,5 @@ def iterative_reconstruct(
         tuple(changes),
         tuple(residuals),
         stopped,
+        tuple(seconds),
     )

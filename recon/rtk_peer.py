@@ -20,7 +20,7 @@ import numpy as np
 
 from recon.geometry import Geometry
 from recon.rtk_xml import PanelHeader, rtk_parameters
-from recon.volume import VolumeGrid
+from recon.volume import Volume, VolumeGrid
 
 _PARAMETER_ORDER = (
     "SourceToIsocenterDistance",
@@ -207,3 +207,68 @@ def rtk_shepp_logan(
     draw.SetOriginOffset([float(c) for c in center_mm])
     draw.Update()
     return projections, itk.array_from_image(draw.GetOutput()).copy()
+
+
+def _run(filter_: Any, projections: np.ndarray, geometry: Geometry, start: Volume) -> np.ndarray:
+    """Run an RTK iterative filter on its two inputs (the start volume, the projections)."""
+    itk, _ = _itk()
+    volume, stack = _volume_image(start.data, start.grid), _stack_image(projections, geometry)
+    filter_.SetInput(0, volume)
+    filter_.SetInput(1, stack)
+    filter_.SetGeometry(rtk_geometry(geometry))
+    filter_.Update()
+    return itk.array_from_image(filter_.GetOutput()).copy()
+
+
+def rtk_sart(
+    projections: np.ndarray,
+    geometry: Geometry,
+    start: Volume,
+    iterations: int,
+    views_per_subset: int = 10,
+    relaxation: float = 0.8,
+) -> np.ndarray:
+    """RTK's OS-SART (Joseph forward, voxel-based back projection, positivity enforced) from
+    ``start``, float32 [z, y, x] on its grid."""
+    itk, rtk = _itk()
+    image_type = itk.Image[itk.F, 3]
+    sart = rtk.SARTConeBeamReconstructionFilter[image_type, image_type].New()
+    sart.SetNumberOfIterations(int(iterations))
+    sart.SetNumberOfProjectionsPerSubset(int(views_per_subset))
+    sart.SetLambda(float(relaxation))
+    sart.SetEnforcePositivity(True)
+    return _run(sart, projections, geometry, start)
+
+
+def rtk_cg(
+    projections: np.ndarray, geometry: Geometry, start: Volume, iterations: int
+) -> np.ndarray:
+    """RTK's conjugate gradient on the least-squares problem (unit weights) from ``start``."""
+    itk, rtk = _itk()
+    image_type = itk.Image[itk.F, 3]
+    cg = rtk.ConjugateGradientConeBeamReconstructionFilter[image_type].New()
+    weights = _stack_image(np.ones_like(projections), geometry)
+    cg.SetInput(2, weights)
+    cg.SetNumberOfIterations(int(iterations))
+    return _run(cg, projections, geometry, start)
+
+
+def rtk_admm_tv(
+    projections: np.ndarray,
+    geometry: Geometry,
+    start: Volume,
+    iterations: int,
+    alpha: float,
+    beta: float,
+    cg_iterations: int,
+) -> np.ndarray:
+    """RTK's ADMM with total variation: ``iterations`` augmented-Lagrangian steps of
+    ``cg_iterations`` conjugate-gradient steps each, TV weight ``alpha``, penalty ``beta``."""
+    itk, rtk = _itk()
+    image_type = itk.Image[itk.F, 3]
+    admm = rtk.ADMMTotalVariationConeBeamReconstructionFilter[image_type].New()
+    admm.SetAlpha(float(alpha))
+    admm.SetBeta(float(beta))
+    admm.SetAL_iterations(int(iterations))
+    admm.SetCG_iterations(int(cg_iterations))
+    return _run(admm, projections, geometry, start)

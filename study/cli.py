@@ -178,14 +178,55 @@ def recon(
             "column, e.g. a study's scan/exposure_log.csv); default: views stand for time"
         ),
     ] = None,
+    method: Annotated[
+        str,
+        typer.Option(
+            help="fdk (weighted FDK), sart (OS-SART from FDK) or tv (OS-SART with total "
+            "variation: sparse views, low dose)"
+        ),
+    ] = "fdk",
+    iterations: Annotated[
+        int | None,
+        typer.Option(
+            help="sart/tv: most iterations (each visits every view once; fewer when the "
+            "volume settles)",
+            show_default="12",
+        ),
+    ] = None,
+    tv_weight: Annotated[
+        float | None,
+        typer.Option(
+            help="tv: strength of the TV step, 1/mm (default: a quarter of the FDK volume's noise)"
+        ),
+    ] = None,
+    views_every: Annotated[
+        int, typer.Option(help="reconstruct every K-th view only (a sparse scan)")
+    ] = 1,
 ) -> None:
-    """Reconstruct RTK-format projections with weighted FDK (through the patient's motion
-    with --compensate-motion)."""
+    """Reconstruct RTK-format projections with weighted FDK, OS-SART or OS-SART + TV
+    (through the patient's motion with --compensate-motion)."""
     from recon.io import VOLUME_SUFFIXES
+    from recon.iterative import METHODS, IterativeSettings
     from scanner.outputs import Output, new_outputs
     from study import jobs
 
     check_range("--min-coverage-deg", min_coverage_deg, 0.0, 360.0, "degrees")
+    if method not in METHODS:
+        fail(f"--method {method}: choose one of {', '.join(METHODS)}")
+    if method == "fdk" and (iterations is not None or tv_weight is not None):
+        fail("--iterations and --tv-weight are for --method sart or tv")
+    if iterations is not None and iterations < 1:
+        fail(f"--iterations {iterations}: give 1 or more")
+    if tv_weight is not None and not tv_weight >= 0.0:
+        fail(f"--tv-weight {tv_weight:g}: give 0 or more 1/mm")
+    if tv_weight is not None and method != "tv":
+        fail("--tv-weight is for --method tv")
+    if views_every < 1:
+        fail(f"--views-every {views_every}: give 1 or more")
+    iterative = None
+    if method != "fdk":
+        given = {} if iterations is None else {"iterations": iterations}
+        iterative = IterativeSettings(method, tv_weight=tv_weight, **given)  # type: ignore[arg-type]
     if spacing_mm is not None:
         check_range("--spacing-mm", spacing_mm, 0.01, 100.0, "mm")
     if size is not None and min(size) < 1:
@@ -227,11 +268,15 @@ def recon(
                 orbit_path=orbit,
                 mar=mar,
                 say=lambda m: console.print(
-                    f"  {'MAR' if mar else 'motion'}: {m}", highlight=False
+                    f"  {'MAR: ' if mar else 'motion: ' if compensate_motion else ''}{m}",
+                    highlight=False,
                 ),
                 motion_out=motion_out,
                 times_path=times,
                 fit_progress=fitted,
+                iterative=iterative,
+                views_every=views_every,
+                iteration_progress=views_done(bar, f"{method.upper()}: subsets", "subsets"),
             )
     except (ValueError, OSError) as err:
         fail(str(err))
@@ -979,6 +1024,14 @@ def demo(
             "and compensates it"
         ),
     ] = 1.5,
+    protocol: Annotated[
+        Path | None,
+        typer.Option(
+            help="a scan protocol whose exposure, reconstruction (fdk, sart, tv) and share of "
+            "a full protocol's 360 views the knee scan takes, on the demo's panel (e.g. "
+            "configs/protocols/knee_reverse_spiral_360_sparse90.yaml)"
+        ),
+    ] = None,
 ) -> None:
     """Run the main job on the simulated scanner, into one study folder: plan, calibrate,
     scan, reconstruct, segment, simulate fluoroscopy, track the bones, assess, record."""
@@ -989,7 +1042,14 @@ def demo(
     check_range("--sway-mm", sway_mm, 0.0, demo_job.MAX_SWAY_MM, "mm (0: still)")
     try:
         prepared = demo_job.open_demo(
-            out, CONFIGS, quick=quick, resume=resume, seed=seed, tka=tka, sway_mm=sway_mm
+            out,
+            CONFIGS,
+            quick=quick,
+            resume=resume,
+            seed=seed,
+            tka=tka,
+            sway_mm=sway_mm,
+            protocol=protocol,
         )
     except (ValueError, OSError, StudyError) as err:
         fail(str(err))

@@ -42,6 +42,7 @@ from calibration.phantom import BBPhantomSpec
 from recon.config import ScanProtocol, load_config, load_protocol
 from recon.fdk import Progress
 from recon.io import read_projections, write_projections
+from recon.iterative import MIN_SPARSE_VIEWS
 from registration.boneaxis import Settings
 from scanner.detector_calibration import calibrate_session
 from scanner.scan_files import Status
@@ -153,15 +154,38 @@ PHANTOM_FILES = {"knee": "knee.yaml", "bb": "bb_helix.yaml", "tka": "tka.yaml"}
 """Each simulated subject's config in configs/phantoms/."""
 
 
+FULL_PROTOCOL_VIEWS = 360
+"""Views of the full clinical protocol (knee_reverse_spiral_360) that a protocol given to the
+demo is a share of."""
+
+
 def _stages(size: dict) -> tuple[str, ...]:
     """The stages of a demo of ``size`` (:data:`TKA_STAGES` for ``--tka``)."""
     return TKA_STAGES if size.get("tka") else STAGES
 
 
 def _protocols(configs: Path, size: dict) -> tuple[ScanProtocol, ScanProtocol]:
-    """The knee protocol and its calibration read-out (same plan, finer pixels)."""
+    """The knee protocol and its calibration read-out (same plan, finer pixels).
+
+    With ``size["protocol"]`` (a protocol file): its exposure, dose limit and reconstruction,
+    and its share of the views of a full protocol (:data:`FULL_PROTOCOL_VIEWS`: a 90-view
+    protocol scans a quarter of the demo's views), on the demo's panel and spiral."""
     base = load_protocol(configs / "protocols" / "demo_knee.yaml")
-    orbit = base.orbit.model_copy(update={"views": size["views"]})
+    views = size["views"]
+    if size.get("protocol"):
+        given = load_protocol(size["protocol"])
+        views = max(MIN_SPARSE_VIEWS, round(views * given.orbit.views / FULL_PROTOCOL_VIEWS))
+        base = ScanProtocol.model_validate(
+            base.model_dump()
+            | {
+                "name": given.name,
+                "description": given.description,
+                "exposure": given.exposure.model_dump(),
+                "dose_limit_mas": given.dose_limit_mas,
+                "reconstruction": given.reconstruction.model_dump(),
+            }
+        )
+    orbit = base.orbit.model_copy(update={"views": views})
 
     def readout(n: int) -> ScanProtocol:
         width = base.detector.width_mm
@@ -292,6 +316,7 @@ def acquire(
             written=live.volume_path,
             fit_progress=_fit_bars(bars),
             motion_rounds=size["motion_rounds"],
+            iteration_progress=_bar(bars, "recon: iterations", "subsets"),
         )
         say_scan(f"recon stage written {time.perf_counter() - scanned:.1f} s after the scan")
 
@@ -357,6 +382,7 @@ def open_demo(
     seed: int = 0,
     tka: bool = False,
     sway_mm: float = STANDING_SWAY_MM,
+    protocol: Path | None = None,
 ) -> Demo:
     """The demo's study, before anything runs: new at ``out`` (a new or empty folder), or the
     one to continue (``resume``; its own seed). Raises StudyError or ConfigError.
@@ -370,10 +396,17 @@ def open_demo(
         tka: The knee replacement (:data:`TKA_STAGES`) instead of the native knee.
         sway_mm: How far the standing patient sways at the knee during the static scan, mm
             (0: perfectly still; the knee replacement's scene always stands still).
+        protocol: A scan protocol whose exposure, dose limit, reconstruction and share of
+            the views the knee scan takes (:func:`_protocols`); default the demo's own.
     """
     if not 0.0 <= sway_mm <= MAX_SWAY_MM:
         raise ValueError(f"sway_mm must be in [0, {MAX_SWAY_MM:g}] mm, got {sway_mm!r}")
     size = {**(QUICK if quick else FULL), "sway_mm": 0.0 if tka else float(sway_mm)}
+    if protocol is not None:
+        if tka:
+            raise ValueError("--protocol is for the native knee's demo, not --tka")
+        load_protocol(protocol)  # refused here, before the study is made
+        size["protocol"] = str(protocol.resolve())
     if tka:
         size = {**size, **TKA, "tka": True}
         size["frames"] = max(size["frames"], TKA_FRAMES_AT_LEAST)
@@ -388,7 +421,8 @@ def open_demo(
         made = study.manifest["config"].get("demo", {})
         if made.get("size") != size:
             raise StudyError(
-                f"{out} was made with other demo settings (--quick, --tka or --sway-mm differs)"
+                f"{out} was made with other demo settings (--quick, --tka, --sway-mm or "
+                "--protocol differs)"
             )
         return Demo(study, size, made.get("seed", 0), settings)
     demo = {"size": size, "varus_deg": VARUS_DEG, "seed": seed}
@@ -444,6 +478,7 @@ def run(
             stage("recon", "weighted FDK with the calibrated geometry, through the patient's sway"),
             fit_progress=_fit_bars(bars),
             motion_rounds=size["motion_rounds"],
+            iteration_progress=_bar(bars, "recon: iterations", "subsets"),
         )
         segmentation_stage(study, stage("segmentation", "bones from the reconstruction"))
         registration_stage(
@@ -492,6 +527,20 @@ def _assessment_text(assess: dict) -> str:
     return text
 
 
+def _method_text(recon: dict) -> str:
+    """What the demo's summary says of an iterative reconstruction (nothing for FDK)."""
+    method = recon.get("reconstruction", {})
+    if method.get("method", "fdk") == "fdk":
+        return ""
+    if not method["ran"]:
+        return f"  method:     {method['why']}\n"
+    return (
+        f"  method:     {method['method'].upper()}, {method['iterations']} iterations from FDK; "
+        f"RMSE vs phantom {recon['rmse_calibrated_per_mm']:.5f} /mm "
+        f"({recon['rmse_fdk_per_mm']:.5f} FDK)\n"
+    )
+
+
 def _motion_text(study: Study, out: Path) -> str:
     """What the demo's summary says of the patient's sway during the static scan."""
     recon = study.manifest["stages"]["recon"]
@@ -525,6 +574,7 @@ def _summary(study: Study, out: Path, seconds: float) -> str:
         f"{out}/recon/slices.png; RMSE vs phantom {recon['rmse_calibrated_per_mm']:.5f} /mm "
         f"with the calibrated geometry ({recon['rmse_recorded_per_mm']:.5f} recorded, "
         f"{recon['rmse_true_per_mm']:.5f} true)\n"
+        f"{_method_text(recon)}"
         f"{_motion_text(study, out)}"
         f"  registration: TRE mean {reg['tre_mm']:.2f} mm (median {reg['tre_mm_median']:.2f}), "
         f"RSR {reg['rsr_pct']:.1f} %  ({out}/registration/poses.csv)\n"

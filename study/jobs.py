@@ -29,6 +29,12 @@ from recon.distortion import Distortion
 from recon.fdk import FDKResult, Progress, check_axis_on_panel, default_grid, fdk_reconstruct
 from recon.geometry import Geometry
 from recon.io import read_projections, read_volume, write_volume
+from recon.iterative import (
+    IterativeSettings,
+    iterations_said,
+    iterative_reconstruct,
+    sparse_views,
+)
 from recon.mar import nmar
 from recon.motion import read_view_times, write_motion_csv
 from recon.preview import save_orthogonal_slices
@@ -170,6 +176,9 @@ def reconstruct_files(
     motion_out: tuple[Path, Path] | None = None,
     times_path: Path | None = None,
     fit_progress: Callable[[str, int, int], None] | None = None,
+    iterative: IterativeSettings | None = None,
+    views_every: int = 1,
+    iteration_progress: Progress | None = None,
 ) -> FDKResult:
     """Reconstruct an RTK projection stack + geometry XML into a volume file (and a PNG).
 
@@ -180,8 +189,10 @@ def reconstruct_files(
     ``motion_out`` (a CSV and a PNG path): estimate the patient's motion from the projections
     and reconstruct through it (registration.scan_motion), writing the motion and its QA
     figure there; ``times_path``: a CSV with the per-view times (a ``clock_s`` or ``time_s``
-    column, e.g. a study's scan/exposure_log.csv). Nothing is written if any input is wrong,
-    nor when the motion is beyond what compensation is trusted for.
+    column, e.g. a study's scan/exposure_log.csv). ``iterative``: OS-SART or OS-SART + TV
+    from the FDK volume (recon.iterative; ``iteration_progress`` counts its subsets);
+    ``views_every``: reconstruct every K-th view only (a sparse scan). Nothing is written if
+    any input is wrong, nor when the motion is beyond what compensation is trusted for.
     """
     for path in (out, preview):
         if path is not None and path.exists():
@@ -211,6 +222,16 @@ def reconstruct_files(
             raise ValueError(
                 f"{orbit_path} describes {len(orbit)} views, {geometry_path} {len(geometry)}"
             )
+    projections = stack.data
+    if views_every != 1:
+        keep = sparse_views(geometry, views_every)
+        projections, geometry = projections[keep], geometry[keep]
+        orbit = None if orbit is None else orbit[keep]
+    if iterative is not None and (mar or motion_out is not None):
+        raise ValueError(
+            f"--method {iterative.method} and --{'mar' if mar else 'compensate-motion'} "
+            "exclude each other (not built yet): FDK only"
+        )
     if origin_mm is not None and size_xyz is None:
         raise ValueError("--origin-mm needs --size (the grid's voxel counts)")
     grid = default_grid(geometry, spacing_mm, size_xyz)
@@ -238,14 +259,20 @@ def reconstruct_files(
     metal = None
     if motion_out is not None:
         result = _compensated(
-            stack.data, geometry, grid, orbit, times, motion_out, fdk, say, fit_progress
+            projections, geometry, grid, orbit, times, motion_out, fdk, say, fit_progress
         )
     elif mar:
-        reduced = nmar(stack.data, geometry, grid, fdk=fdk, say=say)
+        reduced = nmar(projections, geometry, grid, fdk=fdk, say=say)
         result = replace(reduced.fdk, volume=reduced.volume)
         metal = Volume(reduced.metal.astype(np.uint8), grid, "label")
     else:
-        result = fdk(stack.data, grid)
+        result = fdk(projections, grid)
+        if iterative is not None:
+            run = iterative_reconstruct(
+                projections, geometry, grid, iterative, start=result, progress=iteration_progress
+            )
+            say(iterations_said(run))
+            result = run.as_fdk()
     if not result.mask.any():
         raise ValueError(
             f"every voxel is seen over less than {min_coverage_deg:g} degrees of the orbit "
@@ -256,9 +283,8 @@ def reconstruct_files(
     if metal is not None:
         write_volume(metal_path, metal)
     if preview is not None:
-        save_orthogonal_slices(
-            result.volume, preview, title=f"weighted FDK of {projections_path.name}"
-        )
+        method = "weighted FDK" if iterative is None else iterative.method.upper()
+        save_orthogonal_slices(result.volume, preview, title=f"{method} of {projections_path.name}")
     return result
 
 

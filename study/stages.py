@@ -28,6 +28,7 @@ from recon.dicom import write_dicom_series
 from recon.fdk import FDKResult, Progress, fdk_reconstruct
 from recon.geometry import Geometry
 from recon.io import read_projections, read_volume, write_volume
+from recon.iterative import iterations_said, iterative_reconstruct, protocol_settings
 from recon.motion import BodyMotion, read_motion_csv, read_view_times
 from recon.preview import save_orthogonal_slices
 from recon.rtk_xml import read_rtk_geometry
@@ -217,6 +218,7 @@ def recon_stage(
     compensate: bool = True,
     fit_progress: Callable[[str, int, int], None] | None = None,
     motion_rounds: int = 2,
+    iteration_progress: Progress | None = None,
 ) -> bool:
     """Weighted FDK of ``scan/`` on :func:`recon_geometry` -> ``recon/`` (NIfTI, MetaImage,
     DICOM series, preview, recording; against the phantom when simulated). ``result`` is the
@@ -228,7 +230,9 @@ def recon_stage(
     kept as ``live_volume.mha``), the motion written as ``motion.csv`` with its QA figure
     ``motion.png``, its peak per body recorded (``motion_rounds``: rounds of the two-body
     fit); a motion beyond what compensation is trusted for fails the stage with the words to
-    repeat the scan."""
+    repeat the scan. A protocol whose reconstruction is sart or tv (recon.iterative) has its
+    volume made so from the FDK volume (``iteration_progress`` counts subsets), unless the
+    patient's motion was compensated (iterations through a motion are not built)."""
 
     def fill(folder: Path) -> dict:
         nonlocal result
@@ -252,6 +256,30 @@ def recon_stage(
         live = result
         if estimate is not None:
             result = views.fdk(stack.data, grid, progress, estimate.motion)
+        iterative = protocol_settings(protocol.reconstruction)
+        moved = estimate is not None and float(estimate.displacement_mm.max()) > 0.0
+        if iterative is not None and moved:
+            said = (
+                f"{iterative.method.upper()} through the patient's motion is not built: the "
+                "volume is the motion-compensated FDK"
+            )
+            say(said)
+            method = {"method": iterative.method, "ran": False, "why": said}
+        elif iterative is not None:
+            run = iterative_reconstruct(
+                stack.data, views.rays, grid, iterative, start=result, progress=iteration_progress
+            )
+            say(iterations_said(run))
+            plain, result = result, run.as_fdk()
+            method = {
+                "method": iterative.method,
+                "ran": True,
+                "iterations": run.iterations,
+                "stopped": run.stopped,
+                "tv_weight_per_mm": run.settings.tv_weight,
+            }
+        else:
+            method = {"method": "fdk"}
         volume = result.volume
         kept = "live_volume.mha" if estimate is not None else "volume.mha"
         if written is not None:
@@ -266,12 +294,14 @@ def recon_stage(
         energy = REAL_SCAN_ENERGY_KEV if knee is None else knee.effective_energy_kev
         water = attenuation_per_mm(energy)["water"]
         write_dicom_series(folder / "dicom", volume, mu_water_per_mm=water)
-        save_orthogonal_slices(volume, folder / "slices.png", title="weighted FDK")
+        title = "weighted FDK" if not method.get("ran") else method["method"].upper()
+        save_orthogonal_slices(volume, folder / "slices.png", title=title)
         record_volume(volume, folder / "recording.rrd")
         details = {
             "geometry": "calibrated" if calibrated else "recorded",
             "voxel_mm": voxel_mm,
             "during_scan": streamed,
+            "reconstruction": method,
         }
         if estimate is not None:
             details["motion"] = _motion_outputs(study, estimate, live, result, folder)
@@ -283,6 +313,8 @@ def recon_stage(
             rmse = {details["geometry"]: _rmse(volume.data, truth, inside)}
             if estimate is not None:
                 rmse["uncompensated"] = _rmse(live.volume.data, truth, inside)
+            if method.get("ran"):
+                rmse["fdk"] = _rmse(plain.volume.data, truth, inside)
             others = {"recorded": recorded}
             true_path = study.path / "scan" / "true_geometry.xml"
             if true_path.exists():

@@ -337,3 +337,48 @@ def test_write_readme_without_markers_reports_and_leaves_the_file(tmp_path):
     path.write_text(json.dumps(_all(plan=PLAN)), encoding="utf-8")
     assert table.main([str(path), "--write-readme", "--readme", str(readme)]) == 1
     assert readme.read_text(encoding="utf-8") == "# Project\n"
+
+
+def _iterative_row(case, method, views, mas, rmse, seconds, dice=None):
+    return {
+        "case": case,
+        "method": method,
+        "views": views,
+        "mas_fraction": mas,
+        "iterations": 4,
+        "rmse": rmse,
+        "ssim": 0.9,
+        "bone_dice": dice,
+        "seconds": seconds,
+        "seconds_per_iteration": seconds / 4,
+        "peak_mb": 300.0,
+    }
+
+
+def test_iterative_table_rmse_per_method_seconds_against_rtk_and_one_iteration():
+    rows = [
+        _iterative_row("knee", m, 90, 0.25, r, s, d)
+        for m, r, s, d in (
+            ("fdk", 0.00241, 0.1, 0.89),
+            ("sart", 0.00157, 0.6, None),
+            ("tv", 0.00163, 0.6, 0.92),
+            ("rtk_sart", 0.00185, 3.6, None),
+            ("rtk_cg", 0.00164, 2.6, None),
+            ("rtk_tv", 0.00156, 5.2, None),
+        )
+    ]
+    rows += [
+        {**_iterative_row("speed", "sart", 360, None, 0.01, 30.0), "seconds_per_iteration": 30.0},
+        {
+            **_iterative_row("speed", "rtk_sart", 360, None, 0.01, 150.0),
+            "seconds_per_iteration": 150.0,
+        },
+    ]
+    config = {"iterations": 4, "photons_full": 2e4, "voxel_mm": 2.0, "panel": 160, "pitch_mm": 2.4}
+    lines = table.iterative_table({"config": config, "rows": rows}).splitlines()
+    assert (
+        "| knee | 90 | 0.25 | 2.410 | 1.570 | 1.630 | 1.850 | 1.640 | 1.560 | 0.890 / 0.920 |"
+        in lines
+    )
+    assert "| knee | 90 | 0.25 | 0.6 / 3.6 (6.0x) | 0.6 / 5.2 (8.7x) |" in lines
+    assert lines[-1].endswith("ours 30.0 s, RTK 150.0 s (5.0x).")

@@ -6,11 +6,13 @@ import numpy as np
 import pytest
 
 from recon.fdk import fdk_reconstruct
-from recon.geometry import DetectorSpec, circular_orbit
+from recon.geometry import DetectorSpec, circular_orbit, short_scan_arc_deg
 from recon.iterative import (
+    TV_PER_NOISE,
     IterativeSettings,
     iterative_reconstruct,
     noise_sigma,
+    sparse_views,
     subsets,
 )
 from recon.project import forward_project
@@ -86,7 +88,9 @@ def test_tv_removes_noise_that_sart_keeps(scan, seed, measured):
     tv = iterative_reconstruct(
         data, geometry, GRID, IterativeSettings("tv", iterations=8, tolerance=0.0), start=fdk
     )
-    assert tv.settings.tv_weight == pytest.approx(0.5 * noise_sigma(fdk.volume.data, fdk.mask))
+    assert tv.settings.tv_weight == pytest.approx(
+        TV_PER_NOISE * noise_sigma(fdk.volume.data, fdk.mask)
+    )
     measured(
         "tv_rmse_over_sart", rmse(tv.volume.data, truth) / rmse(sart.volume.data, truth), below=0.75
     )
@@ -116,6 +120,19 @@ def test_subsets_interleave_every_view_once():
     assert len(groups) == 9
     assert sorted(np.concatenate(groups).tolist()) == list(range(90))
     assert all(np.all(np.diff(g) == 9) for g in groups)
+
+
+def test_sparse_views_keep_enough_of_the_orbit():
+    """Every 4th of 360 views over a turn is a sparse scan; fewer than 20 views, or a short
+    scan thinned below 180 degrees plus the fan, is refused with the limit named."""
+    turn = circular_orbit(360, 600.0, 1000.0, PANEL, isocenter_mm=ISO)
+    assert sparse_views(turn, 4).tolist() == list(range(0, 360, 4))
+    with pytest.raises(ValueError, match="keeps 18 of 360 views: at least 20"):
+        sparse_views(turn, 20)
+    need = short_scan_arc_deg(1000.0, PANEL)  # 180 deg + the fan
+    short = circular_orbit(101, 600.0, 1000.0, PANEL, arc_deg=need + 0.5, isocenter_mm=ISO)
+    with pytest.raises(ValueError, match=r"leaves an arc of .* deg: at least 180 deg plus the fan"):
+        sparse_views(short, 3)  # 34 views: the last kept lies 2 steps before the arc's end
 
 
 def test_noise_sigma_reads_the_noise_not_the_edges():

@@ -127,6 +127,15 @@ ROWS = [
      "{F}/missing", "report", "--overlays"),
     ("register", "--frames {F}/garbage.jpg --geometry {F}/geometry.xml --volume {F}/stack.mha "
      "--labels {F}/stack.mha --out {OUT}", "poses", "garbage.jpg: not frames this reads"),
+    ("recon", "--projections {F}/stack.mha --geometry {F}/geometry.xml --out {OUT} "
+     "--method tv --iterations 0", "v.nii.gz", "--iterations 0: give 1 or more"),
+    ("recon", "--projections {F}/stack.mha --geometry {F}/geometry.xml --out {OUT} "
+     "--method tv --tv-weight -0.01", "v.nii.gz", "--tv-weight -0.01: give 0 or more 1/mm"),
+    ("recon", "--projections {F}/stack.mha --geometry {F}/geometry.xml --out {OUT} "
+     "--method art", "v.nii.gz", "--method art: choose one of fdk, sart, tv"),
+    ("recon", "--projections {F}/stack.mha --geometry {F}/geometry.xml --out {OUT} "
+     "--views-every 2", "v.nii.gz", "--views-every 2 keeps 4 of 8 views: at least 20"),
+    ("demo", "--out {OUT} --quick --protocol {F}/missing.yaml", "demo", "missing.yaml"),
 ]
 # fmt: on
 
