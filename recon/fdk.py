@@ -654,3 +654,24 @@ def default_grid(
         )
         size_xyz = tuple(min(max_size, max(1, math.ceil(e / spacing_mm))) for e in extent)
     return VolumeGrid.centered(size_xyz, spacing_mm, center)
+
+
+def seen_along_z(grid: VolumeGrid, geometry: Geometry) -> VolumeGrid:
+    """``grid`` extended along z, in whole voxels, over the height the views see."""
+    full = default_grid(geometry, spacing_mm=grid.spacing_mm[2])
+    dz = grid.spacing_mm[2]
+    low = min(grid.origin_mm[2], full.origin_mm[2])
+    high = max(
+        grid.origin_mm[2] + dz * (grid.shape[0] - 1), full.origin_mm[2] + dz * (full.shape[0] - 1)
+    )
+    below = math.ceil((grid.origin_mm[2] - low) / dz - 1e-9)
+    above = math.ceil((high - grid.origin_mm[2]) / dz - 1e-9) - (grid.shape[0] - 1)
+    origin = (grid.origin_mm[0], grid.origin_mm[1], grid.origin_mm[2] - below * dz)
+    return VolumeGrid(
+        (grid.shape[0] + below + max(above, 0), *grid.shape[1:]), grid.spacing_mm, origin
+    )
+
+
+def offset_voxels(outer: VolumeGrid, inner: VolumeGrid) -> tuple[int, int, int]:
+    """Where ``inner``'s first voxel sits in ``outer`` (z, y, x)."""
+    return tuple(int(k) for k in np.rint(outer.world_to_index(inner.origin_mm))[::-1])

@@ -30,7 +30,14 @@ import numpy as np
 from skimage.restoration import denoise_tv_chambolle
 
 from recon.config import ReconstructionSpec
-from recon.fdk import FDKResult, Progress, estimate_orbit, fdk_reconstruct
+from recon.fdk import (
+    FDKResult,
+    Progress,
+    estimate_orbit,
+    fdk_reconstruct,
+    offset_voxels,
+    seen_along_z,
+)
 from recon.geometry import DetectorSpec, Geometry, short_scan_arc_deg
 from recon.project import (
     ADJOINT_WEIGHT,
@@ -47,6 +54,8 @@ TV_PER_NOISE = 0.25
 """Default TV weight per unit of the FDK start's voxel noise (:func:`noise_sigma`)."""
 MIN_SPARSE_VIEWS = 20
 """Fewest views a sparse subset of a scan (:func:`sparse_views`) may keep."""
+END_SLICE_SHARE = 0.01
+"""Share of an end slice the object must cover for it to continue beyond the grid."""
 SENSITIVITY_BATCH = 16
 """Views backprojected together for the voxels' sensitivity (as FDK's batches)."""
 MIN_RAY_VOXELS = 1.0
@@ -130,6 +139,27 @@ class IterativeResult:
     def as_fdk(self) -> FDKResult:
         """The FDK result with this volume in place of FDK's (coverage and mask kept)."""
         return replace(self.fdk, volume=self.volume)
+
+
+def continues_beyond_ends(volume: np.ndarray) -> bool:
+    """Whether the object reaches the volume's first or last z slice: more than
+    :data:`END_SLICE_SHARE` of that slice above a tenth of the object's level (its 99th
+    percentile), as a leg does above and below a knee's field of view."""
+    data = np.asarray(volume)
+    level = float(np.percentile(data, 99.0)) if data.size else 0.0
+    if level <= 0.0:
+        return False
+    return any(float((data[k] > 0.1 * level).mean()) > END_SLICE_SHARE for k in (0, -1))
+
+
+def _object_slices(volume: np.ndarray, keep: tuple[int, int]) -> tuple[int, int]:
+    """The z range (start, stop) of the slices the object covers (as
+    :func:`continues_beyond_ends` judges a slice), joined with ``keep``, one slice of margin."""
+    level = float(np.percentile(volume, 99.0))
+    covered = np.flatnonzero((volume > 0.1 * level).mean(axis=(1, 2)) > END_SLICE_SHARE)
+    lo = min(keep[0], int(covered[0]) - 1) if covered.size else keep[0]
+    hi = max(keep[1], int(covered[-1]) + 2) if covered.size else keep[1]
+    return max(0, lo), min(len(volume), hi)
 
 
 def protocol_settings(spec: ReconstructionSpec) -> IterativeSettings | None:
@@ -248,6 +278,24 @@ def iterative_reconstruct(
             else settings.tv_weight
         )
     settings = replace(settings, tv_weight=weight if settings.method == "tv" else None)
+    x = np.where(start.mask, np.maximum(start.volume.data, 0.0), 0.0).astype(np.float32)
+    inner = tuple(slice(0, n) for n in grid.shape)
+    if continues_beyond_ends(x):  # iterate on all of it the rays cross; the grid is inside
+        inside, seen = grid, seen_along_z(grid, geometry)
+        options = {**fdk_options, "min_coverage_deg": 0.0}  # the ends, seen by a few views
+        extended = fdk_reconstruct(proj, geometry, seen, **options)  # type: ignore[arg-type]
+        outer = np.maximum(extended.volume.data, 0.0)
+        first = offset_voxels(seen, inside)[0]
+        lo, hi = _object_slices(outer, (first, first + inside.shape[0]))
+        grid = VolumeGrid(
+            (hi - lo, *seen.shape[1:]),
+            seen.spacing_mm,
+            (seen.origin_mm[0], seen.origin_mm[1], seen.origin_mm[2] + lo * seen.spacing_mm[2]),
+        )
+        outer = outer[lo:hi].astype(np.float32)
+        inner = (slice(first - lo, first - lo + inside.shape[0]), *inner[1:])
+        outer[inner] = x
+        x = outer
 
     groups = subsets(len(geometry), settings.views_per_subset)
     views = [geometry[group] for group in groups]
@@ -269,7 +317,6 @@ def iterative_reconstruct(
     step[seen] = settings.relaxation / sensitivity[seen]
     del sensitivity
 
-    x = np.where(start.mask, np.maximum(start.volume.data, 0.0), 0.0).astype(np.float32)
     changes: list[float] = []
     residuals: list[float] = []
     stopped = "iterations"
@@ -306,10 +353,10 @@ def iterative_reconstruct(
             if progress is not None:
                 progress(total, total)
             break
-    x[~start.mask] = 0.0
+    x = np.where(start.mask, x[inner], 0.0).astype(np.float32)
     return IterativeResult(
         start,
-        Volume(x, grid, "1/mm"),
+        Volume(x, start.volume.grid, "1/mm"),
         settings,
         tuple(changes),
         tuple(residuals),

@@ -20,7 +20,6 @@ the share measured.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -28,7 +27,7 @@ import numba
 import numpy as np
 from scipy import ndimage
 
-from recon.fdk import FDKResult, default_grid, fdk_reconstruct
+from recon.fdk import FDKResult, fdk_reconstruct, offset_voxels, seen_along_z
 from recon.geometry import Geometry
 from recon.project import JosephProjector
 from recon.volume import Volume, VolumeGrid
@@ -192,9 +191,9 @@ def nmar(
         ValueError: no metal found, or a trace too wide to interpolate (naming the view and
             the share).
     """
-    seen = _seen_along_z(grid, geometry)
+    seen = seen_along_z(grid, geometry)
     inner = tuple(
-        slice(k, k + n) for k, n in zip(_offset_voxels(seen, grid), grid.shape, strict=True)
+        slice(k, k + n) for k, n in zip(offset_voxels(seen, grid), grid.shape, strict=True)
     )
     fdk = fdk or (lambda p, g: fdk_reconstruct(p, geometry, g))
     first = fdk(projections, seen)
@@ -242,24 +241,3 @@ def nmar(
         share,
         corrected,
     )
-
-
-def _seen_along_z(grid: VolumeGrid, geometry: Geometry) -> VolumeGrid:
-    """``grid`` extended along z, in whole voxels, over the height the views see."""
-    full = default_grid(geometry, spacing_mm=grid.spacing_mm[2])
-    dz = grid.spacing_mm[2]
-    low = min(grid.origin_mm[2], full.origin_mm[2])
-    high = max(
-        grid.origin_mm[2] + dz * (grid.shape[0] - 1), full.origin_mm[2] + dz * (full.shape[0] - 1)
-    )
-    below = math.ceil((grid.origin_mm[2] - low) / dz - 1e-9)
-    above = math.ceil((high - grid.origin_mm[2]) / dz - 1e-9) - (grid.shape[0] - 1)
-    origin = (grid.origin_mm[0], grid.origin_mm[1], grid.origin_mm[2] - below * dz)
-    return VolumeGrid(
-        (grid.shape[0] + below + max(above, 0), *grid.shape[1:]), grid.spacing_mm, origin
-    )
-
-
-def _offset_voxels(outer: VolumeGrid, inner: VolumeGrid) -> tuple[int, int, int]:
-    """Where ``inner``'s first voxel sits in ``outer`` (z, y, x)."""
-    return tuple(int(k) for k in np.rint(outer.world_to_index(inner.origin_mm))[::-1])

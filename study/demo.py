@@ -178,6 +178,7 @@ def _protocols(configs: Path, size: dict) -> tuple[ScanProtocol, ScanProtocol]:
         base = ScanProtocol.model_validate(
             base.model_dump()
             | {
+                "orbit": base.orbit.model_dump() | {"views": views},
                 "name": given.name,
                 "description": given.description,
                 "exposure": given.exposure.model_dump(),
