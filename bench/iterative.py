@@ -129,7 +129,9 @@ def worker(method: str, folder: Path, cfg: dict) -> None:
             views_per_subset=cfg["views_per_subset"],
             relaxation=cfg["relaxation"],
         )
-        iterative_reconstruct(projections[:8], geometry[:8], tiny, settings, start=warm)
+        iterative_reconstruct(
+            projections[:8], geometry[:8], tiny, settings, start=warm, redundancy="none"
+        )
         start = time.perf_counter()
         fdk = fdk_reconstruct(projections, geometry, grid)
         volume = fdk.volume.data
