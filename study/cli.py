@@ -424,13 +424,15 @@ def scan(
         live.close()
         fail(f"{err or 'interrupted'}; continue with: cbct scan --resume --study {study}", FAILED)
     try:
-        recon_stage(
-            done,
-            recon_voxel_mm,
-            result=live.finish(),
-            written=live.volume_path,
-            say=lambda _m: None,
-        )
+        with views_progress() as bar:
+            recon_stage(
+                done,
+                recon_voxel_mm,
+                result=live.finish(),
+                written=live.volume_path,
+                say=lambda m: console.print(f"  recon: {m}", highlight=False),
+                iteration_progress=views_done(bar, "recon: iterations", "subsets"),
+            )
     except (ValueError, OSError, RuntimeError) as err:
         fail(
             f"{err}\n  the scan is complete and kept; reconstruct it offline with: cbct recon "
