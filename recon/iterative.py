@@ -252,6 +252,8 @@ def iterative_reconstruct(
         start: an FDK reconstruction of the same data on ``grid`` (computed when None, with
             ``fdk_options`` passed to :func:`recon.fdk.fdk_reconstruct`).
         progress: optional callback ``progress(subsets_done, subsets_total)``.
+        fdk_options: keyword arguments of :func:`recon.fdk.fdk_reconstruct` for the FDK
+            volumes made here (the start when None, the extended grid's).
 
     Returns:
         :class:`IterativeResult` (volume in 1/mm).
