@@ -668,6 +668,8 @@ YAML_CONFIGS: dict[str, Callable[[Path], object]] = {
     "protocols/knee_fluoroscopy_lateral.yaml": load_protocol,
     "protocols/knee_reverse_spiral_180.yaml": load_protocol,
     "protocols/knee_reverse_spiral_360.yaml": load_protocol,
+    "protocols/knee_reverse_spiral_360_quarter_dose.yaml": load_protocol,
+    "protocols/knee_reverse_spiral_360_sparse90.yaml": load_protocol,
     "backends/sim.yaml": lambda p: load_backend_spec("sim", p),
     "backends/ur.yaml": lambda p: load_backend_spec("ur", p),
     "scanner.yaml": lambda p: load_config(p, ScannerConfig),
