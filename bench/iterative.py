@@ -44,9 +44,9 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from measures import bone_dice, central_region, peak_resident_mb, ssim  # noqa: E402
+from scan_inputs import read_scan, write_scan  # noqa: E402
 
 from recon.geometry import DetectorSpec, Geometry, circular_orbit  # noqa: E402
-from recon.rtk_xml import read_rtk_geometry, write_rtk_geometry  # noqa: E402
 from recon.volume import Volume, VolumeGrid  # noqa: E402
 
 KEYS = (
@@ -100,22 +100,12 @@ OURS, RTK = ("fdk", "sart", "tv"), ("rtk_sart", "rtk_cg", "rtk_tv")
 # -- worker: one reconstruction in its own process ---------------------------------------------
 
 
-def _load(folder: Path) -> tuple[np.ndarray, Geometry, VolumeGrid]:
-    from recon.io import read_projections
-
-    stack = read_projections(folder / "projections.mha")
-    geometry = read_rtk_geometry(folder / "geometry.xml", stack.header)
-    spec = json.loads((folder / "grid.json").read_text())
-    grid = VolumeGrid(tuple(spec["shape"]), tuple(spec["spacing_mm"]), tuple(spec["origin_mm"]))
-    return stack.data, geometry, grid
-
-
 def worker(method: str, folder: Path, cfg: dict) -> None:
     """Reconstruct ``folder``'s projections with ``method``; print timing and peak memory."""
     from recon.fdk import fdk_reconstruct
     from recon.iterative import IterativeSettings, iterative_reconstruct
 
-    projections, geometry, grid = _load(folder)
+    projections, geometry, grid = read_scan(folder)
     tiny = VolumeGrid.centered((8, 8, 8), 4.0, grid.center_mm)
     iterations = cfg["iterations"]
     per_iteration = None
@@ -227,17 +217,10 @@ def shepp_logan_scan(cfg: dict, log) -> tuple[np.ndarray, Geometry, VolumeGrid, 
 def write_inputs(
     folder: Path, projections: np.ndarray, geometry: Geometry, grid: VolumeGrid
 ) -> None:
+    """The scan's files (bench/scan_inputs.py) and the FDK volume every method starts from."""
     from recon.fdk import fdk_reconstruct
-    from recon.io import write_projections
 
-    folder.mkdir(parents=True)
-    write_projections(folder / "projections.mha", projections, geometry[0].pitch_u_mm)
-    write_rtk_geometry(folder / "geometry.xml", geometry)
-    (folder / "grid.json").write_text(
-        json.dumps(
-            {"shape": grid.shape, "spacing_mm": grid.spacing_mm, "origin_mm": grid.origin_mm}
-        )
-    )
+    write_scan(folder, projections, geometry, grid)
     np.save(folder / "fdk.npy", fdk_reconstruct(projections, geometry, grid).volume.data)
 
 

@@ -34,6 +34,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from measures import central_region, peak_resident_mb, ssim  # noqa: E402
+from scan_inputs import read_scan, write_scan  # noqa: E402
 
 from recon.geometry import (  # noqa: E402
     DetectorSpec,
@@ -42,7 +43,6 @@ from recon.geometry import (  # noqa: E402
     helical_orbit,
     short_scan_arc_deg,
 )
-from recon.rtk_xml import read_rtk_geometry, write_rtk_geometry  # noqa: E402
 from recon.volume import VolumeGrid  # noqa: E402
 
 KEYS = (
@@ -108,27 +108,21 @@ def orbits(cfg: dict, isocenter) -> dict[str, Geometry]:
 def worker(toolkit: str, folder: Path, case: str) -> None:
     """Reconstruct ``folder``'s projections with one toolkit; print timing and peak memory."""
     from recon.fdk import fdk_reconstruct
-    from recon.io import read_projections
     from recon.rtk_peer import rtk_fdk
 
-    stack = read_projections(folder / "projections.mha")
-    geometry = read_rtk_geometry(folder / "geometry.xml", stack.header)
-    grid_spec = json.loads((folder / "grid.json").read_text())
-    grid = VolumeGrid(
-        tuple(grid_spec["shape"]), tuple(grid_spec["spacing_mm"]), tuple(grid_spec["origin_mm"])
-    )
+    projections, geometry, grid = read_scan(folder)
     if toolkit == "ours":
         tiny = VolumeGrid.centered((8, 8, 8), 4.0, grid.center_mm)
         fdk_reconstruct(
-            stack.data[:8], geometry[:8], tiny, redundancy="none", min_coverage_deg=0
+            projections[:8], geometry[:8], tiny, redundancy="none", min_coverage_deg=0
         )  # loads the compiled kernels from numba's cache
         start = time.perf_counter()
-        volume = fdk_reconstruct(stack.data, geometry, grid, window="ram-lak").volume.data
+        volume = fdk_reconstruct(projections, geometry, grid, window="ram-lak").volume.data
     else:
         tiny = VolumeGrid.centered((8, 8, 8), 4.0, grid.center_mm)
-        rtk_fdk(stack.data[:8], geometry[:8], tiny)  # loads RTK's wrapped modules
+        rtk_fdk(projections[:8], geometry[:8], tiny)  # loads RTK's wrapped modules
         start = time.perf_counter()
-        volume = rtk_fdk(stack.data, geometry, grid, parker=case == "short")
+        volume = rtk_fdk(projections, geometry, grid, parker=case == "short")
     seconds = time.perf_counter() - start
     np.save(folder / f"{toolkit}.npy", volume)
     print(json.dumps({"seconds": seconds, "peak_mb": peak_resident_mb()}))
@@ -152,16 +146,8 @@ def run_worker(toolkit: str, folder: Path, case: str) -> dict:
 def write_inputs(
     folder: Path, projections: np.ndarray, geometry: Geometry, grid: VolumeGrid, truth: np.ndarray
 ) -> None:
-    from recon.io import write_projections
-
-    folder.mkdir(parents=True)
-    write_projections(folder / "projections.mha", projections, geometry[0].pitch_u_mm)
-    write_rtk_geometry(folder / "geometry.xml", geometry)
-    (folder / "grid.json").write_text(
-        json.dumps(
-            {"shape": grid.shape, "spacing_mm": grid.spacing_mm, "origin_mm": grid.origin_mm}
-        )
-    )
+    """The scan's files (bench/scan_inputs.py) and the truth to measure against."""
+    write_scan(folder, projections, geometry, grid)
     np.save(folder / "truth.npy", truth)
 
 

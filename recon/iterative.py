@@ -113,7 +113,7 @@ class IterativeResult:
     Attributes:
         fdk: the FDK start; its coverage and mask hold for the iterative volume too.
         volume: the reconstruction (1/mm), zero where the FDK mask is False.
-        settings: the settings as run, ``tv_weight`` resolved (0 for "sart").
+        settings: the settings as run, ``tv_weight`` resolved for "tv" (None for "sart").
         changes: per iteration, the volume's relative root-mean-square change.
         residuals: per iteration, the root-mean-square residual (p - A x) over the rays
             through the grid before the iteration's updates (line integral, dimensionless).
@@ -141,25 +141,77 @@ class IterativeResult:
         return replace(self.fdk, volume=self.volume)
 
 
-def continues_beyond_ends(volume: np.ndarray) -> bool:
-    """Whether the object reaches the volume's first or last z slice: more than
-    :data:`END_SLICE_SHARE` of that slice above a tenth of the object's level (its 99th
-    percentile), as a leg does above and below a knee's field of view."""
+def covered_slices(volume: np.ndarray) -> np.ndarray:
+    """Per z slice, whether the object covers it: more than :data:`END_SLICE_SHARE` of the
+    slice above a tenth of the object's level (the volume's 99th percentile)."""
     data = np.asarray(volume)
     level = float(np.percentile(data, 99.0)) if data.size else 0.0
     if level <= 0.0:
-        return False
-    return any(float((data[k] > 0.1 * level).mean()) > END_SLICE_SHARE for k in (0, -1))
+        return np.zeros(len(data), dtype=bool)
+    return (data > 0.1 * level).mean(axis=(1, 2)) > END_SLICE_SHARE
+
+
+def continues_beyond_ends(volume: np.ndarray) -> bool:
+    """Whether the object covers the volume's first or last z slice (:func:`covered_slices`),
+    as a leg does above and below a knee's field of view."""
+    covered = covered_slices(volume)
+    return bool(covered[0] or covered[-1])
 
 
 def _object_slices(volume: np.ndarray, keep: tuple[int, int]) -> tuple[int, int]:
-    """The z range (start, stop) of the slices the object covers (as
-    :func:`continues_beyond_ends` judges a slice), joined with ``keep``, one slice of margin."""
-    level = float(np.percentile(volume, 99.0))
-    covered = np.flatnonzero((volume > 0.1 * level).mean(axis=(1, 2)) > END_SLICE_SHARE)
+    """The z range (start, stop) of the slices the object covers, joined with ``keep``, one
+    slice of margin."""
+    covered = np.flatnonzero(covered_slices(volume))
     lo = min(keep[0], int(covered[0]) - 1) if covered.size else keep[0]
     hi = max(keep[1], int(covered[-1]) + 2) if covered.size else keep[1]
     return max(0, lo), min(len(volume), hi)
+
+
+def _extended(
+    projections: np.ndarray,
+    geometry: Geometry,
+    grid: VolumeGrid,
+    x: np.ndarray,
+    fdk_options: dict,
+) -> tuple[VolumeGrid, np.ndarray, tuple[slice, ...]]:
+    """``grid`` extended along z over the slices of the object the views see (from an FDK of
+    the extended grid, every voxel kept), the start there with ``x`` in its middle, and where
+    ``grid`` sits in it."""
+    seen = seen_along_z(grid, geometry)
+    options = {**fdk_options, "min_coverage_deg": 0.0}  # the ends, seen by a few views
+    outer = np.maximum(fdk_reconstruct(projections, geometry, seen, **options).volume.data, 0.0)
+    first = offset_voxels(seen, grid)[0]
+    lo, hi = _object_slices(outer, (first, first + grid.shape[0]))
+    origin = (seen.origin_mm[0], seen.origin_mm[1], seen.origin_mm[2] + lo * seen.spacing_mm[2])
+    extended = VolumeGrid((hi - lo, *seen.shape[1:]), seen.spacing_mm, origin)
+    start = outer[lo:hi].astype(np.float32)
+    inner = (slice(first - lo, first - lo + grid.shape[0]), slice(None), slice(None))
+    start[inner] = x
+    return extended, start, inner
+
+
+def _normalisations(
+    geometry: Geometry, grid: VolumeGrid, relaxation: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """SART's normalisations: each ray's inverse length through ``grid`` (0 where shorter
+    than :data:`MIN_RAY_VOXELS`), which rays count, the views' adjoint factors and each
+    voxel's step (``relaxation`` over every view's counted rays backprojected; 0 unseen)."""
+    inverse_length = JosephProjector(np.ones(grid.shape, np.float32), grid).project(geometry)
+    usable = inverse_length >= MIN_RAY_VOXELS * min(grid.spacing_mm)
+    np.divide(1.0, inverse_length, out=inverse_length, where=usable)
+    inverse_length[~usable] = 0.0
+    per_view = adjoint_scale(geometry, grid)
+    sensitivity = np.zeros(grid.shape, np.float32)
+    for first in range(0, len(geometry), SENSITIVITY_BATCH):  # bounds the pixel quads' memory
+        batch = slice(first, first + SENSITIVITY_BATCH)
+        rays = usable[batch].astype(np.float32)
+        backproject_weighted(
+            rays, geometry[batch], grid, ADJOINT_WEIGHT, sensitivity, scale=per_view[batch]
+        )
+    seen = sensitivity > 1e-6 * float(sensitivity.max())
+    step = np.zeros(grid.shape, np.float32)
+    step[seen] = relaxation / sensitivity[seen]
+    return inverse_length, usable, per_view, step
 
 
 def protocol_settings(spec: ReconstructionSpec) -> IterativeSettings | None:
@@ -272,52 +324,17 @@ def iterative_reconstruct(
         start = fdk_reconstruct(proj, geometry, grid, **fdk_options)  # type: ignore[arg-type]
     elif start.volume.grid != grid:
         raise ValueError("the FDK start lies on another grid than the reconstruction's")
-    weight = 0.0
-    if settings.method == "tv":
-        weight = (
-            TV_PER_NOISE * noise_sigma(start.volume.data, start.mask)
-            if settings.tv_weight is None
-            else settings.tv_weight
+    if settings.method == "tv" and settings.tv_weight is None:
+        settings = replace(
+            settings, tv_weight=TV_PER_NOISE * noise_sigma(start.volume.data, start.mask)
         )
-    settings = replace(settings, tv_weight=weight if settings.method == "tv" else None)
     x = np.where(start.mask, np.maximum(start.volume.data, 0.0), 0.0).astype(np.float32)
     inner = tuple(slice(0, n) for n in grid.shape)
     if continues_beyond_ends(x):  # iterate on all of it the rays cross; the grid is inside
-        inside, seen = grid, seen_along_z(grid, geometry)
-        options = {**fdk_options, "min_coverage_deg": 0.0}  # the ends, seen by a few views
-        extended = fdk_reconstruct(proj, geometry, seen, **options)  # type: ignore[arg-type]
-        outer = np.maximum(extended.volume.data, 0.0)
-        first = offset_voxels(seen, inside)[0]
-        lo, hi = _object_slices(outer, (first, first + inside.shape[0]))
-        grid = VolumeGrid(
-            (hi - lo, *seen.shape[1:]),
-            seen.spacing_mm,
-            (seen.origin_mm[0], seen.origin_mm[1], seen.origin_mm[2] + lo * seen.spacing_mm[2]),
-        )
-        outer = outer[lo:hi].astype(np.float32)
-        inner = (slice(first - lo, first - lo + inside.shape[0]), *inner[1:])
-        outer[inner] = x
-        x = outer
-
+        grid, x, inner = _extended(proj, geometry, grid, x, fdk_options)
     groups = subsets(len(geometry), settings.views_per_subset)
     views = [geometry[group] for group in groups]
-    # each ray's length through the grid, inverted where it is usable (0 elsewhere)
-    inverse_length = JosephProjector(np.ones(grid.shape, np.float32), grid).project(geometry)
-    usable = inverse_length >= MIN_RAY_VOXELS * min(grid.spacing_mm)
-    np.divide(1.0, inverse_length, out=inverse_length, where=usable)
-    inverse_length[~usable] = 0.0
-    per_view = adjoint_scale(geometry, grid)
-    sensitivity = np.zeros(grid.shape, np.float32)
-    for first in range(0, len(geometry), SENSITIVITY_BATCH):  # bounds the pixel quads' memory
-        batch = slice(first, first + SENSITIVITY_BATCH)
-        rays = usable[batch].astype(np.float32)
-        backproject_weighted(
-            rays, geometry[batch], grid, ADJOINT_WEIGHT, sensitivity, scale=per_view[batch]
-        )
-    seen = sensitivity > 1e-6 * float(sensitivity.max())
-    step = np.zeros(grid.shape, np.float32)
-    step[seen] = settings.relaxation / sensitivity[seen]
-    del sensitivity
+    inverse_length, usable, per_view, step = _normalisations(geometry, grid, settings.relaxation)
 
     changes: list[float] = []
     residuals: list[float] = []
@@ -328,23 +345,24 @@ def iterative_reconstruct(
         began = time.perf_counter()
         before = x.copy()
         squares, rays = 0.0, 0
+        update = np.empty(grid.shape, np.float32)
         for k, (group, sub) in enumerate(zip(groups, views, strict=True)):
             residual = proj[group] - JosephProjector(x, grid).project(sub)
             through = residual[usable[group]]
             squares += float(np.dot(through, through))
             rays += through.size
             residual *= inverse_length[group]
-            update = np.zeros(grid.shape, np.float32)
+            update.fill(0.0)
             scale = per_view[group] * (len(geometry) / len(group))
             backproject_weighted(residual, sub, grid, ADJOINT_WEIGHT, update, scale=scale)
             x += step * update
             np.maximum(x, 0.0, out=x)
             if progress is not None:
                 progress(iteration * len(groups) + k + 1, total)
-        if settings.method == "tv" and weight > 0.0:
-            x = denoise_tv_chambolle(x, weight=weight, max_num_iter=settings.tv_steps).astype(
-                np.float32, copy=False
-            )
+        if settings.method == "tv" and settings.tv_weight > 0.0:
+            x = denoise_tv_chambolle(
+                x, weight=settings.tv_weight, max_num_iter=settings.tv_steps
+            ).astype(np.float32, copy=False)
             np.maximum(x, 0.0, out=x)
         residuals.append(math.sqrt(squares / max(rays, 1)))
         norm = float(np.linalg.norm(x))

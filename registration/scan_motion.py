@@ -155,10 +155,15 @@ class MotionEstimate:
         """Every body stayed within :data:`MAX_COMPENSABLE_MM` of its average pose."""
         return max(self.peak_mm.values()) <= MAX_COMPENSABLE_MM
 
+    @property
+    def still(self) -> bool:
+        """No motion was kept: every body stood at its average pose in every view."""
+        return float(self.displacement_mm.max()) == 0.0
+
     def verdict(self) -> str:
         """One plain sentence on the motion: how much, where, and whether to trust it."""
         peak, view = float(self.displacement_mm.max()), self.peak_view
-        if peak == 0.0:
+        if self.still:
             return "stood still: no motion found in the projections"
         if not self.compensable:
             return (

@@ -213,16 +213,14 @@ def recon(
     check_range("--min-coverage-deg", min_coverage_deg, 0.0, 360.0, "degrees")
     if method not in METHODS:
         fail(f"--method {method}: choose one of {', '.join(METHODS)}")
-    if method == "fdk" and (iterations is not None or tv_weight is not None):
-        fail("--iterations and --tv-weight are for --method sart or tv")
+    if iterations is not None and method == "fdk":
+        fail("--iterations is for --method sart or tv")
     if iterations is not None and iterations < 1:
         fail(f"--iterations {iterations}: give 1 or more")
-    if tv_weight is not None and not tv_weight >= 0.0:
-        fail(f"--tv-weight {tv_weight:g}: give 0 or more 1/mm")
     if tv_weight is not None and method != "tv":
         fail("--tv-weight is for --method tv")
-    if views_every < 1:
-        fail(f"--views-every {views_every}: give 1 or more")
+    if tv_weight is not None and not tv_weight >= 0.0:
+        fail(f"--tv-weight {tv_weight:g}: give 0 or more 1/mm")
     iterative = None
     if method != "fdk":
         given = {} if iterations is None else {"iterations": iterations}

@@ -257,7 +257,7 @@ def recon_stage(
         if estimate is not None:
             result = views.fdk(stack.data, grid, progress, estimate.motion)
         iterative = protocol_settings(protocol.reconstruction)
-        moved = estimate is not None and float(estimate.displacement_mm.max()) > 0.0
+        moved = estimate is not None and not estimate.still
         if iterative is not None and moved:
             said = (
                 f"{iterative.method.upper()} through the patient's motion is not built: the "

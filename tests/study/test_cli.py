@@ -37,6 +37,20 @@ def tiny_protocol(tmp_path: Path, **orbit) -> Path:
     return path
 
 
+def recon_args(projections: Path, geometry: Path, out: Path, *more: str) -> list[str]:
+    """``cbct recon``'s arguments for a stack, its geometry, an output and ``more``."""
+    return [
+        "recon",
+        "--projections",
+        str(projections),
+        "--geometry",
+        str(geometry),
+        "--out",
+        str(out),
+        *more,
+    ]
+
+
 @pytest.fixture(scope="module")
 def scan_folder(tmp_path_factory) -> Path:
     tmp = tmp_path_factory.mktemp("scan")
@@ -95,14 +109,10 @@ def test_a_bad_protocol_field_is_named_with_its_value_and_limit(tmp_path):
 
 def test_recon_reconstructs_the_scan_and_refuses_to_overwrite(scan_folder, tmp_path):
     out = tmp_path / "volume.nii.gz"
-    args = [
-        "recon",
-        "--projections",
-        str(scan_folder / "projections.mha"),
-        "--geometry",
-        str(scan_folder / "geometry.xml"),
-        "--out",
-        str(out),
+    args = recon_args(
+        scan_folder / "projections.mha",
+        scan_folder / "geometry.xml",
+        out,
         "--spacing-mm",
         "2.0",
         "--size",
@@ -111,7 +121,7 @@ def test_recon_reconstructs_the_scan_and_refuses_to_overwrite(scan_folder, tmp_p
         "64",
         "--preview",
         str(tmp_path / "slices.png"),
-    ]
+    )
     result = runner.invoke(app, args)
     assert result.exit_code == 0, result.output
     volume = read_volume(out)
@@ -128,32 +138,14 @@ def test_recon_refuses_mismatched_and_broken_inputs(scan_folder, tmp_path):
     geometry = read_rtk_geometry(scan_folder / "geometry.xml", stack.header)
     fewer = write_rtk_geometry(tmp_path / "fewer.xml", geometry[:50])
     result = runner.invoke(
-        app,
-        [
-            "recon",
-            "--projections",
-            str(scan_folder / "projections.mha"),
-            "--geometry",
-            str(fewer),
-            "--out",
-            str(tmp_path / "v.mha"),
-        ],
+        app, recon_args(scan_folder / "projections.mha", fewer, tmp_path / "v.mha")
     )
     assert result.exit_code == 2
     assert "holds 60 projections" in result.output and "describes 50 views" in result.output
     truncated = tmp_path / "truncated.mha"
     truncated.write_bytes((scan_folder / "projections.mha").read_bytes()[:5000])
     result = runner.invoke(
-        app,
-        [
-            "recon",
-            "--projections",
-            str(truncated),
-            "--geometry",
-            str(scan_folder / "geometry.xml"),
-            "--out",
-            str(tmp_path / "w.mha"),
-        ],
+        app, recon_args(truncated, scan_folder / "geometry.xml", tmp_path / "w.mha")
     )
     assert result.exit_code == 2 and str(truncated) in result.output
     nan = stack.data.copy()
@@ -550,14 +542,10 @@ def test_recon_by_tv_from_every_second_view(scan_folder, tmp_path):
     out = tmp_path / "tv.mha"
     result = runner.invoke(
         app,
-        [
-            "recon",
-            "--projections",
-            str(scan_folder / "projections.mha"),
-            "--geometry",
-            str(scan_folder / "geometry.xml"),
-            "--out",
-            str(out),
+        recon_args(
+            scan_folder / "projections.mha",
+            scan_folder / "geometry.xml",
+            out,
             "--spacing-mm",
             "4.0",
             "--method",
@@ -566,7 +554,7 @@ def test_recon_by_tv_from_every_second_view(scan_folder, tmp_path):
             "2",
             "--views-every",
             "2",
-        ],
+        ),
     )
     assert result.exit_code == 0, result.output
     assert "TV: 2 iteration(s), TV weight" in result.output
