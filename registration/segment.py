@@ -12,9 +12,10 @@ Classical 3D segmentation of a reconstruction in linear attenuation (1/mm), in f
    above an edge threshold, closed by one voxel and filled (holes per axial slice, caps where
    a shaft leaves the field of view, then holes in 3D). The edge threshold is the isovalue
    among :data:`EDGE_CANDIDATES` (1.3-1.95 times soft tissue) with the largest mean gradient
-   magnitude: the bone surface is where the intensity changes fastest. For a 1.5 mm cortex
-   seen at 1 mm this sits slightly outside the half-bone partial-volume surface (the
-   phantom's labels), by a fraction of a voxel.
+   magnitude, among those that meet the bone broadly (:data:`MIN_EDGE_BAND_SHARE`): the bone
+   surface is where the intensity changes fastest. For a 1.5 mm cortex seen at 1 mm this
+   sits slightly outside the half-bone partial-volume surface (the phantom's labels), by a
+   fraction of a voxel.
 3. **Separation.** Each bone's cortex encloses its own interior, also where cortices fuse
    across a joint space thinner than the resolution: the tibiofibular joint (~1.5 mm), and
    the femorotibial (~4 mm) or patellofemoral ones in coarse volumes. The distance transform
@@ -55,6 +56,10 @@ from registration.labels import BONE_UNITS, LABELS
 
 EDGE_CANDIDATES = np.arange(1.30, 1.96, 0.05)
 """Bone edge thresholds tried, in multiples of the soft-tissue level."""
+MIN_EDGE_BAND_SHARE = 0.2
+"""An edge candidate's band must hold at least this share of the fullest candidate's voxels:
+an isovalue above most of the cortex meets the bone only in patches (the cortex's brightest
+voxels, whose few steep gradients would otherwise win; a TV-regularised volume has them)."""
 
 METAL_AS_CORTEX = 2.5
 """An implant's stand-in level for bone segmentation, in multiples of the soft tissue's (a
@@ -299,16 +304,17 @@ def _bounding_box(mask: np.ndarray, margin: int) -> tuple[slice, ...]:
 
 
 def _edge_threshold(relative: np.ndarray, spacing_zyx: np.ndarray) -> float:
-    """Isovalue of :data:`EDGE_CANDIDATES` where the mean gradient magnitude is largest."""
+    """Isovalue of :data:`EDGE_CANDIDATES` where the mean gradient magnitude is largest, of
+    those whose band near the bone holds :data:`MIN_EDGE_BAND_SHARE` of the fullest band."""
     gradient = np.linalg.norm(np.stack(np.gradient(relative, *spacing_zyx)), axis=0)
     near_bone = ndimage.binary_dilation(relative >= EDGE_CANDIDATES[0])
     values, gradient = relative[near_bone], gradient[near_bone]
     half = 0.5 * (EDGE_CANDIDATES[1] - EDGE_CANDIDATES[0])
+    bands = [np.abs(values - t) < half for t in EDGE_CANDIDATES]
+    counts = np.array([band.sum() for band in bands])
     means = [
-        float(gradient[np.abs(values - t) < half].mean())
-        if np.any(np.abs(values - t) < half)
-        else 0.0
-        for t in EDGE_CANDIDATES
+        float(gradient[band].mean()) if count >= max(MIN_EDGE_BAND_SHARE * counts.max(), 1) else 0.0
+        for band, count in zip(bands, counts, strict=True)
     ]
     return float(EDGE_CANDIDATES[int(np.argmax(means))])
 

@@ -1028,8 +1028,9 @@ def demo(
         Path | None,
         typer.Option(
             help="a scan protocol whose exposure, reconstruction (fdk, sart, tv) and share of "
-            "a full protocol's 360 views the knee scan takes, on the demo's panel (e.g. "
-            "configs/protocols/knee_reverse_spiral_360_sparse90.yaml)"
+            "a full protocol's 360 views the knee scan takes, of the full demo's 180 views, on "
+            "the demo's panel (e.g. configs/protocols/knee_reverse_spiral_360_sparse90.yaml: "
+            "44 views)"
         ),
     ] = None,
 ) -> None:

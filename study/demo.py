@@ -168,13 +168,16 @@ def _protocols(configs: Path, size: dict) -> tuple[ScanProtocol, ScanProtocol]:
     """The knee protocol and its calibration read-out (same plan, finer pixels).
 
     With ``size["protocol"]`` (a protocol file): its exposure, dose limit and reconstruction,
-    and its share of the views of a full protocol (:data:`FULL_PROTOCOL_VIEWS`: a 90-view
-    protocol scans a quarter of the demo's views), on the demo's panel and spiral."""
+    and its share of a full protocol's views (:data:`FULL_PROTOCOL_VIEWS`) taken of the full
+    demo's (a 90-view protocol scans a quarter of :data:`FULL`'s views, whole passes, no more
+    than ``size``'s own), on the demo's panel and spiral."""
     base = load_protocol(configs / "protocols" / "demo_knee.yaml")
     views = size["views"]
     if size.get("protocol"):
         given = load_protocol(size["protocol"])
-        views = max(MIN_SPARSE_VIEWS, round(views * given.orbit.views / FULL_PROTOCOL_VIEWS))
+        passes = base.orbit.passes
+        share = FULL["views"] * given.orbit.views / FULL_PROTOCOL_VIEWS
+        views = min(views, passes * max(round(share / passes), -(-MIN_SPARSE_VIEWS // passes)))
         base = ScanProtocol.model_validate(
             base.model_dump()
             | {
@@ -555,7 +558,9 @@ def _motion_text(study: Study, out: Path) -> str:
             f"; RMSE vs phantom {recon['rmse_uncompensated_per_mm']:.5f} /mm before, "
             f"{recon['rmse_calibrated_per_mm']:.5f} after"
         )
-    if "error_mm" in motion and motion.get("estimated", True):
+    if not motion.get("estimated", True):
+        return f"{text}\n"
+    if "error_mm" in motion:
         text += f"; motion error median {motion['error_mm']['median']:.2f} mm"
     return f"{text} ({out}/recon/motion.png)\n"
 

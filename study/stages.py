@@ -231,8 +231,9 @@ def recon_stage(
     ``motion.png``, its peak per body recorded (``motion_rounds``: rounds of the two-body
     fit); a motion beyond what compensation is trusted for fails the stage with the words to
     repeat the scan. A protocol whose reconstruction is sart or tv (recon.iterative) has its
-    volume made so from the FDK volume (``iteration_progress`` counts subsets), unless the
-    patient's motion was compensated (iterations through a motion are not built)."""
+    volume made so from the FDK volume (``iteration_progress`` counts subsets; the FDK volume
+    kept as ``live_volume.mha``), unless the patient's motion was compensated (iterations
+    through a motion are not built)."""
 
     def fill(folder: Path) -> dict:
         nonlocal result
@@ -281,13 +282,14 @@ def recon_stage(
         else:
             method = {"method": "fdk"}
         volume = result.volume
-        kept = "live_volume.mha" if estimate is not None else "volume.mha"
+        remade = result is not live  # compensated or iterated: the live volume kept beside
+        kept = "live_volume.mha" if remade else "volume.mha"
         if written is not None:
             os.replace(written, folder / kept)
             shutil.rmtree(written.parent)
-        elif estimate is not None:
+        elif remade:
             write_volume(folder / kept, live.volume)
-        if estimate is not None or written is None:
+        if remade or written is None:
             write_volume(folder / "volume.mha", volume)
         write_volume(folder / "volume.nii.gz", volume)
         knee = simulated_knee(study)

@@ -31,9 +31,10 @@ from scanner.study import Study
 from sim.phantoms.knee import KneePhantomSpec, attenuation_per_mm, rasterize_knee
 from study import batch
 from study.cli import app
-from study.demo import STAGES
+from study.demo import FULL, QUICK, STAGES, _protocols
 
 runner = CliRunner()
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
 
 @pytest.fixture(scope="module")
@@ -110,6 +111,28 @@ def _plays_in_3d_offline(study: Path, browse) -> None:
         canvases.append(shown.canvas())
         assert canvases[-1].std() > 0.05
     assert (np.abs(canvases[0] - canvases[1]).max(axis=2) > 0.1).mean() > 0.02
+
+
+@pytest.mark.parametrize(
+    ("protocol", "views"),
+    [
+        ("knee_reverse_spiral_360_sparse90.yaml", {"full": 44, "quick": 44}),
+        ("knee_reverse_spiral_360_quarter_dose.yaml", {"full": 180, "quick": 90}),
+    ],
+)
+def test_a_protocol_given_to_the_demo_scans_its_share_of_the_full_demos_views(
+    protocol: str, views: dict[str, int]
+):
+    """A 90-view protocol: a quarter of the full demo's 180 views in whole passes of the
+    spiral (45 is one pass and a half, refused by the orbit); a 360-view one: each size's
+    own. The plan and the calibration read-out agree on them."""
+    for name, size in (("full", FULL), ("quick", QUICK)):
+        knee, calibration = _protocols(
+            CONFIGS, size | {"protocol": CONFIGS / "protocols" / protocol}
+        )
+        assert knee.orbit.views == calibration.orbit.views == views[name]
+        assert knee.orbit.views % knee.orbit.passes == 0
+        assert knee.reconstruction.method == "tv"
 
 
 def test_the_demo_report_plays_the_knee_in_3d_offline(demo: Path, browse):

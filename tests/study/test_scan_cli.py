@@ -5,9 +5,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import yaml
 from typer.testing import CliRunner
 
+from recon.io import read_volume
 from scanner.cli import CONFIGS
 from scanner.study import Study
 from study.cli import app
@@ -111,3 +113,7 @@ def test_a_protocol_that_asks_for_tv_gets_it_from_the_scans_fdk(tmp_path):
     assert method["tv_weight_per_mm"] > 0.0
     assert "TV: " in result.output and "iteration(s)" in result.output
     assert recon["rmse_recorded_per_mm"] < recon["rmse_fdk_per_mm"]
+    folder = study / "recon"  # both files hold the TV volume; the scan's FDK kept beside them
+    tv, mha = (read_volume(folder / name).data for name in ("volume.nii.gz", "volume.mha"))
+    np.testing.assert_array_equal(mha, tv)
+    assert not np.array_equal(read_volume(folder / "live_volume.mha").data, tv)
