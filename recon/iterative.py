@@ -2,8 +2,8 @@
 
 Both run through the Joseph forward projector (recon.project) and its voxel-driven adjoint,
 for any per-view projection matrices, and start from weighted FDK. One iteration visits every
-view once, in ``subsets`` interleaved subsets visited in a golden-ratio order; each subset
-updates the volume by the SART step
+view once, in interleaved subsets of ``views_per_subset`` views; each subset updates the volume
+by the SART step
 
     x <- max(0, x + relaxation * (N / n_s) * A_s^T [(p_s - A_s x) / A_s 1] / A^T 1)
 
@@ -58,10 +58,6 @@ END_SLICE_SHARE = 0.01
 """Share of an end slice the object must cover for it to continue beyond the grid."""
 SENSITIVITY_BATCH = 16
 """Views backprojected together for the voxels' sensitivity (as FDK's batches)."""
-GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
-"""The subsets are visited in the order of k * GOLDEN modulo 1 (k: the subset's first view), so
-each lies far from the last ones visited: neighbouring subsets hold nearly the same rays, and
-visited in turn they repeat much of one update."""
 MIN_RAY_VOXELS = 1.0
 """Rays shorter than this many voxels through the grid are left out of the SART step (a ray
 grazing a corner would divide its residual by almost nothing)."""
@@ -74,9 +70,7 @@ class IterativeSettings:
     Attributes:
         method: "sart" (OS-SART) or "tv" (OS-SART with a TV step after each iteration).
         iterations: most iterations (each visits every view once), >= 1.
-        subsets: ordered subsets per iteration (interleaved over the orbit; at most one per
-            view), >= 1. About 30 suit sparse and full scans alike: the knee and Shepp-Logan
-            of bench/iterative.py at 60-360 views (docs/algorithms/iterative.md).
+        views_per_subset: views per ordered subset (interleaved over the orbit), >= 1.
         relaxation: SART's step, in (0, 2).
         tv_weight: TV step's strength (1/mm, the volume's unit); None: TV_PER_NOISE times
             the FDK start's noise. Only for "tv".
@@ -87,7 +81,7 @@ class IterativeSettings:
 
     method: Method = "tv"
     iterations: int = 12
-    subsets: int = 30
+    views_per_subset: int = 10
     relaxation: float = 0.8
     tv_weight: float | None = None
     tolerance: float = 2e-3
@@ -98,8 +92,8 @@ class IterativeSettings:
             raise ValueError(f"method {self.method!r}: iterative methods are 'sart' and 'tv'")
         if self.iterations < 1:
             raise ValueError(f"iterations {self.iterations}: at least 1")
-        if self.subsets < 1:
-            raise ValueError(f"subsets {self.subsets}: at least 1")
+        if self.views_per_subset < 1:
+            raise ValueError(f"views_per_subset {self.views_per_subset}: at least 1")
         if not 0.0 < self.relaxation < 2.0:
             raise ValueError(f"relaxation {self.relaxation}: must lie in (0, 2)")
         if self.tv_weight is not None and not self.tv_weight >= 0.0:
@@ -244,13 +238,11 @@ def noise_sigma(volume: np.ndarray, mask: np.ndarray | None = None) -> float:
     return float(1.4826 * np.median(np.abs(diff - np.median(diff))) / math.sqrt(2.0))
 
 
-def subsets(n_views: int, count: int) -> list[np.ndarray]:
-    """Interleaved ordered subsets of view indices in their visiting order: subset k holds
-    views k, k + M, k + 2M, ... (M = min(count, n_views)), so every subset spans the whole
-    orbit; they are visited in the order of k * :data:`GOLDEN` modulo 1."""
-    count = max(1, min(count, n_views))
-    order = np.argsort((np.arange(count) * GOLDEN) % 1.0, kind="stable")
-    return [np.arange(k, n_views, count) for k in order]
+def subsets(n_views: int, views_per_subset: int) -> list[np.ndarray]:
+    """Interleaved ordered subsets of view indices: subset k holds views k, k + M, k + 2M, ...
+    (M = ceil(n_views / views_per_subset)), so every subset spans the whole orbit."""
+    count = max(1, math.ceil(n_views / views_per_subset))
+    return [np.arange(k, n_views, count) for k in range(count)]
 
 
 def sparse_views(geometry: Geometry, every: int) -> np.ndarray:
@@ -340,7 +332,7 @@ def iterative_reconstruct(
     inner = tuple(slice(0, n) for n in grid.shape)
     if continues_beyond_ends(x):  # iterate on all of it the rays cross; the grid is inside
         grid, x, inner = _extended(proj, geometry, grid, x, fdk_options)
-    groups = subsets(len(geometry), settings.subsets)
+    groups = subsets(len(geometry), settings.views_per_subset)
     views = [geometry[group] for group in groups]
     inverse_length, usable, per_view, step = _normalisations(geometry, grid, settings.relaxation)
 
