@@ -225,15 +225,15 @@ def recon_stage(
     reconstruction made during the scan (:mod:`study.live_recon`), taken as it is, and
     ``written`` its volume already on disk (moved into the stage as ``volume.mha``).
 
-    ``compensate``: the patient's motion is estimated from the projections and the volume
-    reconstructed through it (registration.scan_motion; the scan's volume made during it is
-    kept as ``live_volume.mha``), the motion written as ``motion.csv`` with its QA figure
-    ``motion.png``, its peak per body recorded (``motion_rounds``: rounds of the two-body
-    fit); a motion beyond what compensation is trusted for fails the stage with the words to
-    repeat the scan. A protocol whose reconstruction is sart or tv (recon.iterative) has its
-    volume made so from the FDK volume (``iteration_progress`` counts subsets; the FDK volume
-    kept as ``live_volume.mha``), unless the patient's motion was compensated (iterations
-    through a motion are not built)."""
+    ``compensate``: the patient's motion is estimated from the projections and, where any was
+    found, the volume reconstructed through it (registration.scan_motion; the scan's volume
+    made during it is kept as ``live_volume.mha``), the motion written as ``motion.csv``
+    with its QA figure ``motion.png``, its peak per body recorded (``motion_rounds``: rounds
+    of the two-body fit); a motion beyond what compensation is trusted for fails the stage
+    with the words to repeat the scan. A protocol whose reconstruction is sart or tv
+    (recon.iterative) has its volume made so from the FDK volume (``iteration_progress``
+    counts subsets; the FDK volume kept as ``live_volume.mha``), unless the patient's motion
+    was compensated (iterations through a motion are not built)."""
 
     def fill(folder: Path) -> dict:
         nonlocal result
@@ -255,10 +255,10 @@ def recon_stage(
         elif result.volume.grid != grid:
             raise ValueError(f"the reconstruction's grid {result.volume.grid} is not {grid}")
         live = result
-        if estimate is not None:
+        moved = estimate is not None and not estimate.still
+        if moved:  # a still patient's volume is the plain one as it was made
             result = views.fdk(stack.data, grid, progress, estimate.motion)
         iterative = protocol_settings(protocol.reconstruction)
-        moved = estimate is not None and not estimate.still
         if iterative is not None and moved:
             said = (
                 f"{iterative.method.upper()} through the patient's motion is not built: the "
@@ -323,7 +323,7 @@ def recon_stage(
                 others["true"] = read_rtk_geometry(true_path, stack.header)
             for name, other in others.items():
                 if name not in rmse:
-                    motion = None if estimate is None else estimate.motion
+                    motion = estimate.motion if moved else None
                     other_result = fdk_reconstruct(
                         stack.data, other, grid, orbit_geometry=planned, motion=motion
                     )
