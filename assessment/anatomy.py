@@ -117,7 +117,9 @@ def mirror_x(volume: Volume) -> Volume:
 
 
 def bone_surface(labels: Volume, label: int, name: str) -> BoneSurface:
-    """Marching-cubes surface of ``labels == label`` in world mm."""
+    """Marching-cubes surface of ``labels == label`` in world mm; vertices whose gradient
+    vanishes (voxels touching by an edge in a symmetric pattern) have no normal and are
+    left out."""
     mask = labels.data == label
     if mask.sum() < 27:
         raise ValueError(f"bone {name} (label {label}) is missing from the label volume")
@@ -129,7 +131,9 @@ def bone_surface(labels: Volume, label: int, name: str) -> BoneSurface:
     points = (verts + origin_zyx)[:, ::-1]
     # marching_cubes normals point toward lower values: outward of the mask
     normals = normals[:, ::-1]
-    return BoneSurface(points, normals / np.linalg.norm(normals, axis=1, keepdims=True))
+    length = np.linalg.norm(normals, axis=1)
+    facing = length > 0.0
+    return BoneSurface(points[facing], normals[facing] / length[facing, None])
 
 
 def _long_axis(labels: Volume, label: int, away_from_joint: str) -> np.ndarray:

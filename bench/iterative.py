@@ -13,8 +13,9 @@ full and at a quarter of the photons per view (Poisson and readout noise, sim.sc
   SSIM over the central 75 % cylinder.
 
 Methods: ours ``fdk`` (Hann), ``sart`` and ``tv`` (recon.iterative, default TV weight), and
-RTK 2.7's ``rtk_sart`` (SARTConeBeamReconstructionFilter, the same views per subset, relaxation
-and positivity), ``rtk_cg`` (ConjugateGradientConeBeamReconstructionFilter, unit weights) and
+RTK 2.7's ``rtk_sart`` (SARTConeBeamReconstructionFilter, as many views per subset as ours
+hold, the same relaxation and positivity), ``rtk_cg``
+(ConjugateGradientConeBeamReconstructionFilter, unit weights) and
 ``rtk_tv`` (ADMMTotalVariationConeBeamReconstructionFilter, ``RTK_TV`` settings), all with the
 same iterations and started from the same FDK volume. Each reconstruction runs in a fresh
 process that warms up first; ``seconds`` is ours from the projections (FDK start and the
@@ -32,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import subprocess
 import sys
 import tempfile
@@ -72,7 +74,7 @@ FULL = {
     "mas_fractions": [1.0, 0.25],
     "photons_full": 2.0e4,  # unattenuated photons per pixel and view at full mAs
     "iterations": 4,
-    "views_per_subset": 10,
+    "subsets": 30,
     "relaxation": 0.8,
     "speed": True,
 }
@@ -116,7 +118,7 @@ def worker(method: str, folder: Path, cfg: dict) -> None:
         settings = IterativeSettings(
             "tv" if method == "fdk" else method,
             iterations=1,
-            views_per_subset=cfg["views_per_subset"],
+            subsets=cfg["subsets"],
             relaxation=cfg["relaxation"],
         )
         iterative_reconstruct(
@@ -129,7 +131,7 @@ def worker(method: str, folder: Path, cfg: dict) -> None:
             settings = IterativeSettings(
                 method,
                 iterations=iterations,
-                views_per_subset=cfg["views_per_subset"],
+                subsets=cfg["subsets"],
                 relaxation=cfg["relaxation"],
                 tolerance=0.0,
             )
@@ -143,7 +145,7 @@ def worker(method: str, folder: Path, cfg: dict) -> None:
         start_volume = np.load(folder / "fdk.npy")
         run = {
             "rtk_sart": lambda p, g, v, n: rtk_peer.rtk_sart(
-                p, g, v, n, cfg["views_per_subset"], cfg["relaxation"]
+                p, g, v, n, math.ceil(len(p) / cfg["subsets"]), cfg["relaxation"]
             ),
             "rtk_cg": rtk_peer.rtk_cg,
             "rtk_tv": lambda p, g, v, n: rtk_peer.rtk_admm_tv(p, g, v, n, **RTK_TV),

@@ -2,8 +2,9 @@
 
 Both run through the Joseph forward projector (recon.project) and its voxel-driven adjoint,
 for any per-view projection matrices, and start from weighted FDK. One iteration visits every
-view once, in interleaved subsets of ``views_per_subset`` views; each subset updates the volume
-by the SART step
+view once, in ``subsets`` interleaved subsets visited in a golden-ratio order (by default
+:data:`SUBSETS` where every view sees the whole grid, else one per :data:`VIEWS_PER_SUBSET`
+views); each subset updates the volume by the SART step
 
     x <- max(0, x + relaxation * (N / n_s) * A_s^T [(p_s - A_s x) / A_s 1] / A^T 1)
 
@@ -58,6 +59,18 @@ END_SLICE_SHARE = 0.01
 """Share of an end slice the object must cover for it to continue beyond the grid."""
 SENSITIVITY_BATCH = 16
 """Views backprojected together for the voxels' sensitivity (as FDK's batches)."""
+SUBSETS = 30
+"""Default subsets per iteration where every view's panel holds the whole grid (a circle about
+the object): the fastest to converge on bench/iterative.py's scans at 60-360 views
+(docs/algorithms/iterative.md)."""
+VIEWS_PER_SUBSET = 10
+"""Default views per subset where some view's panel does not hold the whole grid (a spiral, or
+a grid extended along a leg): a voxel near an end is seen by some subsets only, and the shared
+voxel normalisation holds only for subsets of many views (smaller ones oscillate)."""
+GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
+"""The subsets are visited in the order of k * GOLDEN modulo 1 (k: the subset's first view), so
+each lies far from the last ones visited: neighbouring subsets hold nearly the same rays, and
+visited in turn they repeat much of one update."""
 MIN_RAY_VOXELS = 1.0
 """Rays shorter than this many voxels through the grid are left out of the SART step (a ray
 grazing a corner would divide its residual by almost nothing)."""
@@ -70,7 +83,9 @@ class IterativeSettings:
     Attributes:
         method: "sart" (OS-SART) or "tv" (OS-SART with a TV step after each iteration).
         iterations: most iterations (each visits every view once), >= 1.
-        views_per_subset: views per ordered subset (interleaved over the orbit), >= 1.
+        subsets: ordered subsets per iteration (interleaved over the orbit; at most one per
+            view), >= 1; None: :data:`SUBSETS` where every view sees the whole grid (
+            :func:`sees_whole_grid`), else one per :data:`VIEWS_PER_SUBSET` views.
         relaxation: SART's step, in (0, 2).
         tv_weight: TV step's strength (1/mm, the volume's unit); None: TV_PER_NOISE times
             the FDK start's noise. Only for "tv".
@@ -81,7 +96,7 @@ class IterativeSettings:
 
     method: Method = "tv"
     iterations: int = 12
-    views_per_subset: int = 10
+    subsets: int | None = None
     relaxation: float = 0.8
     tv_weight: float | None = None
     tolerance: float = 2e-3
@@ -92,8 +107,8 @@ class IterativeSettings:
             raise ValueError(f"method {self.method!r}: iterative methods are 'sart' and 'tv'")
         if self.iterations < 1:
             raise ValueError(f"iterations {self.iterations}: at least 1")
-        if self.views_per_subset < 1:
-            raise ValueError(f"views_per_subset {self.views_per_subset}: at least 1")
+        if self.subsets is not None and self.subsets < 1:
+            raise ValueError(f"subsets {self.subsets}: at least 1")
         if not 0.0 < self.relaxation < 2.0:
             raise ValueError(f"relaxation {self.relaxation}: must lie in (0, 2)")
         if self.tv_weight is not None and not self.tv_weight >= 0.0:
@@ -113,7 +128,8 @@ class IterativeResult:
     Attributes:
         fdk: the FDK start; its coverage and mask hold for the iterative volume too.
         volume: the reconstruction (1/mm), zero where the FDK mask is False.
-        settings: the settings as run, ``tv_weight`` resolved for "tv" (None for "sart").
+        settings: the settings as run, ``subsets`` resolved and ``tv_weight`` for "tv"
+            (None for "sart").
         changes: per iteration, the volume's relative root-mean-square change.
         residuals: per iteration, the root-mean-square residual (p - A x) over the rays
             through the grid before the iteration's updates (line integral, dimensionless).
@@ -190,6 +206,16 @@ def _extended(
     return extended, start, inner
 
 
+def sees_whole_grid(geometry: Geometry, grid: VolumeGrid) -> bool:
+    """Every view's panel holds all of ``grid`` (its eight corners project onto the panel;
+    pixel centres at whole (u, v), the panel's edges half a pixel beyond)."""
+    corners = np.hstack((grid.corners_mm(), np.ones((8, 1))))
+    uvw = np.einsum("vik,ck->vci", np.asarray(geometry.matrices), corners)
+    u, v = uvw[..., 0] / uvw[..., 2], uvw[..., 1] / uvw[..., 2]
+    inside = (u >= -0.5) & (u <= geometry.cols - 0.5) & (v >= -0.5) & (v <= geometry.rows - 0.5)
+    return bool(np.all(inside))
+
+
 def _normalisations(
     geometry: Geometry, grid: VolumeGrid, relaxation: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -238,11 +264,13 @@ def noise_sigma(volume: np.ndarray, mask: np.ndarray | None = None) -> float:
     return float(1.4826 * np.median(np.abs(diff - np.median(diff))) / math.sqrt(2.0))
 
 
-def subsets(n_views: int, views_per_subset: int) -> list[np.ndarray]:
-    """Interleaved ordered subsets of view indices: subset k holds views k, k + M, k + 2M, ...
-    (M = ceil(n_views / views_per_subset)), so every subset spans the whole orbit."""
-    count = max(1, math.ceil(n_views / views_per_subset))
-    return [np.arange(k, n_views, count) for k in range(count)]
+def subsets(n_views: int, count: int) -> list[np.ndarray]:
+    """Interleaved ordered subsets of view indices in their visiting order: subset k holds
+    views k, k + M, k + 2M, ... (M = min(count, n_views)), so every subset spans the whole
+    orbit; they are visited in the order of k * :data:`GOLDEN` modulo 1."""
+    count = max(1, min(count, n_views))
+    order = np.argsort((np.arange(count) * GOLDEN) % 1.0, kind="stable")
+    return [np.arange(k, n_views, count) for k in order]
 
 
 def sparse_views(geometry: Geometry, every: int) -> np.ndarray:
@@ -332,7 +360,11 @@ def iterative_reconstruct(
     inner = tuple(slice(0, n) for n in grid.shape)
     if continues_beyond_ends(x):  # iterate on all of it the rays cross; the grid is inside
         grid, x, inner = _extended(proj, geometry, grid, x, fdk_options)
-    groups = subsets(len(geometry), settings.views_per_subset)
+    if settings.subsets is None:
+        whole = sees_whole_grid(geometry, grid)
+        count = SUBSETS if whole else math.ceil(len(geometry) / VIEWS_PER_SUBSET)
+        settings = replace(settings, subsets=count)
+    groups = subsets(len(geometry), settings.subsets)
     views = [geometry[group] for group in groups]
     inverse_length, usable, per_view, step = _normalisations(geometry, grid, settings.relaxation)
 

@@ -225,11 +225,11 @@ def rtk_sart(
     geometry: Geometry,
     start: Volume,
     iterations: int,
-    views_per_subset: int = 10,
+    views_per_subset: int = 1,
     relaxation: float = 0.8,
 ) -> np.ndarray:
     """RTK's OS-SART (Joseph forward, voxel-based back projection, positivity enforced) from
-    ``start``, float32 [z, y, x] on its grid."""
+    ``start`` with ``views_per_subset`` projections per subset, float32 [z, y, x] on its grid."""
     itk, rtk = _itk()
     image_type = itk.Image[itk.F, 3]
     sart = rtk.SARTConeBeamReconstructionFilter[image_type, image_type].New()

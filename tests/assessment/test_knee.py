@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from assessment.anatomy import femur_anatomy, mirror_x, tibia_anatomy
+from assessment.anatomy import bone_surface, femur_anatomy, mirror_x, tibia_anatomy
 from assessment.knee import assess_knee
 from recon.volume import Volume, VolumeGrid
 from registration.labels import LABELS
@@ -153,3 +153,30 @@ def test_poses_round_trip_and_bad_poses_name_frame_and_bone(knees, tmp_path):
         assess_knee(without_patella, extra, "right")
     with pytest.raises(ValueError, match="needs the polyethylene insert"):
         assess_knee(labels, poses, "right", tka=True)
+
+
+def test_a_bone_surface_has_a_unit_outward_normal_at_every_point():
+    """A cube of bone beside voxels that touch by edges in a symmetric pattern, where the
+    mask's gradient vanishes at a marching-cubes vertex: that vertex has no normal and is
+    left out (it made a NaN normal), every other normal is a unit vector pointing out."""
+    data = np.zeros((12, 12, 12), np.uint8)
+    data[1:6, 1:6, 1:6] = 1
+    for z, y, x in (
+        (0, 0, 1),
+        (0, 2, 0),
+        (1, 0, 0),
+        (1, 1, 0),
+        (1, 1, 2),
+        (1, 2, 1),
+        (2, 0, 0),
+        (2, 0, 1),
+        (2, 2, 0),
+    ):
+        data[8 + z, 8 + y, 8 + x] = 1
+    surface = bone_surface(
+        Volume(data, VolumeGrid(data.shape, (1.0, 1.0, 1.0), (0.0, 0.0, 0.0)), "label"), 1, "femur"
+    )
+    assert np.all(np.isfinite(surface.normals))
+    np.testing.assert_allclose(np.linalg.norm(surface.normals, axis=1), 1.0, rtol=1e-6)
+    cube = np.all(surface.points_mm < 7.0, axis=1)  # the cube's points face away from its centre
+    assert np.all(np.sum((surface.points_mm[cube] - 3.0) * surface.normals[cube], axis=1) > 0.0)
