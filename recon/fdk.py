@@ -287,13 +287,19 @@ def check_axis_on_panel(geometry: Geometry, where: str = "the geometry") -> None
             )
 
 
-def rows_seen(geometry: Geometry, grid: VolumeGrid) -> tuple[int, int]:
-    """The panel rows ``r0 <= r < r1`` that hold every bilinear tap of the grid's voxels in
-    every view (the projection of the grid lies within that of its corners); the whole panel's
-    rows where a corner falls off it."""
+def corner_pixels(geometry: Geometry, grid: VolumeGrid) -> tuple[np.ndarray, np.ndarray]:
+    """Where the grid's eight outer corners project on each view's panel: (u, v), each
+    (views, 8), in pixels (centres at whole numbers). The projection of the grid lies within
+    that of its corners."""
     corners = np.hstack((grid.corners_mm(), np.ones((8, 1))))
     p = np.einsum("vrk,ck->vrc", geometry.matrices, corners)
-    v = p[:, 1] / p[:, 2]
+    return p[:, 0] / p[:, 2], p[:, 1] / p[:, 2]
+
+
+def rows_seen(geometry: Geometry, grid: VolumeGrid) -> tuple[int, int]:
+    """The panel rows ``r0 <= r < r1`` that hold every bilinear tap of the grid's voxels in
+    every view (:func:`corner_pixels`); the whole panel's rows where a corner falls off it."""
+    _, v = corner_pixels(geometry, grid)
     r0 = max(0, math.floor(v.min()) - 1)
     r1 = min(geometry.rows, math.floor(v.max()) + 3)
     return (r0, r1) if r1 - r0 >= 2 else (0, geometry.rows)

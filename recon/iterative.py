@@ -34,6 +34,7 @@ from recon.config import ReconstructionSpec
 from recon.fdk import (
     FDKResult,
     Progress,
+    corner_pixels,
     estimate_orbit,
     fdk_reconstruct,
     offset_voxels,
@@ -209,9 +210,7 @@ def _extended(
 def sees_whole_grid(geometry: Geometry, grid: VolumeGrid) -> bool:
     """Every view's panel holds all of ``grid`` (its eight corners project onto the panel;
     pixel centres at whole (u, v), the panel's edges half a pixel beyond)."""
-    corners = np.hstack((grid.corners_mm(), np.ones((8, 1))))
-    uvw = np.einsum("vik,ck->vci", np.asarray(geometry.matrices), corners)
-    u, v = uvw[..., 0] / uvw[..., 2], uvw[..., 1] / uvw[..., 2]
+    u, v = corner_pixels(geometry, grid)
     inside = (u >= -0.5) & (u <= geometry.cols - 0.5) & (v >= -0.5) & (v <= geometry.rows - 0.5)
     return bool(np.all(inside))
 
@@ -367,6 +366,8 @@ def iterative_reconstruct(
     groups = subsets(len(geometry), settings.subsets)
     views = [geometry[group] for group in groups]
     inverse_length, usable, per_view, step = _normalisations(geometry, grid, settings.relaxation)
+    scales = [per_view[group] * (len(geometry) / len(group)) for group in groups]
+    update = np.empty(grid.shape, np.float32)
 
     changes: list[float] = []
     residuals: list[float] = []
@@ -377,15 +378,13 @@ def iterative_reconstruct(
         began = time.perf_counter()
         before = x.copy()
         squares, rays = 0.0, 0
-        update = np.empty(grid.shape, np.float32)
-        for k, (group, sub) in enumerate(zip(groups, views, strict=True)):
+        for k, (group, sub, scale) in enumerate(zip(groups, views, scales, strict=True)):
             residual = proj[group] - JosephProjector(x, grid).project(sub)
             through = residual[usable[group]]
             squares += float(np.dot(through, through))
             rays += through.size
             residual *= inverse_length[group]
             update.fill(0.0)
-            scale = per_view[group] * (len(geometry) / len(group))
             backproject_weighted(residual, sub, grid, ADJOINT_WEIGHT, update, scale=scale)
             x += step * update
             np.maximum(x, 0.0, out=x)

@@ -28,6 +28,7 @@ is missing (the scans continue from their last stored view).
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -177,7 +178,9 @@ def _protocols(configs: Path, size: dict) -> tuple[ScanProtocol, ScanProtocol]:
         given = load_protocol(size["protocol"])
         passes = base.orbit.passes
         share = FULL["views"] * given.orbit.views / FULL_PROTOCOL_VIEWS
-        views = min(views, passes * max(round(share / passes), -(-MIN_SPARSE_VIEWS // passes)))
+        views = min(
+            views, passes * max(round(share / passes), math.ceil(MIN_SPARSE_VIEWS / passes))
+        )
         base = ScanProtocol.model_validate(
             base.model_dump()
             | {
