@@ -24,7 +24,7 @@ import numba
 import numpy as np
 
 from recon.geometry import Geometry
-from recon.project import pixel_quads
+from recon.project import ROWS_PER_JOB, pixel_quads, row_gather
 from recon.volume import VolumeGrid
 
 MOTION_COLUMNS = ("view", "body", *(f"t{r}{c}" for r in range(4) for c in range(4)))
@@ -148,57 +148,85 @@ def moved_matrices(geometry: Geometry, poses: np.ndarray) -> np.ndarray:
     return np.einsum("nrk,nbkc->nbrc", geometry.matrices, poses)
 
 
-@numba.njit(parallel=True, fastmath=True, cache=True, error_model="numpy", nogil=True)
+@numba.njit(fastmath=True, error_model="numpy", boundscheck=False, inline="always")
+def _blended_samples(n, pu, pv, pw, umax, vmax, cols, scale, idx, fu, fv, wt):  # pragma: no cover
+    """Detector samples of a row's ``n`` voxels from their blended homogeneous projections
+    ``(pu, pv, pw)``, for :func:`recon.project.row_gather`: weight ``scale / w^2`` on the
+    panel, 0 off it (where the index is clamped onto it)."""
+    zero = np.float32(0.0)
+    for k in range(n):
+        inv = np.float32(1.0) / pw[k]
+        u = pu[k] * inv
+        v = pv[k] * inv
+        inside = (u >= zero) & (v >= zero) & (u <= umax) & (v <= vmax)
+        u = min(max(u, zero), umax)
+        v = min(max(v, zero), vmax)
+        iu = min(np.int32(u), np.int32(cols - 2))
+        iv = min(np.int32(v), np.int32(vmax - 1))
+        fu[k] = u - np.float32(iu)
+        fv[k] = v - np.float32(iv)
+        idx[k] = np.uint32(iv * np.int32(cols) + iu)
+        wt[k] = inv * inv * scale if inside else zero
+
+
+@numba.njit(
+    parallel=True, fastmath=True, cache=True, error_model="numpy", boundscheck=False, nogil=True
+)
 def _field_kernel(quads, scale, mats, weights, origin, spacing, out):  # pragma: no cover
     """out[z, y, x] += sum over views of scale * bilinear(image) / w^2 at the blended
     projection ``sum_b weights[b, z, y, x] * mats[view, b] @ (x, y, z, 1)``, 0 off the panel;
-    the images as recon.project.pixel_quads, (views, rows, cols, 4)."""
-    n_views, rows, cols = quads.shape[:3]
+    the images as recon.project.pixel_quads viewed as complex128, (views, rows, cols). Rows
+    are taken :data:`recon.project.ROWS_PER_JOB` at a time, view by view, as the plain
+    backprojector takes them."""
+    n_views, rows, cols = quads.shape
     n_bodies = mats.shape[1]
     nz, ny, nx = out.shape
     umax = np.float32(cols - 1.0)
     vmax = np.float32(rows - 1.0)
-    for job in numba.prange(nz * ny):
-        z = job // ny
-        y = job - z * ny
+    flat = quads.reshape(n_views, rows * cols)
+    blocks = (ny + ROWS_PER_JOB - 1) // ROWS_PER_JOB
+    for job in numba.prange(nz * blocks):
+        z = job // blocks
+        y0 = (job - z * blocks) * ROWS_PER_JOB
+        y1 = min(ny, y0 + ROWS_PER_JOB)
         wz = origin[2] + z * spacing[2]
-        wy = origin[1] + y * spacing[1]
-        acc = np.zeros(nx, dtype=np.float32)
-        h = np.empty((n_bodies, 3), dtype=np.float32)
-        s = np.empty((n_bodies, 3), dtype=np.float32)
+        acc = np.zeros((ROWS_PER_JOB, nx), dtype=np.float32)
+        pu = np.empty(nx, dtype=np.float32)
+        pv = np.empty(nx, dtype=np.float32)
+        pw = np.empty(nx, dtype=np.float32)
+        idx = np.zeros(nx + 1, dtype=np.uint32)  # any entry is a valid pixel index
+        fu = np.empty(nx, dtype=np.float32)
+        fv = np.empty(nx, dtype=np.float32)
+        wt = np.empty(nx, dtype=np.float32)
+        taps = np.empty(nx + 1, dtype=np.complex128)
         for view in range(n_views):
-            image = quads[view]
-            sc = scale[view]
-            for b in range(n_bodies):
-                m = mats[view, b]
-                for r in range(3):
-                    h[b, r] = m[r, 0] * origin[0] + m[r, 1] * wy + m[r, 2] * wz + m[r, 3]
-                    s[b, r] = m[r, 0] * spacing[0]
-            for x in range(nx):
-                xf = np.float32(x)
-                pu = np.float32(0.0)
-                pv = np.float32(0.0)
-                pw = np.float32(0.0)
+            image = flat[view]
+            for y in range(y0, y1):
+                wy = origin[1] + y * spacing[1]
+                pu[:] = 0.0
+                pv[:] = 0.0
+                pw[:] = 0.0
                 for b in range(n_bodies):
-                    wb = weights[b, z, y, x]
-                    pu += wb * (h[b, 0] + xf * s[b, 0])
-                    pv += wb * (h[b, 1] + xf * s[b, 1])
-                    pw += wb * (h[b, 2] + xf * s[b, 2])
-                inv = np.float32(1.0) / pw
-                u = pu * inv
-                v = pv * inv
-                if u < 0 or v < 0 or u > umax or v > vmax:
-                    continue
-                iu = min(np.int32(u), np.int32(cols - 2))
-                iv = min(np.int32(v), np.int32(rows - 2))
-                fu = u - np.float32(iu)
-                fv = v - np.float32(iv)
-                q = image[iv, iu]
-                r0 = q[0] + fu * (q[1] - q[0])
-                r1 = q[2] + fu * (q[3] - q[2])
-                acc[x] += (r0 + fv * (r1 - r0)) * inv * inv * sc
-        for x in range(nx):
-            out[z, y, x] += acc[x]
+                    m = mats[view, b]
+                    h0 = np.float32(m[0, 0] * origin[0] + m[0, 1] * wy + m[0, 2] * wz + m[0, 3])
+                    h1 = np.float32(m[1, 0] * origin[0] + m[1, 1] * wy + m[1, 2] * wz + m[1, 3])
+                    h2 = np.float32(m[2, 0] * origin[0] + m[2, 1] * wy + m[2, 2] * wz + m[2, 3])
+                    s0 = np.float32(m[0, 0] * spacing[0])
+                    s1 = np.float32(m[1, 0] * spacing[0])
+                    s2 = np.float32(m[2, 0] * spacing[0])
+                    share = weights[b, z, y]
+                    xf = np.float32(0.0)  # a float counter vectorises better than converting x
+                    for x in range(nx):
+                        a = share[x]
+                        pu[x] += a * (h0 + xf * s0)
+                        pv[x] += a * (h1 + xf * s1)
+                        pw[x] += a * (h2 + xf * s2)
+                        xf += np.float32(1.0)
+                _blended_samples(nx, pu, pv, pw, umax, vmax, cols, scale[view], idx, fu, fv, wt)
+                row_gather(nx, image, idx, fu, fv, wt, taps, acc[y - y0])
+        for y in range(y0, y1):
+            for x in range(nx):
+                out[z, y, x] += acc[y - y0, x]
 
 
 def backproject_field(
@@ -232,7 +260,7 @@ def backproject_field(
     if quads.ndim == 3:
         quads = pixel_quads(quads)
     _field_kernel(
-        np.ascontiguousarray(quads, dtype=np.float32),
+        np.ascontiguousarray(quads, dtype=np.float32).view(np.complex128)[..., 0],
         np.ones(len(geometry), np.float32) if scale is None else np.asarray(scale, np.float32),
         moved_matrices(geometry, np.asarray(poses, dtype=np.float64)),
         np.ascontiguousarray(weights, dtype=np.float32),

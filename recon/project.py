@@ -291,7 +291,7 @@ def _row_samples(
 
 
 @numba.njit(fastmath=True, error_model="numpy", boundscheck=False, inline="always")
-def _row_gather(n, quads, idx, fu, fv, wt, taps, acc):  # pragma: no cover
+def row_gather(n, quads, idx, fu, fv, wt, taps, acc):  # pragma: no cover
     """acc[k] += wt[k] * bilinear(image) for the samples of :func:`_row_samples`.
 
     ``quads`` is the view's :func:`pixel_quads` raveled as complex128, so that one 16-byte load
@@ -392,7 +392,7 @@ def _backproject_kernel(
                     _row_samples(
                         n, x0, h, s, umax, vmax, cols, mode, sc, d0, dd, ax32, idx, fu, fv, wt
                     )
-                _row_gather(n, image, idx, fu, fv, wt, taps, acc[y - y0, x0:])
+                row_gather(n, image, idx, fu, fv, wt, taps, acc[y - y0, x0:])
         for y in range(y0, y1):
             for x in range(nx):
                 out[z, y, x] += acc[y - y0, x]
