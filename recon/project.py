@@ -67,36 +67,6 @@ def _view_arrays(geometry: Geometry) -> tuple[np.ndarray, ...]:
     return sources, origins, du, dv
 
 
-@numba.njit(fastmath=True, error_model="numpy", inline="always")
-def _ray(s, d, dims, spacing, source, det_origin, du, dv, r, c):  # pragma: no cover
-    """Joseph's set-up of the ray from the source to pixel (r, c): fills ``d`` (the ray in
-    voxel units, ``s`` being the source's voxel coordinates) and returns its squared length
-    (mm^2), its main axis k, the two others a and b, and the range of the ray parameter t in
-    [0, 1] where the bilinear footprint on a and b overlaps the volume (index in (-1, n))."""
-    length2 = 0.0
-    for ax in range(3):
-        d_mm = det_origin[ax] + c * du[ax] + r * dv[ax] - source[ax]
-        length2 += d_mm * d_mm
-        d[ax] = d_mm / spacing[ax]
-    k = 0
-    if abs(d[1]) > abs(d[k]):
-        k = 1
-    if abs(d[2]) > abs(d[k]):
-        k = 2
-    a = (k + 1) % 3
-    b = (k + 2) % 3
-    t_lo, t_hi = 0.0, 1.0
-    for ax in (a, b):
-        if d[ax] != 0.0:
-            t0 = (-1.0 - s[ax]) / d[ax]
-            t1 = (dims[ax] - s[ax]) / d[ax]
-            t_lo = max(t_lo, min(t0, t1))
-            t_hi = min(t_hi, max(t0, t1))
-        elif s[ax] <= -1.0 or s[ax] >= dims[ax]:
-            t_hi = -1.0
-    return length2, k, a, b, t_lo, t_hi
-
-
 @numba.njit(parallel=True, fastmath=True, cache=True, error_model="numpy", nogil=True)
 def _joseph_kernel(
     flat, strides, dims, origin, spacing, sources, det_origins, du, dv, spans, out
@@ -117,9 +87,31 @@ def _joseph_kernel(
             if c < spans[r, 0] or c >= spans[r, 1]:
                 out[view, r, c] = 0.0
                 continue
-            length2, k, a, b, t_lo, t_hi = _ray(
-                s, d, dims, spacing, sources[view], det_origins[view], du[view], dv[view], r, c
-            )
+            length2 = 0.0
+            for ax in range(3):
+                d_mm = (
+                    det_origins[view, ax] + c * du[view, ax] + r * dv[view, ax] - sources[view, ax]
+                )
+                length2 += d_mm * d_mm
+                d[ax] = d_mm / spacing[ax]
+            k = 0
+            if abs(d[1]) > abs(d[k]):
+                k = 1
+            if abs(d[2]) > abs(d[k]):
+                k = 2
+            a = (k + 1) % 3
+            b = (k + 2) % 3
+            # ray parameter t in [0, 1] (source to pixel), restricted to where the bilinear
+            # footprint on the two other axes overlaps the volume: index in (-1, n)
+            t_lo, t_hi = 0.0, 1.0
+            for ax in (a, b):
+                if d[ax] != 0.0:
+                    t0 = (-1.0 - s[ax]) / d[ax]
+                    t1 = (dims[ax] - s[ax]) / d[ax]
+                    t_lo = max(t_lo, min(t0, t1))
+                    t_hi = min(t_hi, max(t0, t1))
+                elif s[ax] <= -1.0 or s[ax] >= dims[ax]:
+                    t_hi = -1.0
             total = 0.0
             if t_hi > t_lo:
                 k0 = s[k] + t_lo * d[k]
@@ -156,114 +148,6 @@ def _joseph_kernel(
             out[view, r, c] = total
 
 
-@numba.njit(parallel=True, fastmath=True, cache=True, error_model="numpy", nogil=True)
-def _joseph_moments_kernel(
-    channels, strides, dims, origin, spacing, source, det_origin, du, dv, center, out, moments
-):  # pragma: no cover
-    """One view's Joseph line integrals ``out`` (rows, cols) of a volume and, along the same
-    rays, ``moments`` (rows, cols, 6): the line integrals of its gradient (x, y, z) and of
-    ``(y - center) x gradient`` (y the sample's position, mm). ``channels`` holds the
-    zero-padded volume and its gradient as (voxels, 4): value, d/dx, d/dy, d/dz. The sums run
-    in the ray's own axes (k, a, b), a cyclic order of (x, y, z), so the cross product keeps its
-    form there."""
-    rows, cols = out.shape
-    for r in numba.prange(rows):
-        s = np.empty(3)
-        d = np.empty(3)
-        for ax in range(3):
-            s[ax] = (source[ax] - origin[ax]) / spacing[ax]
-        for c in range(cols):
-            length2, k, a, b, t_lo, t_hi = _ray(
-                s, d, dims, spacing, source, det_origin, du, dv, r, c
-            )
-            total = 0.0
-            gk, ga, gb, hk, ha, hb = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-            if t_hi > t_lo:
-                k0 = s[k] + t_lo * d[k]
-                k1 = s[k] + t_hi * d[k]
-                i_lo = max(0, math.ceil(min(k0, k1)))
-                i_hi = min(dims[k] - 1, math.floor(max(k0, k1)))
-                st_k = np.uint64(strides[k])
-                st_a = np.uint64(strides[a])
-                st_b = np.uint64(strides[b])
-                step_a = d[a] / d[k]
-                step_b = d[b] / d[k]
-                fa = s[a] + (i_lo - s[k]) * step_a + _PAD
-                fb = s[b] + (i_lo - s[k]) * step_b + _PAD
-                lo_a, hi_a = _PAD - 1.0, dims[a] + _PAD
-                lo_b, hi_b = _PAD - 1.0, dims[b] + _PAD
-                ck, ca, cb = 1 + k, 1 + a, 1 + b
-                # the sample's position relative to the centre, mm, in the ray's axes
-                yk = origin[k] + i_lo * spacing[k] - center[k]
-                ya = origin[a] + (fa - _PAD) * spacing[a] - center[a]
-                yb = origin[b] + (fb - _PAD) * spacing[b] - center[b]
-                for i in range(i_lo, i_hi + 1):
-                    if fa > lo_a and fb > lo_b and fa < hi_a and fb < hi_b:
-                        ia = int(fa)
-                        ib = int(fb)
-                        wa = fa - ia
-                        wb = fb - ib
-                        p00 = (
-                            np.uint64(i + _PAD) * st_k + np.uint64(ia) * st_a + np.uint64(ib) * st_b
-                        )
-                        p01 = p00 + st_b
-                        p10 = p00 + st_a
-                        p11 = p10 + st_b
-                        total += (1.0 - wa) * (
-                            (1.0 - wb) * channels[p00, 0] + wb * channels[p01, 0]
-                        ) + wa * ((1.0 - wb) * channels[p10, 0] + wb * channels[p11, 0])
-                        w00 = (1.0 - wa) * (1.0 - wb)
-                        w01 = (1.0 - wa) * wb
-                        w10 = wa * (1.0 - wb)
-                        w11 = wa * wb
-                        dk = (
-                            w00 * channels[p00, ck]
-                            + w01 * channels[p01, ck]
-                            + w10 * channels[p10, ck]
-                            + w11 * channels[p11, ck]
-                        )
-                        da = (
-                            w00 * channels[p00, ca]
-                            + w01 * channels[p01, ca]
-                            + w10 * channels[p10, ca]
-                            + w11 * channels[p11, ca]
-                        )
-                        db = (
-                            w00 * channels[p00, cb]
-                            + w01 * channels[p01, cb]
-                            + w10 * channels[p10, cb]
-                            + w11 * channels[p11, cb]
-                        )
-                        gk += dk
-                        ga += da
-                        gb += db
-                        hk += ya * db - yb * da
-                        ha += yb * dk - yk * db
-                        hb += yk * da - ya * dk
-                    fa += step_a
-                    fb += step_b
-                    yk += spacing[k]
-                    ya += step_a * spacing[a]
-                    yb += step_b * spacing[b]
-                step = math.sqrt(length2) / abs(d[k])
-                total *= step
-                gk, ga, gb, hk, ha, hb = (
-                    gk * step,
-                    ga * step,
-                    gb * step,
-                    hk * step,
-                    ha * step,
-                    hb * step,
-                )
-            out[r, c] = total
-            moments[r, c, k] = gk
-            moments[r, c, a] = ga
-            moments[r, c, b] = gb
-            moments[r, c, 3 + k] = hk
-            moments[r, c, 3 + a] = ha
-            moments[r, c, 3 + b] = hb
-
-
 class JosephProjector:
     """A volume prepared once for many Joseph projections (DRRs in registration loops)."""
 
@@ -277,7 +161,6 @@ class JosephProjector:
         self._origin = np.array(grid.origin_mm)
         self._spacing = np.array(grid.spacing_mm)
         self._corners = grid.corners_mm()
-        self._channels: np.ndarray | None = None  # value and gradient, for project_moments
 
     def project(self, geometry: Geometry, out: np.ndarray | None = None) -> np.ndarray:
         """Line integrals through every pixel of every view.
@@ -308,61 +191,6 @@ class JosephProjector:
         )
         return out
 
-    def _carried(self, view: View, T: np.ndarray) -> tuple[np.ndarray, ...]:
-        """``view``'s source, detector origin and pixel steps carried by ``inv(T)`` (the
-        volume moved by ``T`` seen through ``view``), each (3,); ValueError where the grid
-        reaches behind the source."""
-        R, t = T[:3, :3], T[:3, 3]
-        w = self._corners @ (view.matrix[2, :3] @ R) + (view.matrix[2, :3] @ t + view.matrix[2, 3])
-        if w.min() <= 1e-3:
-            raise ValueError(
-                "the volume grid reaches behind the source of the view: move or shrink the grid"
-            )
-        # x -> R^T (x - t)
-        return (
-            (view.source_mm - t) @ R,
-            (view.detector_origin_mm - t) @ R,
-            view.pitch_u_mm * view.e_u @ R,
-            view.pitch_v_mm * view.e_v @ R,
-        )
-
-    def project_moments(
-        self, view: View, T: np.ndarray, center_mm: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`project_moved`'s line integrals and, along the same rays, those of the
-        volume's gradient and of its moment about ``center_mm``: what the projection's
-        derivatives with respect to the motion are made of.
-
-        With ``T`` moving a reference point ``y`` to ``R (y - c) + c + tau`` (``c`` =
-        ``center_mm``, in the volume's frame), the line integral ``p`` of each pixel changes
-        with a translation ``d tau`` and a rotation ``d omega`` about the moved centre (applied
-        after ``R``) by ``dp = -(R G) . d tau - (R H) . d omega``, where ``G`` and ``H`` are
-        ``moments[..., :3]`` and ``moments[..., 3:]``: the line integrals of ``grad V`` and of
-        ``(y - c) x grad V`` in the volume's frame (the gradient by central differences).
-
-        Returns:
-            Line integrals (rows, cols) and their moments (rows, cols, 6), float32.
-        """
-        if self._channels is None:
-            vol = self._flat.reshape([n + 2 * _PAD for n in self.grid.shape])
-            gradient = np.gradient(vol, *self._spacing[::-1])  # d/dz, d/dy, d/dx
-            channels = np.stack((vol, gradient[2], gradient[1], gradient[0]), axis=-1)
-            self._channels = np.ascontiguousarray(channels, dtype=np.float32).reshape(-1, 4)
-        out = np.empty((view.rows, view.cols), dtype=np.float32)
-        moments = np.empty((view.rows, view.cols, 6), dtype=np.float32)
-        _joseph_moments_kernel(
-            self._channels,
-            self._strides,
-            self._dims,
-            self._origin,
-            self._spacing,
-            *self._carried(view, T),
-            np.asarray(center_mm, dtype=np.float64),
-            out,
-            moments,
-        )
-        return out, moments
-
     def project_moved(
         self, view: View, T: np.ndarray, spans: np.ndarray | None = None
     ) -> np.ndarray:
@@ -380,6 +208,13 @@ class JosephProjector:
         Returns:
             Line integrals (the volume's unit times mm), float32 (rows, cols).
         """
+        R, t = T[:3, :3], T[:3, 3]
+        w = self._corners @ (view.matrix[2, :3] @ R) + (view.matrix[2, :3] @ t + view.matrix[2, 3])
+        if w.min() <= 1e-3:
+            raise ValueError(
+                "the volume grid reaches behind the source of the view: move or shrink the grid"
+            )
+        # the view carried by inv(T): x -> R^T (x - t)
         out = np.empty((1, view.rows, view.cols), dtype=np.float32)
         _joseph_kernel(
             self._flat,
@@ -387,7 +222,10 @@ class JosephProjector:
             self._dims,
             self._origin,
             self._spacing,
-            *(v[None] for v in self._carried(view, T)),
+            ((view.source_mm - t) @ R)[None],
+            ((view.detector_origin_mm - t) @ R)[None],
+            (view.pitch_u_mm * view.e_u @ R)[None],
+            (view.pitch_v_mm * view.e_v @ R)[None],
             full_spans(view.rows, view.cols) if spans is None else spans,
             out,
         )

@@ -11,10 +11,7 @@ to fine, and the reconstruction is made again through the motion found:
    surface 0.40 -> 0.12 mm for the thigh, 0.18 -> 0.10 mm for the shank).
 2. **One body.** Each view's rigid pose of the whole leg (6 parameters) by Gauss-Newton on the
    line integrals, ``|p_i - A_i(T) f|^2`` over the pixels whose rays stay inside the trusted
-   field (:func:`trusted_pixels`), the Jacobian from the line integrals of the volume's
-   gradient and of its moment about the body's centre along the same rays
-   (recon.project.JosephProjector.project_moments: one traversal instead of a projection per
-   parameter).
+   field (:func:`trusted_pixels`), the Jacobian by finite differences of the Joseph projector.
    The poses are then re-centred so that their mean is the identity: the volume shows the
    patient's average pose.
 3. **Two bodies.** The volume compensated for that motion is segmented
@@ -70,19 +67,21 @@ for, mm: a "semi-flexed" sway peaks at 3-5 mm at the knee, and 1.2-1.6 times tha
 ends of the bones in the field; beyond, bones blur in the first volume past what its
 segmentation and the fit start from, and a scan is to be repeated."""
 
+_STEP = np.array([0.3, 0.3, 0.3, *np.radians([0.3, 0.3, 0.3])])
+"""Finite-difference steps of the six parameters: mm, and radians."""
 _LEVER_MM = 50.0
 """Rotations are damped as the displacement they cause this far from the body's centre."""
 _NEGLIGIBLE = 1e-3
 """A body's share below which a voxel is wholly the other body's (each body's projector then
 holds only its part of the field)."""
 _DAMPING = 1e-6
-"""Levenberg-Marquardt damping, relative to the mean of the normal matrix's diagonal."""
 _COARSEST_MM = 2.0
 """The one-body stage runs at twice the estimate's voxel, but no coarser than this, mm: the
 bones' cortex must still stand out of the soft tissue there."""
 _BETTER = 0.01
 """A fitted motion is kept when it brings the projections' reprojection residual at least
 this share below the still patient's."""
+"""Levenberg-Marquardt damping, relative to the mean of the normal matrix's diagonal."""
 
 
 @dataclass(frozen=True)
@@ -291,34 +290,29 @@ class _Fit:
         self.trusted = trusted
 
     def view(self, i: int, poses: np.ndarray, iterations: int) -> np.ndarray:
-        """The poses (K, 4, 4) of view ``i`` fitted from ``poses``: Gauss-Newton steps whose
-        Jacobian comes from the line integrals of each body's gradient and its moment
-        (recon.project.JosephProjector.project_moments), each step a translation of the body's
-        centre and a rotation about it applied after the body's rotation."""
+        """The poses (K, 4, 4) of view ``i`` fitted from ``poses``."""
         view, mask = self.geometry[i], self.trusted[i]
         measured = self.projections[i][mask]
         k = len(self.parts)
-        poses = np.array(poses, dtype=np.float64)
+        theta = np.concatenate([_params(T, c) for T, c in zip(poses, self.centers, strict=True)])
+        scale = np.tile(np.array([1.0, 1.0, 1.0, _LEVER_MM, _LEVER_MM, _LEVER_MM]), k)
         for _ in range(iterations):
-            residual = measured.astype(np.float64)
+            base = [
+                part.project_moved(view, _pose(theta[6 * b : 6 * b + 6], self.centers[b]))[mask]
+                for b, part in enumerate(self.parts)
+            ]
+            residual = measured - sum(base)
             J = np.empty((residual.size, 6 * k), dtype=np.float64)
             for b, part in enumerate(self.parts):
-                image, moments = part.project_moments(view, poses[b], self.centers[b])
-                residual -= image[mask]
-                R = poses[b, :3, :3]
-                seen = moments[mask].astype(np.float64)
-                J[:, 6 * b : 6 * b + 3] = -seen[:, :3] @ R.T
-                J[:, 6 * b + 3 : 6 * b + 6] = -seen[:, 3:] @ R.T / _LEVER_MM
+                for j in range(6):
+                    moved = theta[6 * b : 6 * b + 6].copy()
+                    moved[j] += _STEP[j]
+                    image = part.project_moved(view, _pose(moved, self.centers[b]))[mask]
+                    J[:, 6 * b + j] = (image - base[b]) / (_STEP[j] * scale[6 * b + j])
             normal = J.T @ J
             normal[np.diag_indices_from(normal)] += _DAMPING * np.trace(normal) / (6 * k)
-            step = np.linalg.solve(normal, J.T @ residual)
-            for b in range(k):
-                turn = Rotation.from_rotvec(step[6 * b + 3 : 6 * b + 6] / _LEVER_MM).as_matrix()
-                moved = self.centers[b] + _params(poses[b], self.centers[b])[:3]
-                moved += step[6 * b : 6 * b + 3]
-                poses[b, :3, :3] = turn @ poses[b, :3, :3]
-                poses[b, :3, 3] = moved - poses[b, :3, :3] @ self.centers[b]
-        return poses
+            theta = theta + np.linalg.solve(normal, J.T @ residual) / scale
+        return np.stack([_pose(theta[6 * b : 6 * b + 6], self.centers[b]) for b in range(k)])
 
     def all_views(
         self,

@@ -25,7 +25,6 @@ from recon.volume import VolumeGrid
 PARALLEL = {
     "backprojection": project._backproject_kernel,
     "forward projection": project._joseph_kernel,
-    "forward projection's moments": project._joseph_moments_kernel,
     "pixel quads": project.quads_kernel,
     "row filter's weighting": ramp._pack_kernel,
     "normalisation": fdk_module._normalise_kernel,
@@ -36,8 +35,8 @@ PARALLEL = {
 
 @pytest.fixture(scope="module")
 def ran() -> None:
-    """A small FDK (plain and through a motion field), a forward projection and its moments:
-    every kernel of :data:`PARALLEL` compiled."""
+    """A small FDK (plain and through a motion field) and a forward projection: every kernel
+    of :data:`PARALLEL` compiled."""
     views = circular_orbit(24, 600.0, 1000.0, DetectorSpec(rows=32, cols=32, pixel_pitch_mm=2.0))
     grid = VolumeGrid.centered((16, 16, 16), 2.0, (0.0, 0.0, 0.0))
     sino = project.forward_project(np.ones(grid.shape, np.float32), grid, views)
@@ -45,9 +44,6 @@ def ran() -> None:
     poses = np.tile(np.eye(4), (len(views), 2, 1, 1))
     weights = np.full((2, *grid.shape), 0.5, np.float32)
     fdk_reconstruct(sino, views, grid, motion=motion.BodyMotion(("a", "b"), poses, weights, grid))
-    project.JosephProjector(np.ones(grid.shape, np.float32), grid).project_moments(
-        views[0], np.eye(4), np.zeros(3)
-    )
 
 
 @pytest.mark.parametrize("name", sorted(PARALLEL))
