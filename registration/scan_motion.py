@@ -75,13 +75,13 @@ _NEGLIGIBLE = 1e-3
 """A body's share below which a voxel is wholly the other body's (each body's projector then
 holds only its part of the field)."""
 _DAMPING = 1e-6
+"""Levenberg-Marquardt damping, relative to the mean of the normal matrix's diagonal."""
 _COARSEST_MM = 2.0
 """The one-body stage runs at twice the estimate's voxel, but no coarser than this, mm: the
 bones' cortex must still stand out of the soft tissue there."""
 _BETTER = 0.01
 """A fitted motion is kept when it brings the projections' reprojection residual at least
 this share below the still patient's."""
-"""Levenberg-Marquardt damping, relative to the mean of the normal matrix's diagonal."""
 
 
 @dataclass(frozen=True)
