@@ -306,17 +306,12 @@ def rows_seen(geometry: Geometry, grid: VolumeGrid) -> tuple[int, int]:
 
 
 def _grid_seen(geometry: Geometry, grid: VolumeGrid) -> None:
-    corners = grid.corners_mm()
-    for view in geometry:
-        uv = view.project(corners)
-        if (
-            uv[:, 0].max() >= 0
-            and uv[:, 1].max() >= 0
-            and uv[:, 0].min() <= view.cols - 1
-            and uv[:, 1].min() <= view.rows - 1
-        ):
-            return
-    raise ValueError("no view sees any part of the volume grid: check its origin and size")
+    """ValueError unless some view's panel overlaps the grid's projection (its corners')."""
+    u, v = corner_pixels(geometry, grid)
+    seen = (u.max(axis=1) >= 0) & (v.max(axis=1) >= 0)
+    seen &= (u.min(axis=1) <= geometry.cols - 1) & (v.min(axis=1) <= geometry.rows - 1)
+    if not seen.any():
+        raise ValueError("no view sees any part of the volume grid: check its origin and size")
 
 
 class FDKAccumulator:
