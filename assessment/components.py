@@ -23,7 +23,7 @@ from assessment.kinematics import knee_kinematics
 from assessment.knee import KneeAssessment
 from assessment.results import MLD_FLAG_MM
 from assessment.screening import screen
-from registration.poses import BonePose, poses_by_frame
+from registration.poses import BodyPose, poses_by_frame
 
 NOTCH_HALF_WIDTH_MM = 8.0
 """Half the intercondylar notch's width: articular points nearer the component's mid-plane are
@@ -101,7 +101,7 @@ def plateau_anatomy(plateau: trimesh.Trimesh, offset_mm: float = 0.0) -> TibiaAn
 def assess_components(
     femoral: trimesh.Trimesh,
     plateau: trimesh.Trimesh,
-    poses: list[BonePose],
+    poses: list[BodyPose],
     side: Literal["right", "left"] = "right",
     plateau_offset_mm: float = 0.0,
     flag_mm: float = MLD_FLAG_MM,
@@ -132,7 +132,7 @@ def assess_components(
             f"--tka from component meshes: side {side!r}; only right knees so far (a left "
             "knee's component frames are not mirrored into a right one's yet)"
         )
-    tibia_name = "tibia_fibula" if any(p.bone == "tibia_fibula" for p in poses) else "tibia"
+    tibia_name = "tibia_fibula" if any(p.body == "tibia_fibula" for p in poses) else "tibia"
     frames, stacks = poses_by_frame(poses, ("femur", tibia_name))
     femur = femoral_anatomy(femoral)
     tibia = plateau_anatomy(plateau, plateau_offset_mm)

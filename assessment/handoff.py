@@ -1,7 +1,7 @@
 """The tracked motion for other tools: ITK transforms, Autoscoper ``.tra`` files and a 3D Slicer
 scene.
 
-Every file states the same poses as ``poses.csv`` (registration.poses): ``T_world_bone`` moves a
+Every file states the same poses as ``poses.csv`` (registration.poses): ``T_world_body`` moves a
 bone from where the static scan saw it to where it is in a frame, in world mm, and the world
 frame is DICOM/ITK's LPS patient frame (docs/design.md). What each format adds:
 
@@ -26,7 +26,7 @@ import trimesh
 
 from assessment.slicer_scene import add_stl_header, write_scene, write_sequence
 from recon.io import check_image_file
-from registration.poses import BonePose, check_rigid, poses_by_frame
+from registration.poses import BodyPose, check_rigid, poses_by_frame
 
 
 @dataclass(frozen=True)
@@ -35,23 +35,23 @@ class Motion:
 
     Attributes:
         frames: frame numbers (F,), increasing.
-        poses: bone -> (F, 4, 4) ``T_world_bone`` (LPS mm).
+        poses: bone -> (F, 4, 4) ``T_world_body`` (LPS mm).
     """
 
     frames: np.ndarray
     poses: dict[str, np.ndarray]
 
     @classmethod
-    def of(cls, poses: list[BonePose]) -> Motion:
+    def of(cls, poses: list[BodyPose]) -> Motion:
         """The motion of every bone in ``poses`` (every frame must hold every bone)."""
-        bones = tuple(sorted({p.bone for p in poses}))
+        bones = tuple(sorted({p.body for p in poses}))
         frames, stacks = poses_by_frame(poses, bones)
         return cls(frames, stacks)
 
 
-def itk_transform(T_world_bone: np.ndarray) -> sitk.AffineTransform:
+def itk_transform(T_world_body: np.ndarray) -> sitk.AffineTransform:
     """The ITK (resampling) transform of a pose: frame point -> static-scan point, LPS mm."""
-    inverse = np.linalg.inv(check_rigid(T_world_bone, "pose"))
+    inverse = np.linalg.inv(check_rigid(T_world_body, "pose"))
     transform = sitk.AffineTransform(3)
     transform.SetMatrix(inverse[:3, :3].ravel().tolist())
     transform.SetTranslation(inverse[:3, 3].tolist())
@@ -59,7 +59,7 @@ def itk_transform(T_world_bone: np.ndarray) -> sitk.AffineTransform:
 
 
 def pose_of_itk(transform: sitk.Transform) -> np.ndarray:
-    """The pose ``T_world_bone`` an ITK transform file written by :func:`write_itk` holds."""
+    """The pose ``T_world_body`` an ITK transform file written by :func:`write_itk` holds."""
     affine = sitk.AffineTransform(transform)
     inverse = np.eye(4)
     inverse[:3, :3] = np.reshape(affine.GetMatrix(), (3, 3))

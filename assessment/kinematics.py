@@ -59,7 +59,7 @@ def knee_kinematics(
         femur: reference anatomy of the femur, already mirrored for a left knee.
         tibia: reference anatomy of the tibia, already mirrored for a left knee.
         frames: frame numbers (F,).
-        femur_poses: the femur's ``T_world_bone`` per frame (F, 4, 4), mm, as registered
+        femur_poses: the femur's ``T_world_body`` per frame (F, 4, 4), mm, as registered
             (the function mirrors left-knee poses itself).
         tibia_poses: the tibia's, likewise.
         side: which knee the poses belong to.

@@ -24,7 +24,7 @@ from assessment.results import MLD_FLAG_MM, KneeKinematics
 from assessment.screening import screen
 from recon.volume import Volume
 from registration.labels import BONE_LABELS, INSERT_LABEL, LABELS
-from registration.poses import BonePose, poses_by_frame
+from registration.poses import BodyPose, poses_by_frame
 
 
 @dataclass(frozen=True)
@@ -37,34 +37,34 @@ class KneeAssessment:
     tibia: TibiaAnatomy
 
 
-def _tibia_name(poses: list[BonePose]) -> str:
-    names = {p.bone for p in poses}
+def _tibia_name(poses: list[BodyPose]) -> str:
+    names = {p.body for p in poses}
     for name in ("tibia_fibula", "tibia"):
         if name in names:
             return name
     raise ValueError("no tibia poses: expected bone 'tibia_fibula' or 'tibia' in the poses")
 
 
-def check_bones_present(labels: Volume, poses: list[BonePose]) -> None:
+def check_bones_present(labels: Volume, poses: list[BodyPose]) -> None:
     """Every posed bone must exist in the label volume (error names the frame and bone)."""
     present = set(np.unique(labels.data).tolist())
     for pose in poses:
-        wanted = BONE_LABELS.get(pose.bone)
+        wanted = BONE_LABELS.get(pose.body)
         if wanted is None:
             raise ValueError(
-                f"frame {pose.frame}, bone {pose.bone}: unknown bone name "
+                f"frame {pose.frame}, body {pose.body}: unknown bone name "
                 f"(known: {', '.join(BONE_LABELS)})"
             )
         if not present.intersection(wanted):
             raise ValueError(
-                f"frame {pose.frame}, bone {pose.bone}: the label volume has no "
+                f"frame {pose.frame}, body {pose.body}: the label volume has no "
                 f"such bone (labels {list(wanted)}), so it has no mesh"
             )
 
 
 def assess_knee(
     labels: Volume,
-    poses: list[BonePose],
+    poses: list[BodyPose],
     side: Literal["right", "left"],
     *,
     tka: bool = False,
@@ -76,7 +76,7 @@ def assess_knee(
 
     Args:
         labels: static-scan label volume (world LPS).
-        poses: per-frame ``T_world_bone`` of at least the femur and the tibia.
+        poses: per-frame ``T_world_body`` of at least the femur and the tibia.
         side: which knee.
         tka: fit the TP plane to the polyethylene insert (label :data:`INSERT_LABEL`).
         plateau_offset_mm: shift of the TP plane along its normal (docs/system.md's configurable

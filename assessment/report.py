@@ -22,7 +22,7 @@ from assessment.flags import angle_text, describe_flags, insufficient_text, meas
 from assessment.plots import Plot, frames_beside_4d_png, motion_frames_png, save_all
 from assessment.results import KneeKinematics
 from assessment.viewer import MotionScene, json_points, view_html
-from registration.poses import BonePose
+from registration.poses import BodyPose
 
 CSV_COLUMNS = (
     "frame",
@@ -182,7 +182,7 @@ class FrameOverlay:
 
 
 def frame_overlays(
-    folder: Path, kin: KneeKinematics, poses: Sequence[BonePose]
+    folder: Path, kin: KneeKinematics, poses: Sequence[BodyPose]
 ) -> list[FrameOverlay]:
     """The registration's overlays (``frame_NNNN.png`` in ``folder``) of the assessed frames,
     captioned with each body's NCC and the frame's flag; frames without one are left out.
@@ -194,7 +194,7 @@ def frame_overlays(
     """
     ncc: dict[int, list[str]] = {}
     for pose in poses:
-        ncc.setdefault(pose.frame, []).append(f"{pose.bone} {pose.similarity:.3f}")
+        ncc.setdefault(pose.frame, []).append(f"{pose.body} {pose.similarity:.3f}")
     out = []
     for k, frame in enumerate(int(f) for f in kin.frames):
         png = folder / f"frame_{frame:04d}.png"

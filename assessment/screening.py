@@ -25,7 +25,7 @@ from dataclasses import replace
 import numpy as np
 
 from assessment.results import Exclusion, KneeKinematics
-from registration.poses import BonePose
+from registration.poses import BodyPose
 
 INSIDE_MM = 2.0
 """A condyle deeper than this inside the plateau's surface (beyond its rest) is implausible:
@@ -40,7 +40,7 @@ jump: over a whole motion the tibia shifts against the femur by 10-15 mm (rollba
 
 def screen(
     kin: KneeKinematics,
-    poses: Sequence[BonePose],
+    poses: Sequence[BodyPose],
     bodies: dict[str, str],
     surface: str,
 ) -> KneeKinematics:
@@ -60,7 +60,7 @@ def screen(
     index = {int(f): k for k, f in enumerate(kin.frames)}
     reasons: list[Exclusion | None] = [None] * len(kin.frames)
     for name, shown in bodies.items():
-        for pose in sorted((p for p in poses if p.bone == name), key=lambda p: p.frame):
+        for pose in sorted((p for p in poses if p.body == name), key=lambda p: p.frame):
             k = index.get(pose.frame)
             if k is not None and pose.failed and reasons[k] is None:
                 reasons[k] = Exclusion(f"{shown} not tracked", pose.reason or "marked failed")

@@ -9,7 +9,7 @@ Files (all beside ``scene.mrml``, referenced by relative name):
 - ``motion/<bone>.seq.mha``: Slicer's linear transform sequence file (a MetaImage header with
   no pixels, read by ``vtkMRMLLinearTransformSequenceStorageNode``): one line per frame,
   ``Seq_Frame<k>_<Bone>ToWorldTransform = 16 numbers``, row-major, in Slicer's RAS world, the
-  "to parent" matrix: ``C T_world_bone C`` with ``C = diag(-1, -1, 1, 1)`` (LPS -> RAS). Its
+  "to parent" matrix: ``C T_world_body C`` with ``C = diag(-1, -1, 1, 1)`` (LPS -> RAS). Its
   ``Timestamp`` (Slicer's index value) is the frame number.
 
 In the scene every model sits under its bone's proxy transform, which one sequence browser
@@ -36,9 +36,9 @@ COLORS = {"femur": "0.95 0.85 0.55", "tibia_fibula": "0.55 0.80 0.95", "patella"
 """Model colours (RGB 0..1) per bone; others are grey."""
 
 
-def ras_to_parent(T_world_bone: np.ndarray) -> np.ndarray:
+def ras_to_parent(T_world_body: np.ndarray) -> np.ndarray:
     """Slicer's "to parent" matrix (RAS) of a pose (LPS)."""
-    return LPS_TO_RAS @ T_world_bone @ LPS_TO_RAS
+    return LPS_TO_RAS @ T_world_body @ LPS_TO_RAS
 
 
 def transform_name(bone: str) -> str:

@@ -44,7 +44,7 @@ sys.path.insert(0, str(ROOT))
 
 from distributed import Client  # noqa: E402
 
-from registration.boneaxis import Settings  # noqa: E402
+from registration.settings import Settings  # noqa: E402
 from scanner.cli import CONFIGS  # noqa: E402
 from study import batch  # noqa: E402
 

@@ -90,7 +90,6 @@ from recon.fdk import fdk_reconstruct  # noqa: E402
 from recon.geometry import DetectorSpec  # noqa: E402
 from recon.rtk_peer import rtk_forward_project  # noqa: E402
 from recon.volume import Volume, VolumeGrid  # noqa: E402
-from registration.boneaxis import Settings, Tracker, compose  # noqa: E402
 from registration.drr import SoftTissue, bone_models, scene  # noqa: E402
 from registration.frames import read_frames  # noqa: E402
 from registration.implants import MATERIALS, implant_model, read_mesh  # noqa: E402
@@ -104,7 +103,10 @@ from registration.metrics import (  # noqa: E402
     summarize,
 )
 from registration.overlays import silhouette  # noqa: E402
+from registration.se3 import compose  # noqa: E402
 from registration.segment import segment_bones  # noqa: E402
+from registration.settings import Settings  # noqa: E402
+from registration.tracker import Tracker  # noqa: E402
 from sim.fluoro import (  # noqa: E402
     DISTORTION_MAX_MM,
     add_fluoro_noise,
@@ -190,17 +192,17 @@ def run(method: str, view, frames, models, soft, motion, start) -> dict:
     log(f"  {method}: {time.perf_counter() - started:.0f} s")
     errors, first, warm = [], 0.0, []
     for result in results:
-        seconds = sum(r.seconds for r in result.bones.values())
+        seconds = sum(r.seconds for r in result.bodies.values())
         if result.frame == 0:
             first = seconds
         else:
             warm.append(seconds)
-        for bone, r in result.bones.items():
+        for bone, r in result.bodies.items():
             errors.append(
                 pose_error(
                     bone,
                     result.frame,
-                    r.pose,
+                    r.T_world_body,
                     motion.poses[bone][result.frame],
                     models[bone].points_mm,
                     view,
@@ -248,8 +250,8 @@ def optimum_spread(
         settings = Settings(kpm=False, global_init=False, powell=True)
         result = Tracker(view, frame, models, settings, soft).register(0, truth, [])
         errors += [
-            pose_error(b, 0, r.pose, truth[b], models[b].points_mm, view)
-            for b, r in result.bones.items()
+            pose_error(b, 0, r.T_world_body, truth[b], models[b].points_mm, view)
+            for b, r in result.bodies.items()
         ]
     return {
         "distortion_mm": DISTORTION_MAX_MM if distorted else 0.0,
@@ -313,15 +315,15 @@ def tka(sequences: int, frames: int, panel: int, bones: bool = False) -> dict:
         start = perturbed({b: truth[b][0] for b in models}, models, np.random.default_rng(seq))
         log(f"tka sequence {seq}: tracking {frames} frames")
         results = Tracker(view, images, models, settings).track(start)
-        first.append(sum(r.seconds for r in results[0].bones.values()))
-        warm += [sum(r.seconds for r in res.bones.values()) for res in results[1:]]
+        first.append(sum(r.seconds for r in results[0].bodies.values()))
+        warm += [sum(r.seconds for r in res.bodies.values()) for res in results[1:]]
         for res in results:
-            for body, r in res.bones.items():
+            for body, r in res.bodies.items():
                 errors.append(
                     pose_error(
                         body,
                         res.frame,
-                        r.pose,
+                        r.T_world_body,
                         truth[body][res.frame],
                         models[body].points_mm,
                         view,
@@ -473,16 +475,16 @@ def real_tka(
             starts[name] = T @ reference[name][0]
         log(f"real_tka seed {seed}: tracking {len(files)} frames")
         results = Tracker(view, stack.data, models, settings, None, stack.field).track(starts)
-        first.append(sum(b.seconds for b in results[0].bones.values()))
-        seconds += [sum(b.seconds for b in r.bones.values()) for r in results[1:]]
+        first.append(sum(b.seconds for b in results[0].bodies.values()))
+        seconds += [sum(b.seconds for b in r.bodies.values()) for r in results[1:]]
         for r in results:
-            for name, bone in r.bones.items():
+            for name, bone in r.bodies.items():
                 failed += bone.failed
                 k = r.frame
                 d = camera_differences(
-                    bone.pose, reference[name][k], models[name].centroid_mm, camera
+                    bone.T_world_body, reference[name][k], models[name].centroid_mm, camera
                 )
-                ours = silhouette(models[name], view, bone.pose)
+                ours = silhouette(models[name], view, bone.T_world_body)
                 mask = masks[name][k]
                 dice = 2.0 * (ours & mask).sum() / (ours.sum() + mask.sum())
                 rows[name].append(
@@ -491,7 +493,10 @@ def real_tka(
                 if edge_poses:
                     ours_to_edges[name].append(
                         camera_differences(
-                            bone.pose, edge_poses[name][k][0], models[name].centroid_mm, camera
+                            bone.T_world_body,
+                            edge_poses[name][k][0],
+                            models[name].centroid_mm,
+                            camera,
                         )
                     )
     entry = {"regime": "real_tka", "seeds": seeds, "frames": len(files), "start": list(start)}

@@ -35,5 +35,5 @@ def tre(T: np.ndarray) -> float:
     return float(np.linalg.norm(tray.points_mm @ d[:3, :3].T + d[:3, 3], axis=1).mean())
 
 
-found = result.bones["tibia_fibula"].pose  # the tray stands for the tibia
+found = result.bodies["tibia_fibula"].T_world_body  # the tray stands for the tibia
 print(f"TRE {tre(start):.2f} mm at the start, {tre(found):.3f} mm registered")

@@ -5,7 +5,7 @@ report does: flexion, varus, the medial and lateral TP-condyle distances and the
 
 from assessment import assess_knee
 from recon import Volume
-from registration import BonePose
+from registration import BodyPose
 from sim.motion import squat_motion
 from sim.phantoms import KneePhantomSpec, knee_grid, rasterize_knee
 
@@ -14,7 +14,7 @@ grid = knee_grid(spec, spacing_mm=1.0)
 labels = Volume(rasterize_knee(spec, grid, supersample=1)[0], grid, "label")
 motion = squat_motion(spec, frames=20, max_flexion_deg=60.0)
 poses = [
-    BonePose(frame, bone, motion.poses[bone][frame])
+    BodyPose(frame, bone, motion.poses[bone][frame])
     for frame in range(20)
     for bone in ("femur", "tibia_fibula")
 ]

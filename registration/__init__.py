@@ -1,26 +1,36 @@
 """2D-3D registration of bones and implant components to fluoroscopy frames; poses and their
 files.
 
-The public names below load their module on first use: ``registration.register_files`` runs
-what ``cbct register`` runs; ``registration.Tracker`` tracks models through frames in memory.
+The public names below load their module on first use (``__init__.pyi`` lists them for type
+checkers): ``registration.track`` tracks bodies through frames in memory
+(``registration.read_frames``, ``registration.read_view``, ``registration.implant_body``,
+``registration.bone_models``); ``registration.register_files`` runs what ``cbct register``
+runs.
 """
 
 from recon._exports import lazy
 
 _EXPORTS = {
-    "Settings": "registration.boneaxis",
-    "Tracker": "registration.boneaxis",
-    "BoneResult": "registration.boneaxis",
-    "FrameResult": "registration.boneaxis",
-    "ImplantSpec": "registration.track",
-    "register_files": "registration.track",
+    "Settings": "registration.settings",
+    "Tracker": "registration.tracker",
+    "BodyResult": "registration.results",
+    "FrameResult": "registration.results",
+    "ImplantSpec": "registration.tracking",
+    "register_files": "registration.tracking",
+    "track": "registration.tracking",
+    "read_view": "registration.tracking",
+    "Frames": "registration.frames",
+    "read_frames": "registration.frames",
+    "read_jointtrack_poses": "registration.jointtrack",
     "BoneModel": "registration.drr",
+    "BodyModel": "registration.objective",
     "bone_models": "registration.drr",
     "ImplantModel": "registration.implants",
     "MATERIALS": "registration.implants",
     "implant_model": "registration.implants",
+    "implant_body": "registration.implants",
     "read_mesh": "registration.implants",
-    "BonePose": "registration.poses",
+    "BodyPose": "registration.poses",
     "read_poses": "registration.poses",
     "write_poses": "registration.poses",
     "segment_bones": "registration.segment",

@@ -9,7 +9,7 @@ in the image (FFT, and summed-area tables for the frame's sums under the box): t
 position of each orientation scores it. The best :data:`KEEP` orientations that differ by more
 than :data:`DISTINCT_DEG` are the candidates, each placed where its silhouette fits; the
 tracker then searches about each (differential evolution in twice its first-frame box) and
-keeps the best (registration.boneaxis.Tracker.best_start).
+keeps the best (registration.tracker.Tracker.best_start).
 """
 
 from __future__ import annotations

@@ -126,22 +126,22 @@ class BoneModel:
     def render(
         self,
         view: View,
-        T_world_bone: np.ndarray,
+        T_world_body: np.ndarray,
         coarse: bool = False,
         spans: np.ndarray | None = None,
     ) -> np.ndarray:
-        """Line integrals of the bone moved by ``T_world_bone`` (see :meth:`RigidVolume.render`).
+        """Line integrals of the bone moved by ``T_world_body`` (see :meth:`RigidVolume.render`).
 
         Args:
             view: The view rendered.
-            T_world_bone: Pose of the bone, 4x4, translation in mm.
+            T_world_body: Pose of the bone, 4x4, translation in mm.
             coarse: Render the pooled (coarser) volume, for the registration's first level.
             spans: Columns traced per row, int (rows, 2); ``None`` traces all.
 
         Returns:
             Line integrals (unitless: 1/mm times mm), float32 (rows, cols).
         """
-        return self.volume.render(view, T_world_bone, coarse, spans)
+        return self.volume.render(view, T_world_body, coarse, spans)
 
 
 def _crop(

@@ -106,6 +106,12 @@ def read_frames(
     attenuation shows: "dark" (as fluoroscopy displays it: the implant darkest, the stand-in
     ``max - value``) or "bright" (as a radiograph: the value itself).
 
+    Args:
+        path: An .mha/.mhd stack, a DICOM file or folder, an image file, a folder of images,
+            a glob pattern, or a list of image files.
+        pixel_pitch_mm: The pixel size (mm) of images whose files do not give one.
+        polarity: How attenuation shows in images: "dark" or "bright".
+
     Raises:
         FileNotFoundError: ``path`` does not exist (or the pattern matches nothing).
         ImageFileError: a file that is not a readable image (recon.io, recon.dicom).

@@ -237,7 +237,7 @@ class ImplantModel:
     insert) sums each part's ``mu L``: its faces carry their part's attenuation.
 
     Attributes:
-        name: the body's name (registration.boneaxis.TRACK_ORDER: the femoral component
+        name: the body's name (registration.settings.TRACK_ORDER: the femoral component
             carries the femur's, the tibial tray the tibia's).
         vertices_mm: the mesh's vertices in its own frame (V, 3), mm.
         faces: the mesh's triangles (T, 3), outward by their winding.
@@ -487,6 +487,34 @@ def _add_face(uv, coef, weight, s, g0, g1, h0, h1, sums):  # pragma: no cover
                 row[g - g0] += num / denominator
             elif denominator < 0.0:
                 row[g - g0] -= num / denominator
+
+
+def implant_body(
+    name: str, path: str | Path, material: str = "CoCr", unit: str = "mm"
+) -> ImplantModel:
+    """A component as a tracked body, from its mesh file (:func:`read_mesh`, then
+    :func:`implant_model`).
+
+    Args:
+        name: The body's name: the bone it stands for (registration.settings.TRACK_ORDER).
+        path: The component's mesh, an STL, OBJ or PLY file.
+        material: Its material, one of :data:`MATERIALS`.
+        unit: The mesh's unit (:data:`MESH_UNITS_MM`).
+
+    Examples:
+        A 60 x 10 x 40 mm block of cobalt-chrome, written as an STL and read back as a body:
+
+        >>> import tempfile
+        >>> with tempfile.TemporaryDirectory() as folder:
+        ...     mesh = Path(folder) / "block.stl"
+        ...     _ = trimesh.creation.box(extents=(60.0, 10.0, 40.0)).export(mesh)
+        ...     body = implant_body("femur", mesh)
+        >>> body.name, body.centroid_mm.round(3).tolist()  # the mesh's frame is the body's
+        ('femur', [0.0, 0.0, 0.0])
+    """
+    if material not in MATERIALS:
+        raise ValueError(f"{path}: material {material!r}; one of {sorted(MATERIALS)}")
+    return implant_model(name, read_mesh(path, unit)[0], MATERIALS[material])
 
 
 def implant_model(

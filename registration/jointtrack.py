@@ -148,3 +148,25 @@ def write_poses(path: str | Path, poses: Sequence[np.ndarray]) -> Path:
         lines.append(",".join(f"{v:>{width}.9g}" for v in row_of_pose(T)))
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")
     return path
+
+
+def camera_frame(view: View) -> np.ndarray:
+    """``T_world_camera`` of JointTrack's camera frame of a view: origin at the focal spot,
+    +x along the panel's columns, +y against its rows (up, as the image shows), looking down
+    -z (registration.jointtrack)."""
+    x, y = view.e_u, -view.e_v
+    z = np.cross(x, y)
+    T = np.eye(4)
+    T[:3, :3] = np.column_stack((x, y, z))
+    T[:3, 3] = view.source_mm
+    return T
+
+
+def read_jointtrack_poses(path: str | Path, view: View) -> np.ndarray:
+    """A JointTrack ``.jts`` file's poses in the world, ``T_world_body`` (F, 4, 4), mm.
+
+    Args:
+        path: The ``.jts`` file (:func:`read_poses`).
+        view: The view whose camera frame (:func:`camera_frame`) the file's poses are in.
+    """
+    return camera_frame(view) @ read_poses(path)

@@ -56,7 +56,7 @@ def write_overlays(
     folder: Path, frames: np.ndarray, view: View, models: dict, results: Sequence
 ) -> list[Path]:
     """One PNG per frame into the new ``folder``: ``frames[k]`` with ``results[k]``
-    (registration.boneaxis.FrameResult; named by its frame number). Where the view's rows go
+    (registration.results.FrameResult; named by its frame number). Where the view's rows go
     up in the world (+z, the scanner's up), the image is flipped so that up is at its top, as
     a reader expects; other views' images keep the frames' row order (a JointTrack frame's
     row 0 is its top)."""
@@ -65,8 +65,8 @@ def write_overlays(
     written = []
     for image, result in zip(frames, results, strict=True):
         outlines = {
-            name: (outline(silhouette(models[name], view, bone.pose)), bone.failed)
-            for name, bone in result.bones.items()
+            name: (outline(silhouette(models[name], view, bone.T_world_body)), bone.failed)
+            for name, bone in result.bodies.items()
         }
         path = folder / f"frame_{result.frame:04d}.png"
         rgb = overlay(image, outlines)

@@ -71,14 +71,14 @@ class Placement:
     Attributes:
         body: The tracked body it stands for (femur, tibia, patella).
         path: Its mesh file.
-        T_world_component: Its mesh's frame in the world (4x4, mm).
+        T_world_body: Its mesh's frame in the world (4x4, mm).
         surface_distance_mm: The mean distance of its surface to the metal's, mm.
         volume_ratio: The metal region's volume over the mesh's.
     """
 
     body: str
     path: str
-    T_world_component: np.ndarray
+    T_world_body: np.ndarray
     surface_distance_mm: float
     volume_ratio: float
 

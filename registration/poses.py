@@ -1,12 +1,14 @@
-"""Bone poses per frame and their file, ``poses.csv`` (docs/design.md).
+"""Tracked bodies' poses per frame and their file, ``poses.csv`` (docs/design.md).
 
-A pose ``T_world_bone`` (4x4) moves a bone from where the static CBCT scan saw it (the bone's
-reference frame: world coordinates at the time of the scan) to where it is in a frame. The
-6-DoF row of the file repeats it as docs/design.md parameterises poses: the world position of the
-bone's centroid (tx, ty, tz) mm and the rotation as extrinsic x-y-z angles (scipy "xyz") in
-degrees about that centroid. The 16 matrix entries are authoritative when reading. A file may
-leave out the similarity, seconds, failed and reason columns (files written before them still
-read): similarity and seconds are then unknown and no pose is marked failed.
+A body is a bone or an implant component. Its pose ``T_world_body`` (4x4) moves it from where
+the static CBCT scan saw it (its reference frame: world coordinates at the time of the scan;
+a component's mesh frame) to where it is in a frame. The 6-DoF row of the file repeats it as
+docs/design.md parameterises poses: the world position of the body's centroid (tx, ty, tz) mm
+and the rotation as extrinsic x-y-z angles (scipy "xyz") in degrees about that centroid. The
+16 matrix entries are authoritative when reading. A file may leave out the similarity,
+seconds, failed and reason columns (files written before them still read): similarity and
+seconds are then unknown and no pose is marked failed. Files written before the ``body``
+column name the body in a ``bone`` column, and still read.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from scipy.spatial.transform import Rotation
 MATRIX_COLUMNS = tuple(f"t{r}{c}" for r in range(4) for c in range(4))
 COLUMNS = (
     "frame",
-    "bone",
+    "body",
     *MATRIX_COLUMNS,
     "tx_mm",
     "ty_mm",
@@ -40,13 +42,14 @@ RIGID_TOLERANCE = 1e-5
 
 
 @dataclass(frozen=True)
-class BonePose:
-    """One bone in one frame.
+class BodyPose:
+    """One tracked body in one frame.
 
     Attributes:
         frame: frame number.
-        bone: bone name (e.g. "femur", "tibia", "patella").
-        T_world_bone: 4x4 rigid motion from the reference (CBCT) pose, mm.
+        body: the body's name (e.g. "femur", "tibia_fibula", "patella"; a component by the
+            bone it replaces).
+        T_world_body: 4x4 rigid motion from the reference (CBCT) pose, mm.
         similarity: the registration's similarity at this pose (NaN when unknown).
         seconds: time the registration spent on it (NaN when unknown).
         failed: the registration marked this pose failed (the assessment measures nothing
@@ -55,8 +58,8 @@ class BonePose:
     """
 
     frame: int
-    bone: str
-    T_world_bone: np.ndarray
+    body: str
+    T_world_body: np.ndarray
     similarity: float = math.nan
     seconds: float = math.nan
     failed: bool = False
@@ -66,7 +69,7 @@ class BonePose:
         """(tx, ty, tz) mm of the moved centroid and (rx, ry, rz) deg, extrinsic xyz.
 
         Args:
-            centroid_mm: The bone's reference centroid in its own frame (mm), shape (3,).
+            centroid_mm: The body's reference centroid in its own frame (mm), shape (3,).
 
         Returns:
             Six numbers: translation (mm) then rotation (degrees), shape (6,).
@@ -76,11 +79,11 @@ class BonePose:
 
             >>> T = np.eye(4)
             >>> T[:3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]
-            >>> pose = BonePose(frame=0, bone="femur", T_world_bone=T)
+            >>> pose = BodyPose(frame=0, body="femur", T_world_body=T)
             >>> pose.six_dof(np.array([10.0, 0.0, 0.0])).round(6).tolist()
             [0.0, 10.0, 0.0, 0.0, 0.0, 90.0]
         """
-        T = self.T_world_bone
+        T = self.T_world_body
         moved = T[:3, :3] @ np.asarray(centroid_mm, dtype=np.float64) + T[:3, 3]
         angles = Rotation.from_matrix(T[:3, :3]).as_euler("xyz", degrees=True)
         return np.concatenate((moved, angles))
@@ -107,14 +110,14 @@ def check_rigid(T: np.ndarray, where: str) -> np.ndarray:
 
 
 def write_poses(
-    path: str | Path, poses: list[BonePose], centroids_mm: dict[str, np.ndarray]
+    path: str | Path, poses: list[BodyPose], centroids_mm: dict[str, np.ndarray]
 ) -> Path:
     """Write ``poses.csv`` (never over an existing file; rigid poses only).
 
     Args:
         path: The CSV file written.
-        poses: One pose per frame and bone.
-        centroids_mm: Each bone's reference centroid (mm), for the six-number columns.
+        poses: One pose per frame and body.
+        centroids_mm: Each body's reference centroid (mm), for the six-number columns.
 
     Returns:
         ``path``.
@@ -124,16 +127,16 @@ def write_poses(
         raise FileExistsError(f"{path} exists: poses are never written over")
     rows = []
     for pose in poses:
-        where = f"frame {pose.frame}, bone {pose.bone}"
-        T = check_rigid(pose.T_world_bone, where)
-        if pose.bone not in centroids_mm:
-            raise ValueError(f"{where}: no reference centroid for bone {pose.bone!r}")
-        six = pose.six_dof(centroids_mm[pose.bone])
+        where = f"frame {pose.frame}, body {pose.body}"
+        T = check_rigid(pose.T_world_body, where)
+        if pose.body not in centroids_mm:
+            raise ValueError(f"{where}: no reference centroid for body {pose.body!r}")
+        six = pose.six_dof(centroids_mm[pose.body])
         numbers = (*T.ravel(), *six, pose.similarity, pose.seconds)
         rows.append(
             [
                 pose.frame,
-                pose.bone,
+                pose.body,
                 *(repr(float(x)) for x in numbers),
                 int(pose.failed),
                 pose.reason,
@@ -148,10 +151,10 @@ def write_poses(
     return path
 
 
-def read_poses(path: str | Path) -> list[BonePose]:
+def read_poses(path: str | Path) -> list[BodyPose]:
     """Read ``poses.csv``; every matrix is checked to be rigid.
 
-    Raises ValueError naming the file (and the line, or the frame and bone) for anything
+    Raises ValueError naming the file (and the line, or the frame and body) for anything
     malformed.
 
     Args:
@@ -168,12 +171,12 @@ def read_poses(path: str | Path) -> list[BonePose]:
         raise ValueError(f"{path}: not a CSV file ({err})") from None
 
 
-def _read_poses(path: Path) -> list[BonePose]:
+def _read_poses(path: Path) -> list[BodyPose]:
     with open(path, newline="", encoding="utf-8") as fh:
         reader = csv.DictReader(fh)
-        missing = [
-            c for c in ("frame", "bone", *MATRIX_COLUMNS) if c not in (reader.fieldnames or [])
-        ]
+        columns = reader.fieldnames or []
+        name = "bone" if "bone" in columns and "body" not in columns else "body"
+        missing = [c for c in ("frame", name, *MATRIX_COLUMNS) if c not in columns]
         if missing:
             raise ValueError(f"{path}: missing columns {missing}")
         poses = []
@@ -185,16 +188,16 @@ def _read_poses(path: Path) -> list[BonePose]:
                 raise ValueError(
                     f"{path}: line {line}: frame or matrix entry is not a number"
                 ) from None
-            bone = row["bone"]
-            if not bone:
-                raise ValueError(f"{path}: line {line}: no bone named")
-            T = check_rigid(values.reshape(4, 4), f"{path}: frame {frame}, bone {bone}")
+            body = row[name]
+            if not body:
+                raise ValueError(f"{path}: line {line}: no body named")
+            T = check_rigid(values.reshape(4, 4), f"{path}: frame {frame}, body {body}")
             similarity, seconds = (
                 _number(row.get(c), f"{path}: line {line}: {c}") for c in ("similarity", "seconds")
             )
             failed = _flag(row.get("failed"), f"{path}: line {line}: failed")
             reason = row.get("reason") or ""
-            poses.append(BonePose(frame, bone, T, similarity, seconds, failed, reason))
+            poses.append(BodyPose(frame, body, T, similarity, seconds, failed, reason))
     if not poses:
         raise ValueError(f"{path}: no poses")
     return poses
@@ -225,25 +228,25 @@ def _flag(text: str | None, where: str) -> bool:
 
 
 def poses_by_frame(
-    poses: list[BonePose], bones: tuple[str, ...]
+    poses: list[BodyPose], bodies: tuple[str, ...]
 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """Frames (sorted) and, per bone, the (F, 4, 4) stack of poses; every frame must hold every
-    bone exactly once (ValueError naming the frame and bone otherwise)."""
+    """Frames (sorted) and, per body, the (F, 4, 4) stack of poses; every frame must hold every
+    body exactly once (ValueError naming the frame and body otherwise)."""
     frames = np.array(sorted({p.frame for p in poses}))
-    stacks = {bone: np.full((len(frames), 4, 4), np.nan) for bone in bones}
+    stacks = {body: np.full((len(frames), 4, 4), np.nan) for body in bodies}
     index = {f: i for i, f in enumerate(frames)}
     for pose in poses:
-        if pose.bone not in stacks:
+        if pose.body not in stacks:
             continue
-        slot = stacks[pose.bone][index[pose.frame]]
+        slot = stacks[pose.body][index[pose.frame]]
         if np.isfinite(slot).all():
-            raise ValueError(f"frame {pose.frame}, bone {pose.bone}: pose given twice")
-        slot[:] = pose.T_world_bone
-    for bone, stack in stacks.items():
+            raise ValueError(f"frame {pose.frame}, body {pose.body}: pose given twice")
+        slot[:] = pose.T_world_body
+    for body, stack in stacks.items():
         missing = frames[~np.isfinite(stack).all(axis=(1, 2))]
         if missing.size:
             raise ValueError(
-                f"frame {int(missing[0])}, bone {bone}: no pose ({missing.size} "
-                f"frame(s) miss this bone)"
+                f"frame {int(missing[0])}, body {body}: no pose ({missing.size} "
+                f"frame(s) miss this body)"
             )
     return frames, stacks

@@ -57,7 +57,7 @@ from recon.project import forward_project
 from recon.rtk_xml import write_rtk_geometry
 from recon.volume import Volume, VolumeGrid
 from registration.labels import BONE_LABELS, LABELS
-from registration.poses import BonePose, check_rigid, write_poses
+from registration.poses import BodyPose, check_rigid, write_poses
 from sim.motion import BONES, KneeMotion
 from sim.phantoms.knee import (
     KneePhantomSpec,
@@ -121,7 +121,7 @@ class FluoroSequence:
         counts: detected photons per pixel, float32 (F, rows, cols); None for ``"ideal"``.
         view: the (fixed) fluoroscopy view.
         times_s: acquisition time of each frame, s (F,).
-        poses: bone -> ``T_world_bone`` (F, 4, 4) from the reference pose, mm ("femur",
+        poses: bone -> ``T_world_body`` (F, 4, 4) from the reference pose, mm ("femur",
             "tibia", "fibula", "patella", "tibia_fibula").
         flexion_deg: true knee flexion per frame, degrees (F,).
         attenuation: the reference phantom the frames were rendered from, 1/mm.
@@ -735,7 +735,7 @@ def save_sequence(seq: FluoroSequence, folder: str | Path) -> dict[str, Path]:
         paths["counts"] = write_projections(folder / "counts.mha", seq.counts, view.pitch_u_mm)
     paths["view"] = write_rtk_geometry(folder / "view.xml", Geometry([view] * n))
     bones = tuple(seq.poses)
-    poses = [BonePose(k, b, seq.poses[b][k]) for k in range(n) for b in bones]
+    poses = [BodyPose(k, b, seq.poses[b][k]) for k in range(n) for b in bones]
     paths["poses"] = write_poses(folder / "poses.csv", poses, bone_centroids(seq.labels, bones))
     meta = {
         "frames": n,

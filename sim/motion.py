@@ -1,6 +1,6 @@
 """Ground-truth knee motions of the phantom: per-frame bone poses relative to the static scan.
 
-Poses are ``T_world_bone`` (4x4, mm) moving each bone from its reference pose (where the static
+Poses are ``T_world_body`` (4x4, mm) moving each bone from its reference pose (where the static
 scan, ``spec``, saw it) to the frame, as registration reports them. Every motion gives poses
 for "femur", "tibia", "fibula", "patella" and "tibia_fibula" (the tibia and fibula move as one
 body, so its pose is the tibia's), and the true knee flexion per frame: the angle between the
@@ -44,7 +44,7 @@ class KneeMotion:
         frames: frame numbers (F,).
         flexion_deg: knee flexion per frame, degrees (F,); negative = hyperextension.
         varus_deg: varus tilt of the femur per frame, degrees (F,).
-        poses: bone -> ``T_world_bone`` (F, 4, 4) from the reference pose, mm.
+        poses: bone -> ``T_world_body`` (F, 4, 4) from the reference pose, mm.
         rollback_mm: posterior translation of the femur (its TEA midpoint) on the tibia along
             the tibia's posterior axis, relative to the phantom's flexion model, mm (F,).
         tibial_rotation_deg: internal rotation of the tibia relative to the femur about the

@@ -53,8 +53,8 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
 from recon.config import load_config
-from registration.boneaxis import Settings
 from registration.labels import BONE_UNITS
+from registration.settings import Settings
 from scanner.study import Study, StudyError
 from study.stages import (
     assessment_stage,

@@ -859,8 +859,8 @@ def register(
     meshes) through a fluoroscopy sequence (BoneAxis-Reg)."""
     from recon.config import load_config
     from recon.distortion import Distortion
-    from registration.boneaxis import Settings
-    from registration.track import ImplantSpec, register_files
+    from registration.settings import Settings
+    from registration.tracking import ImplantSpec, register_files
     from scanner.outputs import Output, new_outputs
 
     static_unit = _static_unit(unit, effective_energy_kev)
@@ -909,7 +909,7 @@ def register(
             )
     except (ValueError, OSError) as err:
         fail(str(err))
-    failed = sum(b.failed for r in results for b in r.bones.values())
+    failed = sum(b.failed for r in results for b in r.bodies.values())
     line = f"[green]wrote[/] {out / 'poses.csv'}: {len(results)} frames, {failed} flagged"
     if truth:
         metrics = json.loads((out / "metrics.json").read_text(encoding="utf-8"))
@@ -951,7 +951,7 @@ def _frame_range(text: str) -> tuple[int, int, int]:
 def _body_words(option: str, given: list[str] | None) -> dict[str, str]:
     """``BODY=VALUE`` options as the tracker's body name -> value; ValueError naming the
     option and the value otherwise."""
-    from registration.track import body_name
+    from registration.tracking import body_name
 
     out: dict[str, str] = {}
     for item in given or ():
@@ -969,7 +969,7 @@ def _attachments(given: list[str] | None) -> dict[str, tuple[tuple[Path, str], .
     """``--attach BODY=MESH:MATERIAL`` options as the tracker's body name -> its parts (mesh,
     material); ValueError naming the value otherwise."""
     from registration.implants import ATTACHABLE
-    from registration.track import body_name
+    from registration.tracking import body_name
 
     out: dict[str, tuple[tuple[Path, str], ...]] = {}
     for item in given or ():

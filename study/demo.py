@@ -44,7 +44,7 @@ from recon.config import ScanProtocol, load_config, load_protocol
 from recon.fdk import Progress
 from recon.io import read_projections, write_projections
 from recon.iterative import MIN_SPARSE_VIEWS
-from registration.boneaxis import Settings
+from registration.settings import Settings
 from scanner.detector_calibration import calibrate_session
 from scanner.scan_files import Status
 from scanner.session import SessionInputs, read_inputs, scan_stage

@@ -44,10 +44,10 @@ from recon.volume import Volume, VolumeGrid
 from registration.frames import read_frames
 from registration.implants import read_mesh
 from registration.motion_figure import save_motion_figure
-from registration.poses import BonePose, read_poses
+from registration.poses import BodyPose, read_poses
 from registration.scan_motion import MotionEstimate, MotionSettings, estimate_motion
 from registration.segment import bone_surfaces, segment_bones
-from registration.track import fluoroscopy_view
+from registration.tracking import fluoroscopy_view
 from scanner.scan_files import new_folder
 
 PLAN_TOLERANCE_MM = 1e-3
@@ -290,7 +290,7 @@ def reconstruct_files(
 
 def write_assessment(
     labels: Volume,
-    poses: list[BonePose],
+    poses: list[BodyPose],
     out: Path,
     side: str,
     *,
@@ -319,7 +319,7 @@ def write_assessment(
 def write_component_assessment(
     components: dict[str, trimesh.Trimesh],
     plateau: trimesh.Trimesh,
-    poses: list[BonePose],
+    poses: list[BodyPose],
     out: Path,
     side: str,
     *,
@@ -340,7 +340,7 @@ def write_component_assessment(
         plateau_offset_mm=plateau_offset_mm,
         insert=insert,
     )
-    tracked = [p for p in poses if p.bone in components]
+    tracked = [p for p in poses if p.body in components]
     motion = Motion.of(tracked)
     missing = sorted(set(components) - set(motion.poses))
     if missing:
@@ -352,7 +352,7 @@ def write_component_assessment(
 
 def _write_outputs(
     result: KneeAssessment,
-    poses: list[BonePose],
+    poses: list[BodyPose],
     motion: Motion,
     meshes: dict[str, trimesh.Trimesh],
     out: Path,
@@ -374,7 +374,7 @@ def _write_outputs(
 
 
 def bone_motion(
-    poses: list[BonePose], labels: Volume, where: Path | str
+    poses: list[BodyPose], labels: Volume, where: Path | str
 ) -> tuple[Motion, dict[str, trimesh.Trimesh]]:
     """Every posed bone's motion, and its surface (world mm) from the label volume;
     ValueError naming ``where`` for a bone name the labels do not know."""

@@ -40,8 +40,8 @@ from study.recording import record_volume
 
 if TYPE_CHECKING:
     from assessment.results import KneeKinematics
-    from registration.boneaxis import Settings
     from registration.scan_motion import MotionEstimate
+    from registration.settings import Settings
 
 Say = Callable[[str], None]
 
@@ -454,10 +454,10 @@ def track_fluoro(
     labels: Path | None,
     **options: object,
 ) -> dict:
-    """``registration.track.register_files`` of ``fluoro/`` (its frames and view; ``options``
+    """``registration.tracking.register_files`` of ``fluoro/`` (its frames and view; ``options``
     the rest) into ``registration/`` (an interrupted attempt's folder made again), adopted by
     the study; the figures of its metrics.json (none without truth)."""
-    from registration.track import register_files
+    from registration.tracking import register_files
 
     target = study.path / "registration"
     if target.exists():

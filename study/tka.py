@@ -24,12 +24,13 @@ from recon.mar import nmar
 from recon.preview import save_orthogonal_slices
 from recon.rtk_xml import write_rtk_geometry
 from recon.volume import Volume
-from registration.boneaxis import Settings, compose
 from registration.implants import read_mesh
 from registration.placement import place_components
-from registration.poses import BonePose, read_poses, write_poses
+from registration.poses import BodyPose, read_poses, write_poses
+from registration.se3 import compose
 from registration.segment import bone_surfaces, segment_bones_with_metal
-from registration.track import ImplantSpec
+from registration.settings import Settings
+from registration.tracking import ImplantSpec
 from scanner.study import Study
 from sim.phantoms.tka import TkaPhantomSpec
 from sim.tka import TRACKED, load_tka, part_poses, read_gait, simulate_tka_fluoro, tka_motion
@@ -101,20 +102,20 @@ def fluoro_stage(study: Study, frames: int, panel: int, seed: int, say: Say) -> 
         poses, centroids = [], {}
         for body, (part, _) in TRACKED.items():
             moved = part_poses(knee, motion, part)
-            poses += [BonePose(k, body, moved[k]) for k in range(frames)]
+            poses += [BodyPose(k, body, moved[k]) for k in range(frames)]
             centroids[body] = np.asarray(knee.meshes[part].centroid)
-        poses.sort(key=lambda p: (p.frame, p.bone))
+        poses.sort(key=lambda p: (p.frame, p.body))
         write_poses(folder / "poses.csv", poses, centroids)
         rng = np.random.default_rng([seed, 35])
         t, r = START_OFFSET
         start = [
-            BonePose(
+            BodyPose(
                 0,
-                p.bone,
+                p.body,
                 compose(
                     np.concatenate((rng.uniform(-t, t, 3), rng.uniform(-r, r, 3))),
-                    p.T_world_bone,
-                    centroids[p.bone],
+                    p.T_world_body,
+                    centroids[p.body],
                 ),
             )
             for p in poses
@@ -211,13 +212,13 @@ def placement_stage(study: Study, say: Say) -> bool:
         details = {}
         for body, placement in placed.items():
             part = COMPONENTS[body]
-            T, truth = placement.T_world_component, scene.poses[part]
+            T, truth = placement.T_world_body, scene.poses[part]
             centroid = np.asarray(meshes[body][0].centroid)
             moved = (T[:3, :3] @ centroid + T[:3, 3]) - (truth[:3, :3] @ centroid + truth[:3, 3])
             angle = Rotation.from_matrix(T[:3, :3] @ truth[:3, :3].T).magnitude()
             details[body] = {
                 "mesh": placement.path,
-                "T_world_component": np.round(T, 6).tolist(),
+                "T_world_body": np.round(T, 6).tolist(),
                 "surface_distance_mm": round(placement.surface_distance_mm, 3),
                 "volume_ratio": round(placement.volume_ratio, 3),
                 "error_deg": round(float(np.degrees(angle)), 3),
@@ -225,7 +226,7 @@ def placement_stage(study: Study, say: Say) -> bool:
             }
         (folder / "placement.json").write_text(json.dumps(details, indent=2), encoding="utf-8")
         return {
-            body: {k: v for k, v in d.items() if k not in ("mesh", "T_world_component")}
+            body: {k: v for k, v in d.items() if k not in ("mesh", "T_world_body")}
             for body, d in details.items()
         }
 

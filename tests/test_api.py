@@ -3,6 +3,7 @@ use (a bare ``import recon`` loads none of the science)."""
 
 from __future__ import annotations
 
+import ast
 import importlib
 import inspect
 import subprocess
@@ -30,7 +31,7 @@ def test_every_public_name_resolves_to_its_module_object(package):
 def test_importing_the_packages_loads_no_module_until_a_name_is_used():
     code = (
         "import sys, recon, registration, trajectories, assessment; "
-        "print(' '.join(m for m in ('recon.fdk', 'registration.boneaxis', 'pinocchio', "
+        "print(' '.join(m for m in ('recon.fdk', 'registration.tracker', 'pinocchio', "
         "'matplotlib') if m in sys.modules))"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
@@ -64,3 +65,18 @@ def test_every_public_function_documents_its_arguments(package):
         if parameters and undocumented:
             missing.append(f"{name}: {undocumented}")
     assert not missing, missing
+
+
+@pytest.mark.parametrize("package", ["recon", "registration", "trajectories", "assessment"])
+def test_the_stub_lists_every_exported_name_from_its_module(package):
+    """A type checker reads ``__init__.pyi`` where the package's names load lazily: it imports
+    every exported name, each from the module that holds it, and nothing else."""
+    stub = ast.parse((ROOT / package / "__init__.pyi").read_text(encoding="utf-8"))
+    listed = {
+        alias.name: node.module
+        for node in stub.body
+        if isinstance(node, ast.ImportFrom)
+        for alias in node.names
+        if alias.asname == alias.name
+    }
+    assert listed == importlib.import_module(package)._EXPORTS

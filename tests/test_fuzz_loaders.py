@@ -49,9 +49,9 @@ from recon.io import read_projections, read_volume, write_projections, write_vol
 from recon.rtk_xml import PanelHeader, read_rtk_geometry, write_rtk_geometry
 from recon.static_volume import read_attenuation
 from recon.volume import Volume, VolumeGrid
-from registration.boneaxis import Settings
 from registration.frames import read_frames
-from registration.poses import BonePose, read_poses, write_poses
+from registration.poses import BodyPose, read_poses, write_poses
+from registration.settings import Settings
 from scanner.backends import load_backend_spec
 from scanner.storage import ScanStore, ViewRecord
 from scanner.study import Study, StudyError
@@ -626,7 +626,7 @@ def poses_csv(tmp_path_factory) -> bytes:
     path = tmp_path_factory.mktemp("poses") / "poses.csv"
     T = np.eye(4)
     T[:3, 3] = (1.0, -2.0, 3.5)
-    poses = [BonePose(f, b, T, 0.9, 0.4) for f in (0, 1) for b in ("femur", "tibia")]
+    poses = [BodyPose(f, b, T, 0.9, 0.4) for f in (0, 1) for b in ("femur", "tibia")]
     write_poses(path, poses, {"femur": np.zeros(3), "tibia": np.ones(3)})
     return path.read_bytes()
 
@@ -647,7 +647,7 @@ def csv_field_edits(draw, data: bytes) -> bytes:
 
 def _poses_read(path: Path) -> list:
     """read_poses' poses without their similarity and seconds: NaN there means unknown."""
-    return [(pose.frame, pose.bone, pose.T_world_bone) for pose in read_poses(path)]
+    return [(pose.frame, pose.body, pose.T_world_body) for pose in read_poses(path)]
 
 
 @pytest.mark.parametrize("examples", EXAMPLES)

@@ -422,7 +422,7 @@ class _Knee:
 
 
 def knee_bone_poses(spec: KneePhantomSpec) -> dict[str, np.ndarray]:
-    """World poses ``T_world_bone`` (4x4) of "femur", "tibia", "fibula" and "patella".
+    """World poses ``T_world_body`` (4x4) of "femur", "tibia", "fibula" and "patella".
 
     See the module docstring for the bone-local frames. The femur's rotation relative to the
     tibia is ``flexion_deg`` about the TEA (its local x axis).

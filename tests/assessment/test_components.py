@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 
 from assessment.components import assess_components
 from assessment.screening import LIFTED_MM
-from registration.poses import BonePose, write_poses
+from registration.poses import BodyPose, write_poses
 from sim.tka import load_tka, read_gait, tka_motion
 from study.cli import app
 
@@ -30,10 +30,10 @@ def knee():
     return knee, motion, angles
 
 
-def _poses(motion, femur=None) -> list[BonePose]:
+def _poses(motion, femur=None) -> list[BodyPose]:
     femur = motion.poses["femur_r"] if femur is None else femur
-    return [BonePose(int(f), "femur", femur[i]) for i, f in enumerate(motion.frames)] + [
-        BonePose(int(f), "tibia_fibula", motion.poses["tibia_r"][i])
+    return [BodyPose(int(f), "femur", femur[i]) for i, f in enumerate(motion.frames)] + [
+        BodyPose(int(f), "tibia_fibula", motion.poses["tibia_r"][i])
         for i, f in enumerate(motion.frames)
     ]
 

@@ -16,14 +16,14 @@ from assessment.handoff import Motion, pose_of_itk, read_tra, write_handoff
 from assessment.slicer_scene import read_sequence, referenced_files, transform_name
 from recon.io import write_volume
 from recon.volume import Volume, VolumeGrid
-from registration.poses import BonePose, read_poses, write_poses
+from registration.poses import BodyPose, read_poses, write_poses
 from study.cli import app
 
 BONES = ("femur", "patella", "tibia_fibula")
 FRAMES = np.array([0, 1, 2, 4])  # frame 3 untracked
 
 
-def random_poses(seed: int = 0) -> list[BonePose]:
+def random_poses(seed: int = 0) -> list[BodyPose]:
     rng = np.random.default_rng(seed)
     poses = []
     for frame in FRAMES:
@@ -31,7 +31,7 @@ def random_poses(seed: int = 0) -> list[BonePose]:
             T = np.eye(4)
             T[:3, :3] = Rotation.from_rotvec(rng.normal(0, 0.4, 3)).as_matrix()
             T[:3, 3] = rng.normal(0, 40, 3)
-            poses.append(BonePose(int(frame), bone, T))
+            poses.append(BodyPose(int(frame), bone, T))
     return poses
 
 
@@ -49,8 +49,8 @@ def handoff(tmp_path_factory):
     return out, poses, meshes, written
 
 
-def truth(poses: list[BonePose], bone: str) -> dict[int, np.ndarray]:
-    return {p.frame: p.T_world_bone for p in poses if p.bone == bone}
+def truth(poses: list[BodyPose], bone: str) -> dict[int, np.ndarray]:
+    return {p.frame: p.T_world_body for p in poses if p.body == bone}
 
 
 def test_itk_files_read_back_with_simpleitk_equal_poses_csv(handoff):
@@ -72,7 +72,7 @@ def test_resampling_the_static_volume_by_the_itk_file_moves_the_bone_to_its_fram
     T = np.eye(4)
     T[:3, :3] = Rotation.from_euler("z", 90, degrees=True).as_matrix()
     T[:3, 3] = (4.0, -2.0, 3.0)
-    poses = [BonePose(0, "femur", T)]
+    poses = [BodyPose(0, "femur", T)]
     write_handoff(tmp_path / "out", Motion.of(poses), {"femur": trimesh.creation.box((1, 1, 1))})
     transform = sitk.ReadTransform(str(tmp_path / "out" / "itk" / "femur" / "frame_0000.tfm"))
     static = np.zeros((21, 21, 21), np.float32)

@@ -12,7 +12,7 @@ from assessment.anatomy import bone_surface, femur_anatomy, mirror_x, tibia_anat
 from assessment.knee import assess_knee
 from recon.volume import Volume, VolumeGrid
 from registration.labels import LABELS
-from registration.poses import BonePose, read_poses, write_poses
+from registration.poses import BodyPose, read_poses, write_poses
 from sim.motion import flexion_extension
 from sim.phantoms.knee import KneePhantomSpec, knee_landmarks, rasterize_knee
 
@@ -36,7 +36,7 @@ def knees(seed):
 
 def poses_of(motion, bones=("femur", "tibia")):
     return [
-        BonePose(int(f), b, motion.poses[b][i]) for i, f in enumerate(motion.frames) for b in bones
+        BodyPose(int(f), b, motion.poses[b][i]) for i, f in enumerate(motion.frames) for b in bones
     ]
 
 
@@ -113,20 +113,25 @@ def test_a_left_knee_reads_like_the_mirrored_right_knee(knees):
     assert (mirror_x(mirror_x(left_labels)).data == left_labels.data).all()
 
 
-def test_poses_round_trip_and_bad_poses_name_frame_and_bone(knees, tmp_path):
+def test_poses_round_trip_and_bad_poses_name_frame_and_body(knees, tmp_path):
+    """Poses read back as written, from a file that names its bodies in the ``body`` column
+    or, as files did before it, in a ``bone`` column; a bad pose is named by frame and body."""
     spec, labels = knees["right"]
     motion = flexion_extension(spec, frames=4)
     poses = poses_of(motion)
     path = write_poses(tmp_path / "poses.csv", poses, {"femur": np.zeros(3), "tibia": np.zeros(3)})
-    back = read_poses(path)
-    assert [(p.frame, p.bone) for p in back] == [(p.frame, p.bone) for p in poses]
-    for a, b in zip(back, poses, strict=True):
-        np.testing.assert_allclose(a.T_world_bone, b.T_world_bone, atol=1e-12)
     text = path.read_text(encoding="utf-8").splitlines()
+    assert text[0].startswith("frame,body,t00,")
+    older = tmp_path / "older.csv"
+    older.write_text("\n".join([text[0].replace(",body,", ",bone,", 1), *text[1:]]) + "\n")
+    for back in (read_poses(path), read_poses(older)):
+        assert [(p.frame, p.body) for p in back] == [(p.frame, p.body) for p in poses]
+        for a, b in zip(back, poses, strict=True):
+            np.testing.assert_allclose(a.T_world_body, b.T_world_body, atol=1e-12)
     fields = text[3].split(",")
     fields[2] = "1.5"  # scale the rotation: not rigid
     (tmp_path / "bad.csv").write_text("\n".join([text[0], ",".join(fields)]) + "\n")
-    with pytest.raises(ValueError, match=r"bad.csv: frame 1, bone femur: pose is not rigid"):
+    with pytest.raises(ValueError, match=r"bad.csv: frame 1, body femur: pose is not rigid"):
         read_poses(tmp_path / "bad.csv")
     # a file written before the failed and reason columns reads, nothing marked failed; a
     # failed mark and its reason round-trip; a failed value that is not 0 or 1 is refused
@@ -142,14 +147,14 @@ def test_poses_round_trip_and_bad_poses_name_frame_and_bone(knees, tmp_path):
     (tmp_path / "odd.csv").write_text(text[0] + "\n" + text[1].rsplit(",", 2)[0] + ",yes,\n")
     with pytest.raises(ValueError, match=r"odd.csv: line 2: failed: 'yes' is not 0 or 1"):
         read_poses(tmp_path / "odd.csv")
-    nan = [BonePose(0, "femur", np.full((4, 4), np.nan))]
-    with pytest.raises(ValueError, match="frame 0, bone femur: pose contains NaN"):
+    nan = [BodyPose(0, "femur", np.full((4, 4), np.nan))]
+    with pytest.raises(ValueError, match="frame 0, body femur: pose contains NaN"):
         write_poses(tmp_path / "nan.csv", nan, {"femur": np.zeros(3)})
-    with pytest.raises(ValueError, match="frame 2, bone femur: no pose"):
+    with pytest.raises(ValueError, match="frame 2, body femur: no pose"):
         assess_knee(labels, poses[:4] + poses[5:], "right")
     without_patella = Volume(np.where(labels.data == 5, 1, labels.data), labels.grid, "label")
-    extra = [*poses, BonePose(0, "patella", np.eye(4))]
-    with pytest.raises(ValueError, match="frame 0, bone patella: the label volume has no such"):
+    extra = [*poses, BodyPose(0, "patella", np.eye(4))]
+    with pytest.raises(ValueError, match="frame 0, body patella: the label volume has no such"):
         assess_knee(without_patella, extra, "right")
     with pytest.raises(ValueError, match="needs the polyethylene insert"):
         assess_knee(labels, poses, "right", tka=True)

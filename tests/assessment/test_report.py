@@ -21,7 +21,7 @@ from assessment.plots import DPI, PLOTS, save_all
 from assessment.report import CSV_COLUMNS, frame_overlays, write_report
 from assessment.results import Exclusion, KneeKinematics
 from assessment.screening import excluding
-from registration.poses import BonePose
+from registration.poses import BodyPose
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 N_FRAMES = 30
@@ -171,7 +171,7 @@ def test_the_registered_frames_play_in_the_report(kin, tmp_path, browse):
         image = np.full((8, 8, 3), frame / 29.0)
         matplotlib.image.imsave(overlays / f"frame_{frame:04d}.png", image)
     poses = [
-        BonePose(frame, bone, np.eye(4), similarity=0.9 + frame / 1000)
+        BodyPose(frame, bone, np.eye(4), similarity=0.9 + frame / 1000)
         for frame in range(N_FRAMES)
         for bone in ("femur", "tibia_fibula")
     ]
@@ -214,7 +214,7 @@ def test_frames_not_measured_are_marked_apart_from_the_flags(tmp_path, browse):
     for frame in (0, 13, 21):
         matplotlib.image.imsave(overlays / f"frame_{frame:04d}.png", np.full((8, 8, 3), 0.5))
     poses = [
-        BonePose(frame, bone, np.eye(4), similarity=0.21 if 20 <= frame <= 22 else 0.8)
+        BodyPose(frame, bone, np.eye(4), similarity=0.21 if 20 <= frame <= 22 else 0.8)
         for frame in range(N_FRAMES)
         for bone in ("femur", "tibia_fibula")
     ]

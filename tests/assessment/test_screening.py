@@ -17,7 +17,7 @@ from assessment.flags import describe_flags, measured_text
 from assessment.report import summary_rows
 from assessment.results import KneeKinematics
 from assessment.screening import INSIDE_MM, JUMP_MM, screen
-from registration.poses import BonePose, read_poses, write_poses
+from registration.poses import BodyPose, read_poses, write_poses
 from sim.tka import load_tka, read_gait, tka_motion
 from study.cli import app
 
@@ -38,15 +38,15 @@ def gait():
     return knee, motion, parts, truth
 
 
-def _poses(femur: np.ndarray, tibia: np.ndarray, failed: tuple[int, ...] = ()) -> list[BonePose]:
+def _poses(femur: np.ndarray, tibia: np.ndarray, failed: tuple[int, ...] = ()) -> list[BodyPose]:
     """The components' poses per frame; the tray marked failed (NCC 0.2) in ``failed``."""
     out = []
     for k in range(len(femur)):
-        out.append(BonePose(k, "femur", femur[k], 0.77))
+        out.append(BodyPose(k, "femur", femur[k], 0.77))
         lost = k in failed
         reason = "NCC 0.200 below 0.5" if lost else ""
         out.append(
-            BonePose(k, "tibia_fibula", tibia[k], 0.2 if lost else 0.77, failed=lost, reason=reason)
+            BodyPose(k, "tibia_fibula", tibia[k], 0.2 if lost else 0.77, failed=lost, reason=reason)
         )
     return out
 

@@ -20,7 +20,7 @@ from assessment.series import bone_mesh
 from assessment.viewer import MAX_FACES, motion_scene, scene_json
 from recon.volume import Volume, VolumeGrid
 from registration.labels import BONE_LABELS
-from registration.poses import BonePose
+from registration.poses import BodyPose
 from sim.motion import flexion_extension
 from sim.phantoms.knee import KneePhantomSpec, rasterize_knee
 
@@ -36,7 +36,7 @@ def _knee(side: str):
     labels = Volume(rasterize_knee(spec, grid, supersample=1)[0], grid, "label")
     motion = flexion_extension(spec, frames=FRAMES, max_flexion_deg=80.0)
     poses = {b: motion.poses["tibia" if b == "tibia_fibula" else b] for b in BONES}
-    listed = [BonePose(int(f), b, poses[b][i]) for i, f in enumerate(motion.frames) for b in BONES]
+    listed = [BodyPose(int(f), b, poses[b][i]) for i, f in enumerate(motion.frames) for b in BONES]
     assessment = assess_knee(labels, listed, side)
     meshes = {b: bone_mesh(labels, BONE_LABELS[b]) for b in BONES}
     return assessment, np.asarray(motion.frames), poses, meshes, listed

@@ -85,7 +85,7 @@ def test_missing_fields_unreadable_files_and_non_mappings(tmp_path):
 def test_a_config_extends_another_and_replaces_its_fields(tmp_path):
     """The gait settings are the implant settings but for the fields they give; a base that
     is missing, a loop, or an ``extends`` that is not a path are refused by name."""
-    from registration.boneaxis import Settings
+    from registration.settings import Settings
 
     implants = load_config(CONFIGS / "registration_implants.yaml", Settings).model_dump()
     gait = load_config(CONFIGS / "registration_gait.yaml", Settings).model_dump()

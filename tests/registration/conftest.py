@@ -15,8 +15,8 @@ import pytest
 
 from recon.geometry import DetectorSpec, View
 from recon.volume import Volume, VolumeGrid
-from registration.boneaxis import TRACK_ORDER
 from registration.drr import BoneModel, SoftTissue, bone_models, scene
+from registration.settings import TRACK_ORDER
 from sim.fluoro import add_fluoro_noise, lateral_view
 from sim.motion import squat_motion
 from sim.phantoms.knee import KneePhantomSpec, rasterize_knee

@@ -11,9 +11,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from registration.boneaxis import BoneResult, Settings, Tracker
 from registration.implants import MATERIALS, implant_model, ray_lengths, read_mesh, voxelize
 from registration.jointtrack import camera_view, read_calibration, read_poses
+from registration.settings import Settings
+from registration.tracker import Tracker
 
 DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "tka-fluoro-jtml"
 
@@ -199,11 +200,11 @@ def test_the_depth_prior_weighs_a_move_along_the_view_axis_only():
     model = implant_model("femur", ball, MATERIALS["CoCr"])
     settings = Settings(depth_step_sigma_mm={"femur": 4.0}, prior_weight=0.005)
     tracker = Tracker(view, np.zeros((1, 64, 64)), {"femur": model}, settings)
-    assert tracker._prior("femur", {}) is None  # no frame before
+    assert tracker.scene.prior("femur", {}) is None  # no frame before
     before = np.eye(4)
     before[:3, 3] = (0.0, 0.0, -900.0)
-    tracker._before = {"femur": before}
-    prior = tracker._prior("femur", {"femur": before})
+    tracker.scene.before = {"femur": before}
+    prior = tracker.scene.prior("femur", {"femur": before})
 
     def moved(offset_mm: np.ndarray) -> np.ndarray:
         T = before.copy()
@@ -217,8 +218,8 @@ def test_the_depth_prior_weighs_a_move_along_the_view_axis_only():
     assert np.abs(step) == pytest.approx([2.0 * np.sqrt(0.005)], rel=1e-9)
     unnamed = Settings(depth_step_sigma_mm={"tibia_fibula": 4.0})
     other = Tracker(view, np.zeros((1, 64, 64)), {"femur": model}, unnamed)
-    other._before = {"femur": before}
-    assert other._prior("femur", {"femur": before}) is None
+    other.scene.before = {"femur": before}
+    assert other.scene.prior("femur", {"femur": before}) is None
 
 
 def test_a_tracker_matches_a_mesh_s_blur_for_itself_alone():
@@ -234,12 +235,12 @@ def test_a_tracker_matches_a_mesh_s_blur_for_itself_alone():
     frame = replace(model, blur_mm=blur_mm).render(view, pose)
     models = {"femur": model}
     tracker = Tracker(view, frame[None], models, Settings(pyramid_mm=(0.373,)))
-    result = BoneResult(pose, 0.0, 0.0, 0.0, 0, False)
-    tracker._match_model_blur(0, "femur", {"femur": pose}, result)
-    step = 0.15  # the candidates' spacing (boneaxis.MODEL_BLUR_MM); the parabola does better
-    assert tracker.bones["femur"].blur_mm == pytest.approx(blur_mm, abs=step / 2)
+    tracker.scene.match_model_blur(0, "femur", {"femur": pose})
+    ncc, _ = tracker.scene.score(0, "femur", {"femur": pose})
+    step = 0.15  # the candidates' spacing (resolution.MODEL_BLUR_MM); the parabola does better
+    assert tracker.bodies["femur"].blur_mm == pytest.approx(blur_mm, abs=step / 2)
     assert models["femur"].blur_mm == 0.0 and models["femur"] is model
-    assert result.ncc > 0.99
+    assert ncc > 0.99
 
 
 @pytest.mark.parametrize("kpm_depth", ["extrapolate", "hold"])

@@ -7,8 +7,8 @@ import pytest
 import SimpleITK as sitk
 
 from recon.geometry import View
-from registration.boneaxis import FrameResult
 from registration.overlays import write_overlays
+from registration.results import FrameResult
 
 
 @pytest.mark.parametrize(("e_v", "flipped"), [((0, 0, 1), True), ((0, 0, -1), False)])

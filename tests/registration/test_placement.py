@@ -43,7 +43,7 @@ def test_both_components_land_where_the_scan_has_them(scanned) -> None:
     meshes = {body: (knee.meshes[part], f"{part}.stl") for body, part in PARTS.items()}
     placed = place_components(meshes, metal, grid)
     for body, part in PARTS.items():
-        T, truth = placed[body].T_world_component, scene.poses[part]
+        T, truth = placed[body].T_world_body, scene.poses[part]
         angle = Rotation.from_matrix(T[:3, :3] @ truth[:3, :3].T).magnitude()
         c = knee.meshes[part].centroid
         moved = (T[:3, :3] @ c + T[:3, 3]) - (truth[:3, :3] @ c + truth[:3, 3])

@@ -19,10 +19,11 @@ from recon.geometry import DetectorSpec, Geometry, View
 from recon.io import write_projections, write_volume
 from recon.rtk_xml import PanelHeader, write_rtk_geometry
 from recon.volume import Volume, VolumeGrid
-from registration.boneaxis import TRACK_ORDER, Settings, compose
 from registration.frames import read_frames
-from registration.poses import BonePose, read_poses, write_poses
-from registration.track import fluoroscopy_view
+from registration.poses import BodyPose, read_poses, write_poses
+from registration.se3 import compose
+from registration.settings import TRACK_ORDER, Settings
+from registration.tracking import fluoroscopy_view
 from sim.fluoro import DISTORTION_MAX_MM, distort, lateral_view, simulate_dewarp_grid
 from sim.phantoms.knee import KneePhantomSpec
 from study.cli import app
@@ -43,11 +44,11 @@ def inputs(knee_case, seed, tmp_path_factory):
         "geometry": write_rtk_geometry(folder / "view.xml", Geometry([c.view] * FRAMES)),
     }
     centroids = {b: m.centroid_mm for b, m in c.models.items()}
-    truth = [BonePose(k, b, c.truth[k][b]) for k in range(FRAMES) for b in TRACK_ORDER]
+    truth = [BodyPose(k, b, c.truth[k][b]) for k in range(FRAMES) for b in TRACK_ORDER]
     paths["truth"] = write_poses(folder / "truth.csv", truth, centroids)
     rng = np.random.default_rng(5 + seed)
     start = [  # frames 0 and 1 (a range may start at 1), each 2 mm and 2 deg off at most
-        BonePose(k, b, compose(rng.uniform(-2, 2, 6), c.truth[k][b], centroids[b]))
+        BodyPose(k, b, compose(rng.uniform(-2, 2, 6), c.truth[k][b], centroids[b]))
         for k in (0, 1)
         for b in TRACK_ORDER
     ]
@@ -72,7 +73,7 @@ def test_register_writes_poses_and_metrics(inputs, measured) -> None:
     result = runner.invoke(app, _args(paths, out, truth=paths["truth"], initial=paths["initial"]))
     assert result.exit_code == 0, result.output
     poses = read_poses(out / "poses.csv")
-    assert {(p.frame, p.bone) for p in poses} == {
+    assert {(p.frame, p.body) for p in poses} == {
         (k, b) for k in range(FRAMES) for b in TRACK_ORDER
     }
     metrics = json.loads((out / "metrics.json").read_text())

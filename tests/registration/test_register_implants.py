@@ -145,7 +145,7 @@ def test_components_are_tracked_and_handed_on_as_jointtrack_poses(case, measured
     assert sorted(p.name for p in (out / "overlays").iterdir()) == [
         f"frame_{k:04d}.png" for k in range(FRAMES)
     ]
-    names = {p.bone for p in read_csv(out / "poses.csv")}
+    names = {p.body for p in read_csv(out / "poses.csv")}
     assert names == {"femur", "tibia_fibula"}
 
 

@@ -1,5 +1,5 @@
 """A static scan whose box cuts the femur and the tibia (registration.drr.cut_outlines,
-registration.boneaxis.Settings.truncation_band_mm): the frames show the whole leg, the bone
+registration.settings.Settings.truncation_band_mm): the frames show the whole leg, the bone
 models end 75 mm from the joint line. Sub-voxel means TRE below the case's 1 mm voxel. The
 squat's motion and the frame's noise follow the ``seed`` option."""
 
@@ -12,10 +12,11 @@ import pytest
 
 from recon.geometry import DetectorSpec
 from recon.volume import Volume, VolumeGrid
-from registration.boneaxis import TRACK_ORDER, Settings, Tracker
 from registration.drr import SoftTissue, bone_models, scene
 from registration.labels import LABELS
 from registration.metrics import pose_error
+from registration.settings import TRACK_ORDER, Settings
+from registration.tracker import Tracker
 from sim.fluoro import add_fluoro_noise, lateral_view
 from sim.motion import squat_motion
 from sim.phantoms.knee import KneePhantomSpec, rasterize_knee
@@ -92,8 +93,8 @@ def test_the_scans_cut_does_not_drive_the_fit(cut_case, measured) -> None:
         settings = SETTINGS.model_copy(update={"truncation_band_mm": band, "global_init": False})
         result = Tracker(view, frame, models, settings, soft).register(0, truth, [])
         errors[band] = {
-            b: pose_error(b, 0, r.pose, truth[b], models[b].points_mm, view).tre_mm
-            for b, r in result.bones.items()
+            b: pose_error(b, 0, r.T_world_body, truth[b], models[b].points_mm, view).tre_mm
+            for b, r in result.bodies.items()
         }
     left_out = max(errors[SETTINGS.truncation_band_mm].values())
     measured("tre_mm_cuts_left_out", left_out, below=0.5 * VOXEL_MM)

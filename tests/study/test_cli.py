@@ -295,7 +295,7 @@ def test_plan_refuses_an_unsafe_protocol_and_writes_nothing(tmp_path):
 def test_assess_writes_the_report_and_the_4d_series(tmp_path):
     from recon.io import write_volume
     from recon.volume import Volume, VolumeGrid
-    from registration.poses import BonePose, write_poses
+    from registration.poses import BodyPose, write_poses
     from sim.motion import flexion_extension
 
     spec = KneePhantomSpec()
@@ -306,7 +306,7 @@ def test_assess_writes_the_report_and_the_4d_series(tmp_path):
         spec, frames=6, max_flexion_deg=60.0, varus_deg=4.0, varus_frames=(2, 3)
     )
     poses = [
-        BonePose(int(f), b, motion.poses[b][i])
+        BodyPose(int(f), b, motion.poses[b][i])
         for i, f in enumerate(motion.frames)
         for b in ("femur", "tibia", "patella")
     ]
@@ -435,8 +435,8 @@ def test_the_console_loads_only_what_the_command_runs():
         "import sys; from study.cli import app; "
         "print(' '.join(m for m in {MODULES} if m in sys.modules))"
     )
-    heavy = ("distributed", "matplotlib", "registration.track", "SimpleITK", "pinocchio")
-    scan = ("distributed", "registration.track")  # (toppra, which plans it, loads matplotlib)
+    heavy = ("distributed", "matplotlib", "registration.tracking", "SimpleITK", "pinocchio")
+    scan = ("distributed", "registration.tracking")  # (toppra, which plans it, loads matplotlib)
     scanning = "from scanner import session; from study import live_recon, stages; "
     for command, absent in (("", heavy), (scanning, scan)):
         code = command + probe.format(MODULES=repr(heavy))

@@ -80,8 +80,8 @@ def test_the_assessment_hands_the_motion_to_slicer_itk_and_autoscoper(demo: Path
     poses = read_poses(demo / "registration" / "poses.csv")
     last = max(p.frame for p in poses)
     for pose in (p for p in poses if p.frame == last):
-        tfm = sitk.ReadTransform(str(export / "itk" / pose.bone / f"frame_{last:04d}.tfm"))
-        np.testing.assert_allclose(pose_of_itk(tfm), pose.T_world_bone, atol=1e-9)
+        tfm = sitk.ReadTransform(str(export / "itk" / pose.body / f"frame_{last:04d}.tfm"))
+        np.testing.assert_allclose(pose_of_itk(tfm), pose.T_world_body, atol=1e-9)
 
 
 def test_report_has_its_plots_and_plays_every_registered_frame(demo: Path):

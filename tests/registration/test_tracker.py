@@ -1,4 +1,4 @@
-"""Tests of registration.drr and registration.boneaxis on the small matched knee case
+"""Tests of registration.drr and registration.tracker on the small matched knee case
 (conftest.py). Sub-voxel means TRE below the case's 1 mm voxel. The random starts (and the
 case's motion and noise) follow the ``seed`` option; accuracy figures go through
 ``measured``."""
@@ -12,17 +12,13 @@ from scipy.ndimage import gaussian_filter, map_coordinates
 from recon.geometry import Geometry
 from recon.project import forward_project
 from recon.volume import Volume, VolumeGrid
-from registration.boneaxis import (
-    TRACK_ORDER,
-    Settings,
-    Tracker,
-    compose,
-    patellofemoral_deviation,
-    predict,
-)
 from registration.drr import SoftTissue, bone_models, scene, soft_tissue_level
 from registration.metrics import pose_error
+from registration.priors import patellofemoral_deviation, predict
+from registration.se3 import compose
 from registration.segment import BONE_UNITS
+from registration.settings import TRACK_ORDER, Settings
+from registration.tracker import Tracker
 from sim.motion import squat_motion
 from sim.phantoms.knee import KneePhantomSpec
 
@@ -129,8 +125,8 @@ def test_known_pose_round_trip_reaches_sub_voxel_tre(knee_case, seed, measured) 
     start = _start(truth[0], models, 3.0, seed)
     result = tracker.register(0, start, [])
     tre, ncc = {}, {}
-    for name, bone in result.bones.items():
-        error = pose_error(name, 0, bone.pose, truth[0][name], models[name].points_mm, view)
+    for name, bone in result.bodies.items():
+        error = pose_error(name, 0, bone.T_world_body, truth[0][name], models[name].points_mm, view)
         start_error = pose_error(name, 0, start[name], truth[0][name], models[name].points_mm, view)
         assert start_error.tre_mm > 2.0
         assert not bone.failed, (name, bone.reason)
@@ -178,9 +174,9 @@ def test_tracking_follows_a_sequence(knee_case, seed, measured) -> None:
     results = tracker.track(_start(truth[0], models, 2.0, seed))
     in_plane, tre = [], {"patella": [], "long_bones": []}
     for r in results:
-        for name, bone in r.bones.items():
+        for name, bone in r.bodies.items():
             error = pose_error(
-                name, r.frame, bone.pose, truth[r.frame][name], models[name].points_mm, view
+                name, r.frame, bone.T_world_body, truth[r.frame][name], models[name].points_mm, view
             )
             # depth (along the ray) is ~20x less constrained than in-plane position: 1 mm of
             # depth rescales the image by 1/800, moving the 45 mm patella's edges by 0.03 mm
@@ -202,7 +198,7 @@ def test_a_bone_leaving_the_field_is_flagged_not_guessed(knee_case) -> None:
         view, frames[:1], models, Settings(pyramid_mm=(3.84, 1.92), global_init=False), soft
     )
     result = tracker.register(0, away, [])
-    patella = result.bones["patella"]
+    patella = result.bodies["patella"]
     assert patella.failed and "field of view" in patella.reason
     assert np.isnan(patella.ncc)
 
@@ -266,7 +262,7 @@ def test_resolution_matching_recovers_the_scan_blur_and_removes_its_depth_bias(
         errors = []
         for k in (0, 4, 8):
             tracker = Tracker(c.view, c.frames[k : k + 1], models, settings, soft)
-            pose = tracker.register(0, c.truth[k], []).bones["femur"].pose
+            pose = tracker.register(0, c.truth[k], []).bodies["femur"].T_world_body
             error = pose_error("femur", k, pose, c.truth[k]["femur"], femur.points_mm, c.view)
             errors.append(abs(error.dof[0]))
         depth[blur] = float(np.mean(errors))
@@ -286,7 +282,7 @@ def test_least_squares_residual_is_one_minus_ncc_plus_the_prior(knee_case, seed)
     c = knee_case
     tracker = Tracker(c.view, c.frames[:1], c.models, SETTINGS, c.soft)
     poses = _start(c.truth[0], c.models, 1.0, seed)
-    objective = tracker._objective(0, tracker.levels[-1], "patella", poses)
+    objective = tracker.scene.objective(0, tracker.levels[-1], "patella", poses)
     x = np.array([0.5, -0.3, 0.2, 1.0, -2.0, 0.3])
     T = compose(x, poses["patella"], c.models["patella"].centroid_mm)
     r = objective.residuals(x)
@@ -306,12 +302,12 @@ def test_least_squares_refinement_reaches_the_derivative_free_optimum_with_fewer
     in_plane, excess, renders, scores = [], [], [], []
     for name in TRACK_ORDER:
         poses = {**c.truth[2], name: start[name]}
-        pose, n, _ = tracker._least_squares(2, name, poses, tracker.levels[:-1])
-        pose, m, objective = tracker._least_squares(
+        pose, n, _ = tracker.scene.least_squares(2, name, poses, tracker.levels[:-1])
+        pose, m, objective = tracker.scene.least_squares(
             2, name, {**poses, name: pose}, tracker.levels[-1:]
         )
-        derivative_free, k = tracker._refine(2, name, poses)
-        k += tracker._refine(2, name, {**poses, name: derivative_free}, 0.4, polish=True)[1]
+        derivative_free, k = tracker.scene.refine(2, name, poses)
+        k += tracker.scene.refine(2, name, {**poses, name: derivative_free}, 0.4, polish=True)[1]
 
         def tre(T, name=name):
             return pose_error(name, 2, T, c.truth[2][name], c.models[name].points_mm, c.view)

@@ -1,4 +1,5 @@
-"""Register a fluoroscopy sequence from files: what ``cbct register`` runs.
+"""Track bodies through a fluoroscopy sequence: in memory (:func:`track`), and from files
+(:func:`register_files`, what ``cbct register`` runs).
 
 Inputs are the bodies to track: the static scan's bones (attenuation volume and its labels)
 and implant components (their CAD meshes, registration.implants), a component standing for the
@@ -33,23 +34,26 @@ from recon.rtk_xml import read_rtk_geometry
 from recon.static_volume import StaticSource, StaticUnit, read_attenuation
 from recon.volume import Volume
 from registration.autostart import candidate_poses
-from registration.boneaxis import TRACK_ORDER, FrameResult, Settings, Tracker
 from registration.drr import SoftTissue, bone_models
 from registration.frames import Frames, read_frames
 from registration.implants import (
     ATTACHABLE,
     MATERIALS,
+    ImplantModel,
     implant_model,
     read_mesh,
     size_range_mm,
 )
-from registration.jointtrack import read_calibration
-from registration.jointtrack import read_poses as read_jts
+from registration.jointtrack import camera_frame, read_calibration, read_jointtrack_poses
 from registration.jointtrack import write_poses as write_jts
 from registration.mayacam import is_mayacam, read_mayacam
 from registration.metrics import as_rows, pose_error, summarize
+from registration.objective import BodyModel
 from registration.overlays import write_overlays
-from registration.poses import BonePose, poses_by_frame, read_poses, write_poses
+from registration.poses import BodyPose, poses_by_frame, read_poses, write_poses
+from registration.results import FrameResult
+from registration.settings import TRACK_ORDER, Settings
+from registration.tracker import Tracker
 
 
 def fluoroscopy_view(geometry_path: Path, frames: Frames, any_count: bool = False) -> View:
@@ -84,7 +88,8 @@ BODY_NAMES = {
     "tibia_fibula": "tibia_fibula",
     "patella": "patella",
 }
-"""A body's name as given (``--implant tibia=...``) -> the tracker's (registration.boneaxis)."""
+"""A body's name as given (``--implant tibia=...``) -> the tracker's
+(registration.settings.TRACK_ORDER)."""
 KNEE_REACH_MM = 120.0
 """How far from a placed component the next one's centre is searched (automatic start), mm."""
 FILE_NAMES = {"femur": "femur", "tibia_fibula": "tibia", "patella": "patella"}
@@ -114,10 +119,10 @@ def body_name(name: str) -> str:
 
 
 def _poses_by_body(
-    given: Path | dict[str, Path], bodies: tuple[str, ...], T_world_camera: np.ndarray, what: str
+    given: Path | dict[str, Path], bodies: tuple[str, ...], view: View, what: str
 ) -> dict[str, np.ndarray]:
     """Each body's poses (F, 4, 4), world: from one poses.csv, or per body from a poses.csv
-    or a JointTrack .jts (its camera frame is the view's, :func:`camera_frame`)."""
+    or a JointTrack .jts (in the view's camera frame: registration.jointtrack.camera_frame)."""
     if not isinstance(given, dict):
         frames, stacks = poses_by_frame(read_poses(given), bodies)
         if not np.array_equal(frames, np.arange(len(frames))):
@@ -128,7 +133,7 @@ def _poses_by_body(
         if name not in bodies:
             raise ValueError(f"{path}: {what} poses for {name!r}, which is not tracked")
         if Path(path).suffix.lower() == ".jts":
-            stacks[name] = T_world_camera @ read_jts(path)
+            stacks[name] = read_jointtrack_poses(path, view)
         else:
             _, found = poses_by_frame(read_poses(path), (name,))
             stacks[name] = found[name]
@@ -141,14 +146,14 @@ def _poses_by_body(
 def _initial(
     given: Path | dict[str, Path] | None,
     bodies: tuple[str, ...],
-    T_world_camera: np.ndarray,
+    view: View,
     first: int = 0,
 ) -> dict[str, np.ndarray]:
     """Starting poses of frame ``first``: the reference (CBCT or mesh) pose, or that frame's
     row of ``given``."""
     if given is None:
         return {name: np.eye(4) for name in bodies}
-    stacks = _poses_by_body(given, bodies, T_world_camera, "initial")
+    stacks = _poses_by_body(given, bodies, view, "initial")
     for name, stack in stacks.items():
         if len(stack) <= first:
             raise ValueError(
@@ -159,32 +164,27 @@ def _initial(
 
 
 def _truth(
-    given: Path | dict[str, Path], count: int, bodies: tuple[str, ...], T_world_camera
+    given: Path | dict[str, Path], count: int, bodies: tuple[str, ...], view: View
 ) -> list[dict[str, np.ndarray]]:
     """True (or reference) poses of frames 0..count-1 (ValueError if one is missing)."""
-    stacks = _poses_by_body(given, bodies, T_world_camera, "true")
+    stacks = _poses_by_body(given, bodies, view, "true")
     for name, stack in stacks.items():
         if len(stack) < count:
             raise ValueError(f"true poses of {name} for {len(stack)} frames, not {count}")
     return [{b: stacks[b][k] for b in bodies} for k in range(count)]
 
 
-def camera_frame(view: View) -> np.ndarray:
-    """``T_world_camera`` of JointTrack's camera frame of a view: origin at the focal spot,
-    +x along the panel's columns, +y against its rows (up, as the image shows), looking down
-    -z (registration.jointtrack)."""
-    x, y = view.e_u, -view.e_v
-    z = np.cross(x, y)
-    T = np.eye(4)
-    T[:3, :3] = np.column_stack((x, y, z))
-    T[:3, 3] = view.source_mm
-    return T
+def read_view(
+    frames: Frames, geometry_path: Path | None = None, calibration_path: Path | None = None
+) -> View:
+    """The fluoroscopy view of ``frames``, from one of two files.
 
-
-def read_view(frames: Frames, geometry_path: Path | None, calibration_path: Path | None) -> View:
-    """The fluoroscopy view: an RTK geometry (:func:`fluoroscopy_view`), a JointTrack
-    calibration (its pixel size must be the frames') or an XMALab/Autoscoper MayaCam 2.0 (its
-    image size must be the frames')."""
+    Args:
+        frames: The frames the view sees (registration.read_frames).
+        geometry_path: An RTK geometry (:func:`fluoroscopy_view`), or None.
+        calibration_path: A JointTrack calibration (its pixel size must be the frames') or an
+            XMALab/Autoscoper MayaCam 2.0 (its image size must be the frames'), or None.
+    """
     if (geometry_path is None) == (calibration_path is None):
         raise ValueError("give the fluoroscopy view as one of an RTK geometry or a calibration")
     if geometry_path is not None:
@@ -350,32 +350,96 @@ def register_files(
         if spec.attached:
             meshes[name]["attached"] = [[str(path), m] for path, m in spec.attached]
     bodies = tuple(b for b in TRACK_ORDER if b in models)
-    T_world_camera = camera_frame(view)
     count = int(numbers[-1]) + 1
-    truth = None if truth_path is None else _truth(truth_path, count, bodies, T_world_camera)
-    tracker = Tracker(view, frames.data, models, settings, soft, frames.field)
-    if initial_path is None and meshes and volume_path is None:  # implants alone: search
-        start = _automatic_start(tracker, models, view, frames)
-    else:
-        start = _initial(initial_path, bodies, T_world_camera, int(numbers[0]))
-    _check_in_view(view, models, start, f"{frames.header.source} with the view")
-    results = tracker.track(start, progress=progress)
-    for result in results:  # the sequence's own frame numbers
-        result.frame = int(numbers[result.frame])
+    truth = None if truth_path is None else _truth(truth_path, count, bodies, view)
+    start = None  # implants alone: searched
+    if initial_path is not None or not meshes or volume_path is not None:
+        start = _initial(initial_path, bodies, view, int(numbers[0]))
+    tracker, tracked = _tracked(frames, view, models, start, settings, soft, progress)
+    results = [replace(r, frame=int(numbers[r.frame])) for r in tracked]  # the sequence's numbers
     _write(out, results, models, view, tracker, truth, distortion, source, frames, meshes)
     return results
 
 
-def _automatic_start(tracker: Tracker, models: dict, view: View, frames: Frames) -> dict:
-    """Each component's start on the first frame (registration.autostart), the largest
-    first, each next one searched within :data:`KNEE_REACH_MM` of those placed."""
-    start: dict[str, np.ndarray] = {}
-    for name in sorted(models, key=lambda b: -len(models[b].points_mm)):
+def track(
+    frames: Frames | np.ndarray,
+    view: View,
+    bodies: dict[str, BodyModel],
+    *,
+    start: dict[str, np.ndarray] | None = None,
+    settings: Settings | None = None,
+    soft_tissue: SoftTissue | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> list[FrameResult]:
+    """Track bodies through fluoroscopy frames, in memory.
+
+    Args:
+        frames: The frames (:func:`registration.read_frames`), or their line integrals
+            (frames, rows, cols).
+        view: The fluoroscopy view (:func:`read_view`).
+        bodies: The tracked bodies' models by name (registration.settings.TRACK_ORDER): a
+            static scan's bones (registration.bone_models) or implant components
+            (registration.implant_body), a component named by the bone it replaces.
+        start: The first frame's poses, 4x4 (mm) by body; None: each bone where the static
+            scan has it (the identity) and each component found in the first frame
+            (registration.autostart).
+        settings: Registration settings; the defaults when None.
+        soft_tissue: The static scan's soft tissue (registration.drr.SoftTissue), scored
+            with the bones; None leaves it out.
+        progress: Called with (frames done, frames in all) after each frame.
+
+    Returns:
+        One result per frame, numbered from 0.
+    """
+    return _tracked(frames, view, bodies, start, settings, soft_tissue, progress)[1]
+
+
+def _tracked(
+    frames: Frames | np.ndarray,
+    view: View,
+    bodies: dict[str, BodyModel],
+    start: dict[str, np.ndarray] | None,
+    settings: Settings | None,
+    soft_tissue: SoftTissue | None,
+    progress: Callable[[int, int], None] | None,
+) -> tuple[Tracker, list[FrameResult]]:
+    """:func:`track`, and the tracker that tracked (its matched blurs)."""
+    if isinstance(frames, Frames):
+        data, field, where = frames.data, frames.field, f"{frames.header.source} with the view"
+    else:
+        data, field, where = np.asarray(frames, dtype=np.float32), None, "the frames with the view"
+        if data.ndim != 3:
+            raise ValueError(f"frames of shape {data.shape}: give a stack (frames, rows, cols)")
+    tracker = Tracker(view, data, bodies, settings, soft_tissue, field)
+    given = dict(start or {})
+    for name in (b for b in bodies if b not in given and not isinstance(bodies[b], ImplantModel)):
+        given[name] = np.eye(4)  # a bone where the static scan has it
+    components = [b for b in bodies if b not in given]
+    if components:
+        given |= _automatic_start(tracker, bodies, components, view, data[0], field, given)
+    _check_in_view(view, bodies, given, where)
+    return tracker, tracker.track(given, progress=progress)
+
+
+def _automatic_start(
+    tracker: Tracker,
+    models: dict[str, BodyModel],
+    names: list[str],
+    view: View,
+    frame: np.ndarray,
+    field: np.ndarray | None,
+    placed: dict[str, np.ndarray],
+) -> dict[str, np.ndarray]:
+    """The components ``names``' starts on the first ``frame`` (registration.autostart),
+    the largest first, each next one searched within :data:`KNEE_REACH_MM` of those placed
+    (``placed``, then each found)."""
+    start = dict(placed)
+    for name in sorted(names, key=lambda b: -len(models[b].points_mm)):
         near = (_knee_centre(models, start), KNEE_REACH_MM) if start else None
-        placed = [(models[b], T) for b, T in start.items()]
-        found = candidate_poses(models[name], view, frames.data[0], frames.field, near, placed)
+        beside = [(models[b], T) for b, T in start.items()]
+        found = candidate_poses(models[name], view, frame, field, near, beside)
         start[name] = tracker.best_start(0, name, found, start)
-    return start
+    return {name: start[name] for name in names}
 
 
 def _knee_centre(models: dict, poses: dict[str, np.ndarray]) -> np.ndarray:
@@ -419,14 +483,14 @@ def _write(
         distortion.write(out / "distortion.json")
     centroids = {name: model.centroid_mm for name, model in models.items()}
     poses = [
-        BonePose(r.frame, name, b.pose, b.ncc, b.seconds, b.failed, b.reason)
+        BodyPose(r.frame, name, b.T_world_body, b.ncc, b.seconds, b.failed, b.reason)
         for r in results
-        for name, b in r.bones.items()
+        for name, b in r.bodies.items()
     ]
     write_poses(out / "poses.csv", poses, centroids)
     T_camera_world = np.linalg.inv(camera_frame(view))
     for name in models:  # JointTrack's poses, in its camera frame of the view
-        stack = [T_camera_world @ r.bones[name].pose for r in results]
+        stack = [T_camera_world @ r.bodies[name].T_world_body for r in results]
         write_jts(out / f"{FILE_NAMES[name]}.jts", stack)
     write_overlays(out / "overlays", frames.data, view, models, results)
     per_frame = [
@@ -440,7 +504,7 @@ def _write(
             "failed": b.failed,
         }
         for r in results
-        for name, b in r.bones.items()
+        for name, b in r.bodies.items()
     ]
     report = {
         "static_volume": None if source is None else source.summary(),
@@ -449,7 +513,7 @@ def _write(
         "settings": tracker.settings.model_dump(),
         "frame_blur_mm": tracker.frame_blur_mm,
         "model_blur_mm": {
-            name: body.blur_mm for name, body in tracker.bones.items() if hasattr(body, "blur_mm")
+            name: body.blur_mm for name, body in tracker.bodies.items() if hasattr(body, "blur_mm")
         },
         "dewarp": None if distortion is None else distortion.summary(),
         "frames": per_frame,
@@ -458,12 +522,14 @@ def _write(
     if truth is None:
         return
     errors = [
-        pose_error(name, r.frame, b.pose, truth[r.frame][name], models[name].points_mm, view)
+        pose_error(
+            name, r.frame, b.T_world_body, truth[r.frame][name], models[name].points_mm, view
+        )
         for r in results
-        for name, b in r.bones.items()
+        for name, b in r.bodies.items()
     ]
-    warm = [sum(b.seconds for b in r.bones.values()) for r in results[1:]]
-    first = sum(b.seconds for b in results[0].bones.values())
+    warm = [sum(b.seconds for b in r.bodies.values()) for r in results[1:]]
+    first = sum(b.seconds for b in results[0].bodies.values())
     metrics = summarize(errors, warm, first) | {"per_frame": as_rows(errors)}
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1), encoding="utf-8")
 

@@ -1,0 +1,30 @@
+"""``recon``'s public names for type checkers and IDEs (they load lazily: __init__.py)."""
+
+from recon.config import ScanProtocol as ScanProtocol
+from recon.config import load_config as load_config
+from recon.config import load_protocol as load_protocol
+from recon.fdk import FDKResult as FDKResult
+from recon.fdk import fdk_reconstruct as fdk_reconstruct
+from recon.geometry import DetectorSpec as DetectorSpec
+from recon.geometry import Geometry as Geometry
+from recon.geometry import View as View
+from recon.geometry import circular_orbit as circular_orbit
+from recon.geometry import helical_orbit as helical_orbit
+from recon.geometry import short_scan_arc_deg as short_scan_arc_deg
+from recon.io import ProjectionStack as ProjectionStack
+from recon.io import read_projections as read_projections
+from recon.io import read_stack_header as read_stack_header
+from recon.io import read_volume as read_volume
+from recon.io import write_projections as write_projections
+from recon.io import write_volume as write_volume
+from recon.iterative import IterativeResult as IterativeResult
+from recon.iterative import IterativeSettings as IterativeSettings
+from recon.iterative import iterative_reconstruct as iterative_reconstruct
+from recon.project import JosephProjector as JosephProjector
+from recon.project import backproject as backproject
+from recon.project import forward_project as forward_project
+from recon.rtk_xml import PanelHeader as PanelHeader
+from recon.rtk_xml import read_rtk_geometry as read_rtk_geometry
+from recon.rtk_xml import write_rtk_geometry as write_rtk_geometry
+from recon.volume import Volume as Volume
+from recon.volume import VolumeGrid as VolumeGrid

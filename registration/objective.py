@@ -1,0 +1,154 @@
+"""The similarity one body's pose is searched on: a frame against the scene rendered with the
+body moved, the rest fixed (docs/algorithms/registration.md)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+from scipy.ndimage import binary_dilation, maximum_filter1d, minimum_filter1d
+
+from recon.geometry import View
+from recon.project import JosephProjector
+from registration.drr import BoneModel
+from registration.implants import ImplantModel
+from registration.se3 import compose
+from registration.similarity import BlurredHighpass, gradient_ncc, highpass, ncc
+
+BodyModel = BoneModel | ImplantModel
+"""A tracked body's model: a bone from the static scan (registration.drr) or an implant
+component from its mesh (registration.implants)."""
+
+MIN_SILHOUETTE_PX = 20
+"""A body casting fewer pixels (at a pyramid level) than this is out of the field of view."""
+
+
+class OutOfView(ValueError):
+    """The body's projection (nearly) misses the detector: its frame is flagged, not guessed."""
+
+
+class Objective:
+    """-NCC of one body at one pyramid level against a frame, the rest of the scene fixed.
+
+    The soft tissue is deformed by the bodies' estimates at the start; the body carries its
+    share of it (``carried``: its projector and the body's pose in the deformation, rendered
+    moved by the body's motion from there). The similarity is taken over the body's
+    silhouette at the start pose (and at the ``reach`` poses), dilated, less the ``excluded``
+    pixels (the frame's 2D mask), in a crop of the view around it; the fixed rest of the scene
+    (``background``: its line integrals through a view) is rendered once, over the crop and
+    the reach of the high-pass filter around it.
+    """
+
+    def __init__(
+        self,
+        view: View,
+        target_hp: np.ndarray,
+        background: Callable[[View], np.ndarray],
+        bone: BodyModel,
+        carried: tuple[JosephProjector, np.ndarray] | None,
+        T0: np.ndarray,
+        sigma_px: float,
+        dilation_px: int,
+        coarse: bool,
+        prior: Callable[[np.ndarray], np.ndarray] | None = None,
+        reach: tuple[np.ndarray, ...] = (),
+        excluded: np.ndarray | None = None,
+    ) -> None:
+        silhouette = bone.render(view, T0, coarse) > 0.02
+        for T in reach:  # poses the search will visit far from T0: the mask covers them too
+            silhouette |= bone.render(view, T, coarse) > 0.02
+        if silhouette.sum() < MIN_SILHOUETTE_PX:
+            raise OutOfView(f"bone {bone.name} leaves the field of view")
+        mask = binary_dilation(silhouette, iterations=max(1, dilation_px))
+        if excluded is not None:
+            mask &= ~excluded
+            if mask.sum() < MIN_SILHOUETTE_PX:
+                raise OutOfView(
+                    f"bone {bone.name} lies where the frame tells nothing: the static scan's "
+                    "box cuts it, or it is outside the exposed field"
+                )
+        rows, cols = np.nonzero(mask)
+        margin = math.ceil(3 * sigma_px)
+        r0, r1 = max(0, rows.min() - margin), min(view.rows, rows.max() + margin + 1)
+        c0, c1 = max(0, cols.min() - margin), min(view.cols, cols.max() + margin + 1)
+        self.view = view.cropped(r0, c0, r1 - r0, c1 - c0)
+        self.crop = (slice(r0, r1), slice(c0, c1))
+        self.mask = mask[self.crop]
+        self.spans = _row_spans(self.mask, math.ceil(4 * sigma_px))
+        self.target = target_hp[self.crop]
+        halo = int(4 * sigma_px + 0.5) + 1  # scipy's Gaussian reaches 4 sigma: exact in the crop
+        h0, g0 = max(0, r0 - halo), max(0, c0 - halo)
+        outer = view.cropped(h0, g0, min(view.rows, r1 + halo) - h0, min(view.cols, c1 + halo) - g0)
+        inner = (slice(r0 - h0, r1 - h0), slice(c0 - g0, c1 - g0))
+        self.background = highpass(background(outer), sigma_px)[inner]
+        self.bone, self.carried, self.T0 = bone, carried, T0
+        self._deformed_inv = None if carried is None else np.linalg.inv(carried[1])
+        self.sigma, self.coarse, self.prior = sigma_px, coarse, prior
+        self._sharp = None  # a mesh's render: its blur and the high-pass in one filter
+        if isinstance(bone, ImplantModel) and carried is None:
+            blur_px = bone.blur_mm / self.view.pitch_u_mm
+            self._sharp = BlurredHighpass(self.mask.shape, blur_px, sigma_px)
+        self.evaluations = 0
+        self._unit_target: np.ndarray | None = None
+
+    def image(self, T: np.ndarray) -> np.ndarray:
+        if self._sharp is not None:
+            return self.background + self._sharp(self.bone.render(self.view, T, blurred=False))
+        moving = self.bone.render(self.view, T, self.coarse, self.spans)
+        if self.carried is not None:
+            moving += self.carried[0].project_moved(self.view, T @ self._deformed_inv, self.spans)
+        return self.background + highpass(moving, self.sigma)
+
+    def __call__(self, x: np.ndarray) -> float:
+        self.evaluations += 1
+        return self.cost(compose(np.asarray(x, dtype=np.float64), self.T0, self.bone.centroid_mm))
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        """Target minus render over the mask, each zero-mean and of unit norm (half the
+        squared norm is 1 - NCC), and the prior's terms times sqrt(2), at pose ``x``."""
+        self.evaluations += 1
+        T = compose(np.asarray(x, dtype=np.float64), self.T0, self.bone.centroid_mm)
+        if self._unit_target is None:
+            self._unit_target = _unit(self.target[self.mask])
+        prior = () if self.prior is None else math.sqrt(2.0) * self.prior(T)
+        try:
+            image = _unit(self.image(T)[self.mask])
+        except ValueError:  # no view renders the pose: the worst residual
+            image = -self._unit_target
+        return np.append(self._unit_target - image, prior)
+
+    def scores(self, T: np.ndarray) -> tuple[float, float]:
+        """NCC and gradient NCC at pose ``T`` (no prior)."""
+        image = self.image(T)
+        return ncc(self.target, image, self.mask), gradient_ncc(self.target, image, self.mask)
+
+    def cost(self, T: np.ndarray) -> float:
+        """-NCC at pose T plus the prior (if any); +1 (worst) for poses no view can render
+        (e.g. behind the source)."""
+        penalty = 0.0 if self.prior is None else float(np.sum(self.prior(T) ** 2))
+        try:
+            return penalty - ncc(self.target, self.image(T), self.mask)
+        except ValueError:
+            return 1.0 + penalty
+
+
+def _unit(values: np.ndarray) -> np.ndarray:
+    """``values`` less their mean, scaled to unit norm (float64; zeros when constant)."""
+    centred = values.astype(np.float64) - values.mean(dtype=np.float64)
+    norm = np.linalg.norm(centred)
+    return centred / norm if norm > 0 else centred
+
+
+def _row_spans(mask: np.ndarray, margin_px: int) -> np.ndarray:
+    """Per row, the columns (start, stop) within ``margin_px`` (chessboard) of ``mask``: where
+    the high-pass of a render reaches the mask (the Gaussian's truncation at 4 sigma)."""
+    cols = mask.shape[1]
+    index = np.arange(cols)
+    size = 2 * margin_px + 1
+    lo = minimum_filter1d(np.where(mask, index, cols).min(axis=1), size, mode="nearest")
+    hi = maximum_filter1d(np.where(mask, index + 1, 0).max(axis=1), size, mode="nearest")
+    empty = hi <= lo
+    lo, hi = np.maximum(lo - margin_px, 0), np.minimum(hi + margin_px, cols)
+    lo[empty] = hi[empty] = 0
+    return np.column_stack((lo, hi)).astype(np.int64)

@@ -1,0 +1,131 @@
+"""The searches a body's pose goes through, each on one objective (registration.objective) in
+the step ``x = (t mm, r deg)`` of registration.se3: differential evolution in a box along the
+body's principal axes, Powell in a box, Nelder-Mead, Levenberg-Marquardt, and the KPM's line
+search along the kinematic direction."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+from scipy.optimize import differential_evolution, least_squares, minimize, minimize_scalar
+
+from registration.objective import Objective
+from registration.priors import KPM_LAMBDA
+from registration.settings import Settings
+
+
+def principal_axes(points_mm: np.ndarray) -> np.ndarray:
+    """Columns: the body's principal axes (PCA of its points, (N, 3) mm), the longest first."""
+    centered = points_mm - points_mm.mean(axis=0)
+    _, _, vt = np.linalg.svd(centered[:: max(1, len(centered) // 20000)], full_matrices=False)
+    return vt.T
+
+
+def global_search(
+    objective: Objective, axes: np.ndarray, settings: Settings, scale: float = 1.0
+) -> np.ndarray:
+    """Differential evolution (seeded, Sobol start, no polish) in a box of ``scale`` times the
+    settings' ``de_*`` half-widths, its rotations about ``axes`` (columns: the body's
+    principal axes at its current pose, the longest first); returns the step x."""
+    s = settings
+
+    def in_axes(y: np.ndarray) -> np.ndarray:
+        x = np.empty(6)
+        x[:3] = y[:3]
+        x[3:] = axes @ y[3:]  # rotation vector (deg) about the principal axes
+        return x
+
+    t, rl, ro = (
+        s.de_translation_mm * scale,
+        s.de_long_axis_deg * scale,
+        s.de_other_axes_deg * scale,
+    )
+    bounds = [(-t, t)] * 3 + [(-rl, rl), (-ro, ro), (-ro, ro)]
+    result = differential_evolution(
+        lambda y: objective(in_axes(y)),
+        bounds,
+        seed=s.seed,
+        popsize=s.de_popsize,
+        maxiter=s.de_maxiter,
+        tol=1e-6,
+        polish=False,
+        init="sobol",
+    )
+    return in_axes(result.x)
+
+
+def powell(objective: Objective, box: tuple[float, float], settings: Settings) -> np.ndarray:
+    """Powell from the start, bounded to ``box`` (mm, deg) about it; returns the step x."""
+    t_max, r_max = box
+    return minimize(
+        objective,
+        np.zeros(6),
+        method="Powell",
+        bounds=[(-t_max, t_max)] * 3 + [(-r_max, r_max)] * 3,
+        options={"maxfev": settings.powell_maxfev, "xtol": settings.powell_xtol, "ftol": 1e-5},
+    ).x
+
+
+def nelder_mead(
+    objective: Objective, x0: np.ndarray, step: float, settings: Settings
+) -> np.ndarray:
+    """Nelder-Mead from ``x0``, its simplex ``step`` (mm, deg) along each axis; returns x."""
+    return minimize(
+        objective,
+        x0,
+        method="Nelder-Mead",
+        options={
+            "maxfev": settings.nelder_mead_maxfev,
+            "initial_simplex": np.vstack((x0, x0 + step * np.eye(6))),
+            "xatol": 1e-2,
+            "fatol": 1e-6,
+        },
+    ).x
+
+
+def levenberg_marquardt(objective: Objective, settings: Settings, max_steps: int) -> np.ndarray:
+    """Levenberg-Marquardt (scipy's MINPACK) on :meth:`Objective.residuals` from the start,
+    at most ``max_steps`` residual evaluations as MINPACK counts them, the Jacobian by central
+    differences of the settings' ``ls_step`` (12 renders); returns the step x."""
+    steps = np.repeat(np.asarray(settings.ls_step, dtype=np.float64), 3)
+
+    def jacobian(x: np.ndarray) -> np.ndarray:
+        return np.column_stack(
+            [
+                (objective.residuals(x + d) - objective.residuals(x - d)) / (2 * h)
+                for d, h in zip(np.diag(steps), steps, strict=True)
+            ]
+        )
+
+    return least_squares(
+        objective.residuals,
+        np.zeros(6),
+        jac=jacobian,
+        method="lm",
+        x_scale=steps,
+        xtol=1e-4,
+        ftol=1e-8,
+        max_nfev=max_steps,
+    ).x
+
+
+def kinematic_line_search(
+    cost: Callable[[np.ndarray], float],
+    at: Callable[[float], np.ndarray],
+    line: np.ndarray,
+) -> tuple[np.ndarray, int]:
+    """The KPM's search along the kinematic direction: the poses ``line`` (at each of
+    :data:`registration.priors.KPM_LAMBDA`'s steps, (L, 4, 4) mm) scored by ``cost``, then
+    Brent between the best one's neighbours on ``at`` (step -> pose). Returns the best pose
+    and the evaluations it took."""
+    costs = [cost(T) for T in line]
+    k = int(np.argmin(costs))
+    lo, hi = KPM_LAMBDA[max(k - 1, 0)], KPM_LAMBDA[min(k + 1, len(KPM_LAMBDA) - 1)]
+    best = minimize_scalar(
+        lambda lam: cost(at(lam)),
+        bounds=(lo, hi),
+        method="bounded",
+        options={"xatol": 0.02, "maxiter": 15},
+    )
+    return (at(best.x) if best.fun < costs[k] else line[k]), len(costs) + best.nfev
