@@ -4,8 +4,8 @@ files.
 The public names below load their module on first use (``__init__.pyi`` lists them for type
 checkers): ``registration.track`` tracks bodies through frames in memory
 (``registration.read_frames``, ``registration.read_view``, ``registration.implant_body``,
-``registration.bone_models``); ``registration.register_files`` runs what ``cbct register``
-runs.
+``registration.bone_models``); what ``cbct register`` runs from files is
+``study.jobs.register_files``.
 """
 
 from recon._exports import lazy
@@ -15,8 +15,6 @@ _EXPORTS = {
     "Tracker": "registration.tracker",
     "BodyResult": "registration.results",
     "FrameResult": "registration.results",
-    "ImplantSpec": "registration.tracking",
-    "register_files": "registration.tracking",
     "track": "registration.tracking",
     "read_view": "registration.tracking",
     "Frames": "registration.frames",

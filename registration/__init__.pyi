@@ -20,7 +20,5 @@ from registration.segment import bone_surfaces as bone_surfaces
 from registration.segment import segment_bones as segment_bones
 from registration.settings import Settings as Settings
 from registration.tracker import Tracker as Tracker
-from registration.tracking import ImplantSpec as ImplantSpec
 from registration.tracking import read_view as read_view
-from registration.tracking import register_files as register_files
 from registration.tracking import track as track

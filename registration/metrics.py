@@ -109,7 +109,7 @@ def as_rows(errors: list[PoseError]) -> list[dict]:
 def camera_differences(
     estimated: np.ndarray, reference: np.ndarray, centroid_mm: np.ndarray, T_world_camera
 ) -> np.ndarray:
-    """``estimated`` minus ``reference`` along the camera's axes (registration.tracking's
+    """``estimated`` minus ``reference`` along the camera's axes (registration.jointtrack's
     camera_frame: x, y in the image plane, z along the view, towards the source): the body's
     centroid (mm) and the rotation taking the reference to the estimate, as a rotation vector
     about those axes (deg), (6,)."""

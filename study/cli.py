@@ -860,8 +860,8 @@ def register(
     from recon.config import load_config
     from recon.distortion import Distortion
     from registration.settings import Settings
-    from registration.tracking import ImplantSpec, register_files
     from scanner.outputs import Output, new_outputs
+    from study.jobs import ImplantSpec, RegisterInputs, RegisterOptions, register_files
 
     static_unit = _static_unit(unit, effective_energy_kev)
     frame_range = None if frames_range is None else _frame_range(frames_range)
@@ -888,25 +888,27 @@ def register(
         chosen = load_config(settings, Settings)
         warp = None if distortion is None else Distortion.read(distortion)
         with new_outputs(Output(out, "--out")) as (staged,), views_progress() as bar:
-            results = register_files(
-                volume,
-                labels,
+            inputs = RegisterInputs(
                 frames,
-                geometry,
-                staged,
+                geometry=geometry,
+                calibration=calibration,
+                volume=volume,
+                labels=labels,
                 implants=implants,
-                calibration_path=calibration,
+                truth=_poses_given("--truth", truth),
+                initial=_poses_given("--initial", initial),
+            )
+            options = RegisterOptions(
                 polarity=polarity,
-                truth_path=_poses_given("--truth", truth),
-                initial_path=_poses_given("--initial", initial),
                 pixel_pitch_mm=pixel_pitch_mm,
                 distortion=warp,
                 settings=chosen,
-                progress=views_done(bar, "BoneAxis-Reg", "frames"),
                 unit=static_unit,
                 effective_energy_kev=effective_energy_kev,
                 frame_range=frame_range,
             )
+            progress = views_done(bar, "BoneAxis-Reg", "frames")
+            results = register_files(inputs, staged, options, progress)
     except (ValueError, OSError) as err:
         fail(str(err))
     failed = sum(b.failed for r in results for b in r.bodies.values())
@@ -951,7 +953,7 @@ def _frame_range(text: str) -> tuple[int, int, int]:
 def _body_words(option: str, given: list[str] | None) -> dict[str, str]:
     """``BODY=VALUE`` options as the tracker's body name -> value; ValueError naming the
     option and the value otherwise."""
-    from registration.tracking import body_name
+    from study.jobs.register import body_name
 
     out: dict[str, str] = {}
     for item in given or ():
@@ -969,7 +971,7 @@ def _attachments(given: list[str] | None) -> dict[str, tuple[tuple[Path, str], .
     """``--attach BODY=MESH:MATERIAL`` options as the tracker's body name -> its parts (mesh,
     material); ValueError naming the value otherwise."""
     from registration.implants import ATTACHABLE
-    from registration.tracking import body_name
+    from study.jobs.register import body_name
 
     out: dict[str, tuple[tuple[Path, str], ...]] = {}
     for item in given or ():

@@ -42,6 +42,7 @@ if TYPE_CHECKING:
     from assessment.results import KneeKinematics
     from registration.scan_motion import MotionEstimate
     from registration.settings import Settings
+    from study.jobs import RegisterOptions
 
 Say = Callable[[str], None]
 
@@ -450,27 +451,24 @@ def track_fluoro(
     study: Study,
     say: Say,
     progress: Progress | None,
-    volume: Path | None,
-    labels: Path | None,
-    **options: object,
+    inputs: dict[str, object],
+    options: RegisterOptions,
 ) -> dict:
-    """``registration.tracking.register_files`` of ``fluoro/`` (its frames and view; ``options``
-    the rest) into ``registration/`` (an interrupted attempt's folder made again), adopted by
-    the study; the figures of its metrics.json (none without truth)."""
-    from registration.tracking import register_files
+    """``study.jobs.register_files`` of ``fluoro/`` (its frames and view; ``inputs`` the rest
+    of the :class:`study.jobs.RegisterInputs`) into ``registration/`` (an interrupted
+    attempt's folder made again), adopted by the study; the figures of its metrics.json (none
+    without truth)."""
+    from study.jobs import RegisterInputs, register_files
 
     target = study.path / "registration"
     if target.exists():
         shutil.rmtree(target)  # an interrupted earlier attempt: derived data, made again
     fluoro = study.path / "fluoro"
     register_files(
-        volume,
-        labels,
-        fluoro / "frames.mha",
-        fluoro / "view.xml",
+        RegisterInputs(fluoro / "frames.mha", fluoro / "view.xml", **inputs),
         target,
-        progress=progress or (lambda done, total: say(f"registered frame {done}/{total}")),
-        **options,
+        options,
+        progress or (lambda done, total: say(f"registered frame {done}/{total}")),
     )
     study.adopt("registration")
     study.save()
@@ -493,7 +491,7 @@ def registration_stage(
     (metrics.json when the sequence has ground truth); the frames are dewarped first when
     ``fluoro/`` holds an exposure of the dewarp grid (``dewarp_grid.mha`` and its
     ``dewarp_grid.yaml``). ``progress(done, total)`` counts frames (else ``say`` does)."""
-    from study.jobs import fit_fluoro_distortion
+    from study.jobs import RegisterOptions, fit_fluoro_distortion
 
     def work() -> dict:
         fluoro = study.path / "fluoro"
@@ -507,16 +505,13 @@ def registration_stage(
                 f"dewarp: {distortion.balls} grid balls, residual RMS {distortion.rms_mm:.3f} "
                 f"mm, largest displacement {distortion.max_displacement_mm:.2f} mm"
             )
-        return track_fluoro(
-            study,
-            say,
-            progress,
-            study.path / "recon" / "volume.nii.gz",
-            study.path / "segmentation" / "labels.nii.gz",
-            truth_path=truth if truth.exists() else None,
-            distortion=distortion,
-            settings=settings,
-        )
+        inputs = {
+            "volume": study.path / "recon" / "volume.nii.gz",
+            "labels": study.path / "segmentation" / "labels.nii.gz",
+            "truth": truth if truth.exists() else None,
+        }
+        options = RegisterOptions(distortion=distortion, settings=settings)
+        return track_fluoro(study, say, progress, inputs, options)
 
     require(study, "segmentation", "fluoro")
     return run_stage(study, "registration", work, say)

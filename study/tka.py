@@ -30,12 +30,11 @@ from registration.poses import BodyPose, read_poses, write_poses
 from registration.se3 import compose
 from registration.segment import bone_surfaces, segment_bones_with_metal
 from registration.settings import Settings
-from registration.tracking import ImplantSpec
 from scanner.study import Study
 from sim.phantoms.tka import TkaPhantomSpec
 from sim.tka import TRACKED, load_tka, part_poses, read_gait, simulate_tka_fluoro, tka_motion
 from sim.tka_ct import METAL_LABEL, tka_scene, tka_truth
-from study.jobs import assess_files
+from study.jobs import ImplantSpec, RegisterOptions, assess_files
 from study.recording import record_volume
 from study.stages import (
     Say,
@@ -245,18 +244,13 @@ def registration_stage(
         implants = tuple(
             ImplantSpec(body, components / f"{part}.stl") for body, part in COMPONENTS.items()
         )
-        return track_fluoro(
-            study,
-            say,
-            progress,
-            None,
-            None,
-            implants=implants,
-            polarity="bright",
-            truth_path=study.path / "fluoro" / "poses.csv",
-            initial_path=study.path / "fluoro" / "initial.csv",
-            settings=settings,
-        )
+        inputs = {
+            "implants": implants,
+            "truth": study.path / "fluoro" / "poses.csv",
+            "initial": study.path / "fluoro" / "initial.csv",
+        }
+        options = RegisterOptions(polarity="bright", settings=settings)
+        return track_fluoro(study, say, progress, inputs, options)
 
     require(study, "fluoro")
     return run_stage(study, "registration", work, say)

@@ -1,0 +1,429 @@
+"""``cbct register``: track bodies through a fluoroscopy sequence from files, and write what
+was found (registration.tracking.track does the tracking).
+
+Inputs are the bodies to track: the static scan's bones (attenuation volume and its labels)
+and implant components (their CAD meshes, registration.implants), a component standing for the
+bone it replaces; the frames (an RTK projection stack of line integrals, DICOM, or TIFF/PNG
+images: registration.frames) and their view (RTK geometry XML: one view, or one identical view
+per frame, the scanner holding still during fluoroscopy; or a JointTrack calibration); and,
+optionally, the panel's distortion (calibration.distortion: the frames are dewarped before
+anything else). Outputs go to a new folder: ``poses.csv`` (registration.poses), one JointTrack
+``.jts`` per body (its poses in JointTrack's camera frame of the view: ``femur.jts``,
+``tibia.jts``, ``patella.jts``), ``overlays/`` (every frame with each body's outline at its
+registered pose), ``registration.json`` (per body and frame: NCC, gradient NCC, seconds,
+evaluations, failure flag; the settings; the meshes read; the dewarp's fit),
+``distortion.json`` (when dewarped) and, given the true (or reference) poses,
+``metrics.json`` (registration.metrics.summarize and per-frame errors).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from recon.attenuation import DEFAULT_EFFECTIVE_ENERGY_KEV
+from recon.distortion import Distortion
+from recon.geometry import View
+from recon.io import read_volume
+from recon.static_volume import StaticSource, StaticUnit, read_attenuation
+from recon.volume import Volume
+from registration.drr import SoftTissue, bone_models
+from registration.frames import Frames, read_frames
+from registration.implants import (
+    ATTACHABLE,
+    MATERIALS,
+    implant_model,
+    read_mesh,
+    size_range_mm,
+)
+from registration.jointtrack import camera_frame, read_calibration, read_jointtrack_poses
+from registration.jointtrack import write_poses as write_jts
+from registration.mayacam import is_mayacam
+from registration.metrics import as_rows, pose_error, summarize
+from registration.overlays import write_overlays
+from registration.poses import BodyPose, poses_by_frame, read_poses, write_poses
+from registration.results import FrameResult
+from registration.settings import TRACK_ORDER, Settings
+from registration.tracker import Tracker
+from registration.tracking import read_view, tracked
+
+BODY_NAMES = {
+    "femur": "femur",
+    "tibia": "tibia_fibula",
+    "tibia_fibula": "tibia_fibula",
+    "patella": "patella",
+}
+"""A body's name as given (``--implant tibia=...``) -> the tracker's
+(registration.settings.TRACK_ORDER)."""
+
+
+FILE_NAMES = {"femur": "femur", "tibia_fibula": "tibia", "patella": "patella"}
+"""The tracker's name -> the body's name in file names (``tibia.jts``)."""
+
+
+@dataclass(frozen=True)
+class ImplantSpec:
+    """An implant component to track: which body it stands for (femur, tibia or patella), its
+    mesh file, the mesh's unit, its material (registration.implants) and the parts fixed to it
+    (``attached``: each a mesh file in the component mesh's frame and unit, and its material
+    from :data:`registration.implants.ATTACHABLE`: a tray's insert, the bone the component is
+    fixed to), rendered with it."""
+
+    body: str
+    mesh: Path
+    unit: str = "mm"
+    material: str = "CoCr"
+    attached: tuple[tuple[Path, str], ...] = ()
+
+
+def body_name(name: str) -> str:
+    """The tracker's name of a body given as femur, tibia (tibia_fibula) or patella."""
+    if name not in BODY_NAMES:
+        raise ValueError(f"body {name!r}: one of femur, tibia, patella")
+    return BODY_NAMES[name]
+
+
+def _poses_by_body(
+    given: Path | dict[str, Path], bodies: tuple[str, ...], view: View, what: str
+) -> dict[str, np.ndarray]:
+    """Each body's poses (F, 4, 4), world: from one poses.csv, or per body from a poses.csv
+    or a JointTrack .jts (in the view's camera frame: registration.jointtrack.camera_frame)."""
+    if not isinstance(given, dict):
+        frames, stacks = poses_by_frame(read_poses(given), bodies)
+        if not np.array_equal(frames, np.arange(len(frames))):
+            raise ValueError(f"{given}: {what} poses must number the frames from 0 on")
+        return stacks
+    stacks = {}
+    for name, path in given.items():
+        if name not in bodies:
+            raise ValueError(f"{path}: {what} poses for {name!r}, which is not tracked")
+        if Path(path).suffix.lower() == ".jts":
+            stacks[name] = read_jointtrack_poses(path, view)
+        else:
+            _, found = poses_by_frame(read_poses(path), (name,))
+            stacks[name] = found[name]
+    lacking = [b for b in bodies if b not in stacks]
+    if lacking:
+        raise ValueError(f"no {what} poses for {', '.join(lacking)}")
+    return stacks
+
+
+def _initial(
+    given: Path | dict[str, Path] | None,
+    bodies: tuple[str, ...],
+    view: View,
+    first: int = 0,
+) -> dict[str, np.ndarray]:
+    """Starting poses of frame ``first``: the reference (CBCT or mesh) pose, or that frame's
+    row of ``given``."""
+    if given is None:
+        return {name: np.eye(4) for name in bodies}
+    stacks = _poses_by_body(given, bodies, view, "initial")
+    for name, stack in stacks.items():
+        if len(stack) <= first:
+            raise ValueError(
+                f"initial poses of {name} for {len(stack)} frames: none for frame {first}, "
+                "the first one tracked"
+            )
+    return {name: stack[first] for name, stack in stacks.items()}
+
+
+def _truth(
+    given: Path | dict[str, Path], count: int, bodies: tuple[str, ...], view: View
+) -> list[dict[str, np.ndarray]]:
+    """True (or reference) poses of frames 0..count-1 (ValueError if one is missing)."""
+    stacks = _poses_by_body(given, bodies, view, "true")
+    for name, stack in stacks.items():
+        if len(stack) < count:
+            raise ValueError(f"true poses of {name} for {len(stack)} frames, not {count}")
+    return [{b: stacks[b][k] for b in bodies} for k in range(count)]
+
+
+def _named_paths(what: str, given: Path | dict[str, Path] | None) -> dict[str, Path | None]:
+    """One poses file, or one per body, each under a name for messages."""
+    if isinstance(given, dict):
+        return {f"{what} of {body}": path for body, path in given.items()}
+    return {what: given}
+
+
+def frame_numbers(count: int, frame_range: tuple[int, int, int] | None) -> np.ndarray:
+    """The numbers of the frames tracked out of ``count``, or ValueError naming --frames-range.
+
+    Args:
+        count: Frames in the sequence.
+        frame_range: (first, last, step), ``last`` included; every frame when ``None``.
+    """
+    if frame_range is None:
+        return np.arange(count)
+    first, last, step = frame_range
+    if not (0 <= first <= last < count and step >= 1):
+        raise ValueError(
+            f"--frames-range {first}:{last}:{step}: the sequence has frames 0 to {count - 1}; "
+            "give FIRST:LAST[:STEP] with 0 <= FIRST <= LAST <= "
+            f"{count - 1} and STEP >= 1"
+        )
+    return np.arange(first, last + 1, step)
+
+
+@dataclass(frozen=True)
+class RegisterInputs:
+    """The files ``cbct register`` reads.
+
+    Attributes:
+        frames: The frames: a stack, DICOM, images, a glob, or a list of image files.
+        geometry: RTK geometry of the frames, or None with ``calibration``.
+        calibration: JointTrack or MayaCam calibration, or None with ``geometry``.
+        volume: The static volume (a file or a DICOM CT series), or None.
+        labels: Its bone labels, or None (with ``volume``).
+        implants: Implant components to track.
+        truth: Reference poses, for the metrics (one poses.csv, or per body a poses.csv or a
+            JointTrack .jts), or None.
+        initial: Starting poses of the first frame (the same forms), or None: the static
+            scan's bones where it has them, components found in the first frame.
+    """
+
+    frames: Path | list[str | Path]
+    geometry: Path | None = None
+    calibration: Path | None = None
+    volume: Path | None = None
+    labels: Path | None = None
+    implants: tuple[ImplantSpec, ...] = ()
+    truth: Path | dict[str, Path] | None = None
+    initial: Path | dict[str, Path] | None = None
+
+
+@dataclass(frozen=True)
+class RegisterOptions:
+    """How ``cbct register`` reads its inputs and tracks.
+
+    Attributes:
+        polarity: How attenuation shows in the frames: "dark" or "bright".
+        pixel_pitch_mm: Pixel size (mm) of frames whose files do not give one.
+        distortion: The panel's warp (the frames are dewarped with it first; ValueError if it
+            belongs to a panel of another size), or None.
+        settings: Registration settings; the defaults when None.
+        unit: Unit of the static volume where its file does not say (recon.static_volume).
+        effective_energy_kev: Effective energy (keV) converting HU to 1/mm.
+        frame_range: (first, last, step) of the frames tracked, numbered from 0, ``last``
+            included; every frame when None. Poses keep the sequence's frame numbers.
+    """
+
+    polarity: str = "dark"
+    pixel_pitch_mm: float | None = None
+    distortion: Distortion | None = None
+    settings: Settings | None = None
+    unit: StaticUnit | None = None
+    effective_energy_kev: float = DEFAULT_EFFECTIVE_ENERGY_KEV
+    frame_range: tuple[int, int, int] | None = None
+
+
+def register_files(
+    inputs: RegisterInputs,
+    out: Path,
+    options: RegisterOptions | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> list[FrameResult]:
+    """``cbct register``: track every body through every frame and write the results.
+
+    The bodies: the static scan's bones (a volume and its labels) and implant components
+    (their meshes), a component standing for the bone it replaces. Every input is read and
+    checked before the (long) registration starts; ``out`` must not exist and is written only
+    at the end.
+
+    Args:
+        inputs: The files read.
+        out: Output folder; must not exist.
+        options: How the inputs are read and the bodies tracked; the defaults when None.
+        progress: Called with (frames done, frames in all).
+
+    Returns:
+        One result per frame, numbered as the sequence numbers its frames.
+    """
+    options = options or RegisterOptions()
+    _check(inputs, out)
+    frames, numbers, view = _frames_and_view(inputs, options)
+    models, soft, source, meshes = _bodies(inputs, options)
+    bodies = tuple(b for b in TRACK_ORDER if b in models)
+    count = int(numbers[-1]) + 1
+    truth = None if inputs.truth is None else _truth(inputs.truth, count, bodies, view)
+    start = None  # implants alone: searched
+    if inputs.initial is not None or inputs.volume is not None or not meshes:
+        start = _initial(inputs.initial, bodies, view, int(numbers[0]))
+    tracker, found = tracked(frames, view, models, start, options.settings, soft, progress)
+    results = [replace(r, frame=int(numbers[r.frame])) for r in found]
+    _write(out, results, models, view, tracker, truth, options.distortion, source, frames, meshes)
+    return results
+
+
+def _check(inputs: RegisterInputs, out: Path) -> None:
+    """ValueError or FileNotFoundError, before anything is read, for inputs that cannot
+    register: an output folder that exists, a volume without labels, nothing to track, a
+    file that is not there."""
+    if out.exists():
+        raise FileExistsError(f"{out} exists: choose a new output folder")
+    if (inputs.volume is None) != (inputs.labels is None):
+        raise ValueError("a static scan needs both its volume and its labels")
+    if inputs.volume is None and not inputs.implants:
+        raise ValueError("nothing to track: give a static scan (volume and labels) or implants")
+    given = {
+        "static volume": inputs.volume,
+        "labels": inputs.labels,
+        "geometry": inputs.geometry,
+        "calibration": inputs.calibration,
+        **{f"{spec.body} mesh": spec.mesh for spec in inputs.implants},
+        **_named_paths("true poses", inputs.truth),
+        **_named_paths("initial poses", inputs.initial),
+    }
+    for what, path in given.items():
+        if path is not None and not Path(path).exists():
+            raise FileNotFoundError(f"{path}: no such file or folder ({what})")
+
+
+def _frames_and_view(
+    inputs: RegisterInputs, options: RegisterOptions
+) -> tuple[Frames, np.ndarray, View]:
+    """The frames tracked (those of ``frame_range``, dewarped), their numbers in the
+    sequence, and their view."""
+    calibration, pixel_pitch_mm = inputs.calibration, options.pixel_pitch_mm
+    if calibration is not None and pixel_pitch_mm is None:
+        if is_mayacam(calibration):
+            raise ValueError(
+                f"{calibration}: a MayaCam calibration does not give the panel's pixel "
+                "pitch: give it (--pixel-pitch-mm)"
+            )
+        pixel_pitch_mm = read_calibration(calibration, 1, 1).pitch_u_mm
+    frames = read_frames(inputs.frames, pixel_pitch_mm, options.polarity)
+    numbers = frame_numbers(len(frames.data), options.frame_range)
+    view = read_view(frames, inputs.geometry, calibration)
+    if options.frame_range is not None:
+        frames = replace(frames, data=frames.data[numbers])
+    distortion = options.distortion
+    if distortion is not None:
+        field = frames.field
+        if field is not None:  # pixels the dewarped field fully covers
+            field = distortion.undistort(field.astype(np.float32), view.pitch_u_mm) > 0.99
+        data = distortion.undistort(frames.data, view.pitch_u_mm)
+        frames = replace(frames, data=data, field=field)
+    return frames, numbers, view
+
+
+def _bodies(
+    inputs: RegisterInputs, options: RegisterOptions
+) -> tuple[dict, SoftTissue | None, StaticSource | None, dict[str, dict]]:
+    """The tracked bodies' models by name, the static scan's soft tissue and source (None
+    without one), and what was read of each mesh."""
+    models, soft, source, meshes = {}, None, None, {}
+    if inputs.volume is not None:
+        volume, labels, source = load_inputs(
+            inputs.volume, inputs.labels, options.unit, options.effective_energy_kev
+        )
+        models = bone_models(volume, labels)
+        soft = SoftTissue.of(volume, labels)
+    for spec in inputs.implants:
+        name = body_name(spec.body)
+        if spec.material not in MATERIALS:
+            raise ValueError(f"{spec.mesh}: material {spec.material!r}; one of {sorted(MATERIALS)}")
+        mesh, report = read_mesh(spec.mesh, spec.unit)
+        attached = []
+        for path, material in spec.attached:
+            if material not in ATTACHABLE:
+                raise ValueError(
+                    f"{path}: material {material!r} of a part fixed to {spec.mesh.name}; one of "
+                    f"{sorted(ATTACHABLE)}"
+                )
+            part = read_mesh(path, spec.unit, size_range_mm(material))[0]
+            attached.append((part, ATTACHABLE[material]))
+        models[name] = implant_model(name, mesh, MATERIALS[spec.material], attached=attached)
+        meshes[name] = {**asdict(report), "material": spec.material}
+        if spec.attached:
+            meshes[name]["attached"] = [[str(path), m] for path, m in spec.attached]
+    return models, soft, source, meshes
+
+
+def _write(
+    out,
+    results,
+    models,
+    view,
+    tracker: Tracker,
+    truth,
+    distortion,
+    source: StaticSource | None,
+    frames: Frames,
+    meshes: dict[str, dict],
+) -> None:
+    out.mkdir(parents=True)
+    if distortion is not None:
+        distortion.write(out / "distortion.json")
+    centroids = {name: model.centroid_mm for name, model in models.items()}
+    poses = [
+        BodyPose(r.frame, name, b.T_world_body, b.ncc, b.seconds, b.failed, b.reason)
+        for r in results
+        for name, b in r.bodies.items()
+    ]
+    write_poses(out / "poses.csv", poses, centroids)
+    T_camera_world = np.linalg.inv(camera_frame(view))
+    for name in models:  # JointTrack's poses, in its camera frame of the view
+        stack = [T_camera_world @ r.bodies[name].T_world_body for r in results]
+        write_jts(out / f"{FILE_NAMES[name]}.jts", stack)
+    write_overlays(out / "overlays", frames.data, view, models, results)
+    per_frame = [
+        {
+            "frame": r.frame,
+            "bone": name,
+            "ncc": b.ncc,
+            "gradient_ncc": b.gradient_ncc,
+            "seconds": b.seconds,
+            "evaluations": b.evaluations,
+            "failed": b.failed,
+        }
+        for r in results
+        for name, b in r.bodies.items()
+    ]
+    report = {
+        "static_volume": None if source is None else source.summary(),
+        "implants": meshes,
+        "fluoroscopy": {"source": frames.header.source, "values": frames.stand_in},
+        "settings": tracker.settings.model_dump(),
+        "frame_blur_mm": tracker.frame_blur_mm,
+        "model_blur_mm": {
+            name: body.blur_mm for name, body in tracker.bodies.items() if hasattr(body, "blur_mm")
+        },
+        "dewarp": None if distortion is None else distortion.summary(),
+        "frames": per_frame,
+    }
+    (out / "registration.json").write_text(json.dumps(report, indent=1), encoding="utf-8")
+    if truth is None:
+        return
+    errors = [
+        pose_error(
+            name, r.frame, b.T_world_body, truth[r.frame][name], models[name].points_mm, view
+        )
+        for r in results
+        for name, b in r.bodies.items()
+    ]
+    warm = [sum(b.seconds for b in r.bodies.values()) for r in results[1:]]
+    first = sum(b.seconds for b in results[0].bodies.values())
+    metrics = summarize(errors, warm, first) | {"per_frame": as_rows(errors)}
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=1), encoding="utf-8")
+
+
+def load_inputs(
+    volume_path: Path,
+    labels_path: Path,
+    unit: StaticUnit | None = None,
+    effective_energy_kev: float = DEFAULT_EFFECTIVE_ENERGY_KEV,
+) -> tuple[Volume, Volume, StaticSource]:
+    """The static scan as attenuation (1/mm; recon.static_volume.read_attenuation) and its
+    labels, checked to share one grid, and where the attenuation's unit came from."""
+    volume, source = read_attenuation(volume_path, unit, effective_energy_kev)
+    labels = read_volume(labels_path, unit="label")
+    if labels.grid != volume.grid:
+        raise ValueError(
+            f"{labels_path}: label grid {labels.grid} does not match the volume's {volume.grid}"
+        )
+    return volume, labels, source
