@@ -46,7 +46,7 @@ The regimes (docs/system.md, issue "4D virtual imaging"; docs/implants.md for th
   (sim.tka.FIXED_BONES: the femur; the tibia and the fibula): what the tracker does when the
   bones' place on the components is known exactly.
 
-In the first two regimes the frames are dewarped first (calibration.distortion), with the warp
+In the first two regimes the frames are dewarped first (calibration.dewarp_grid), with the warp
 fitted to one exposure of the dewarp grid through the same image model as the frames
 (``--no-dewarp`` registers the distorted frames as they are); ``dewarp_rms_mm`` is the fit's
 residual.
@@ -83,7 +83,7 @@ from scipy.spatial.transform import Rotation
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from calibration.distortion import DewarpGridSpec, fit_distortion  # noqa: E402
+from calibration.dewarp_grid import DewarpGridSpec, fit_distortion  # noqa: E402
 from recon.config import load_config, load_protocol  # noqa: E402
 from recon.distortion import Distortion  # noqa: E402
 from recon.fdk import fdk_reconstruct  # noqa: E402
@@ -219,7 +219,7 @@ def matched_frames(clean: np.ndarray, view, photons: float, rng) -> np.ndarray:
 
 def dewarp_of(regime: str, spec: KneePhantomSpec) -> Distortion:
     """The panel's warp, fitted to one exposure of the dewarp grid at the panel's native pitch
-    (1024 pixels of 0.3 mm) through the regime's image model (calibration.distortion)."""
+    (1024 pixels of 0.3 mm) through the regime's image model (calibration.dewarp_grid)."""
     grid = DewarpGridSpec()
     native = lateral_view(spec, DetectorSpec(rows=1024, cols=1024, pixel_pitch_mm=0.3))
     if regime == "matched":

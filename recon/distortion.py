@@ -6,7 +6,7 @@ axes, the polynomial of their values normalised by half the panel's larger side 
 warp: pincushion, S-distortion). Millimetres, not pixels: the warp belongs to the panel, so a
 grid imaged at the native pitch dewarps frames read out binned. Dewarping samples a frame at
 the warp of every pixel centre, so the result is what the view's matrix describes.
-calibration.distortion estimates the warp from an image of a dewarp grid.
+calibration.dewarp_grid estimates the warp from an image of a dewarp grid.
 """
 
 from __future__ import annotations

@@ -40,7 +40,7 @@ import rerun as rr
 from recon.geometry import View
 from scanner.storage import SCAN_FOLDERS, ViewRecord
 from scanner.study import Study
-from trajectories.recording import frustum
+from trajectories.plan_recording import frustum
 
 TIMELINE = "scan_time"
 VIEW_TIMELINE = "view"

@@ -45,7 +45,7 @@ from trajectories.config import ScannerConfig
 from trajectories.model import ScannerModel
 from trajectories.move import park_pose
 from trajectories.plan import Plan, plan_scan
-from trajectories.recording import record_plan
+from trajectories.plan_recording import record_plan
 
 Say = Callable[[str], None]
 

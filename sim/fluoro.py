@@ -49,7 +49,7 @@ import numba
 import numpy as np
 from scipy import ndimage
 
-from calibration.distortion import DewarpGridSpec
+from calibration.dewarp_grid import DewarpGridSpec
 from recon.config import ExposureSpec
 from recon.geometry import DetectorSpec, Geometry, View
 from recon.io import write_projections
@@ -649,7 +649,7 @@ def simulate_dewarp_grid(
     seed: int = 0,
     supersample: int = 3,
 ) -> np.ndarray:
-    """One exposure of the dewarp grid alone (calibration.distortion) through ``view``:
+    """One exposure of the dewarp grid alone (calibration.dewarp_grid) through ``view``:
     line integrals (rows, cols), float32, through the same image model as the frames of
     :func:`simulate_fluoroscopy` (``realism``, including its distortion).
 

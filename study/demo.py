@@ -38,7 +38,7 @@ import yaml
 
 from assessment.flags import frames_text
 from calibration.calibrate import calibrate
-from calibration.distortion import DewarpGridSpec
+from calibration.dewarp_grid import DewarpGridSpec
 from calibration.phantom import BBPhantomSpec
 from recon.config import ScanProtocol, load_config, load_protocol
 from recon.fdk import Progress
@@ -55,7 +55,6 @@ from sim.motion import flexion_extension
 from sim.phantoms.knee import KneePhantomSpec
 from study import tka as tka_stages
 from study.live_recon import LiveRecon
-from study.recording import merge_recordings
 from study.stages import (
     Say,
     assessment_stage,
@@ -66,6 +65,7 @@ from study.stages import (
     run_stage,
     segmentation_stage,
 )
+from study.study_recording import merge_recordings
 
 Bars = Callable[[str, str], Progress]
 """A factory of progress callbacks: (description, unit) -> callback(done, total)."""

@@ -36,7 +36,7 @@ from recon.volume import VolumeGrid
 from registration.labels import BONE_UNITS, LABELS
 from scanner.study import Study, StudyError
 from sim.phantoms.knee import KneePhantomSpec, attenuation_per_mm, rasterize_knee
-from study.recording import record_volume
+from study.study_recording import record_volume
 
 if TYPE_CHECKING:
     from assessment.results import KneeKinematics

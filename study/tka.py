@@ -35,7 +35,6 @@ from sim.phantoms.tka import TkaPhantomSpec
 from sim.tka import TRACKED, load_tka, part_poses, read_gait, simulate_tka_fluoro, tka_motion
 from sim.tka_ct import METAL_LABEL, tka_scene, tka_truth
 from study.jobs import ImplantSpec, RegisterOptions, assess_files
-from study.recording import record_volume
 from study.stages import (
     Say,
     ScanGeometry,
@@ -47,6 +46,7 @@ from study.stages import (
     scan_protocol,
     track_fluoro,
 )
+from study.study_recording import record_volume
 
 FLUORO_CENTER_MM = np.array([0.0, 0.0, 490.0])
 """Where the knee's joint centre stands in the fluoroscope's world, mm."""

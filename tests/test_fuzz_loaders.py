@@ -39,7 +39,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from calibration.calibrate import corrected_geometry, plan_hash
-from calibration.distortion import DewarpGridSpec
+from calibration.dewarp_grid import DewarpGridSpec
 from calibration.phantom import BBPhantomSpec
 from recon.config import load_config, load_protocol
 from recon.dicom import read_dicom_series, write_dicom_series

@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from calibration.calibrate import Calibration, calibrate
-from calibration.distortion import DewarpGridSpec, fit_distortion
+from calibration.dewarp_grid import DewarpGridSpec, fit_distortion
 from calibration.phantom import BBPhantomSpec
 from recon.config import load_config, load_protocol
 from recon.distortion import Distortion
@@ -47,7 +47,7 @@ def fit_fluoro_distortion(
     degree: int = 5,
     pixel_pitch_mm: float | None = None,
 ) -> Distortion:
-    """The fluoroscopy panel's warp (calibration.distortion) from one exposure of the dewarp
+    """The fluoroscopy panel's warp (calibration.dewarp_grid) from one exposure of the dewarp
     grid (``grid_image``: .mha or DICOM) through the static view in ``geometry`` (RTK XML, e.g.
     the frames' own)."""
     spec = load_config(grid_config, DewarpGridSpec)

@@ -6,7 +6,7 @@ and implant components (their CAD meshes, registration.implants), a component st
 bone it replaces; the frames (an RTK projection stack of line integrals, DICOM, or TIFF/PNG
 images: registration.frames) and their view (RTK geometry XML: one view, or one identical view
 per frame, the scanner holding still during fluoroscopy; or a JointTrack calibration); and,
-optionally, the panel's distortion (calibration.distortion: the frames are dewarped before
+optionally, the panel's distortion (calibration.dewarp_grid: the frames are dewarped before
 anything else). Outputs go to a new folder: ``poses.csv`` (registration.poses), one JointTrack
 ``.jts`` per body (its poses in JointTrack's camera frame of the view: ``femur.jts``,
 ``tibia.jts``, ``patella.jts``), ``overlays/`` (every frame with each body's outline at its

@@ -12,7 +12,7 @@ import SimpleITK as sitk
 import yaml
 from typer.testing import CliRunner
 
-from calibration.distortion import DewarpGridSpec
+from calibration.dewarp_grid import DewarpGridSpec
 from recon.attenuation import mu_water_per_mm
 from recon.config import ConfigError, load_config
 from recon.geometry import DetectorSpec, Geometry, View

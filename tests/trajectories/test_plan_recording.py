@@ -14,7 +14,7 @@ from recon.config import load_config, load_protocol
 from trajectories.config import ScannerConfig
 from trajectories.model import ScannerModel
 from trajectories.plan import Plan, plan_scan
-from trajectories.recording import TIMELINE, VIEW_TIMELINE, record_plan, sample_indices
+from trajectories.plan_recording import TIMELINE, VIEW_TIMELINE, record_plan, sample_indices
 
 ROOT = Path(__file__).resolve().parents[2]
 

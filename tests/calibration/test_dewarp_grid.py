@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from calibration.distortion import DewarpGridSpec, fit_distortion
+from calibration.dewarp_grid import DewarpGridSpec, fit_distortion
 from recon.distortion import Distortion, panel_mm
 from recon.geometry import DetectorSpec
 from sim.fluoro import DISTORTION_MAX_MM, add_fluoro_noise, distort, lateral_view
