@@ -44,8 +44,8 @@ sys.path.insert(0, str(ROOT))
 
 from distributed import Client  # noqa: E402
 
+from configs import CONFIGS  # noqa: E402
 from registration.settings import Settings  # noqa: E402
-from scanner.cli import CONFIGS  # noqa: E402
 from study import batch  # noqa: E402
 
 LIGHT = Settings(

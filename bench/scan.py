@@ -19,7 +19,7 @@ competing for the same two cores).
 - ``storage_wait_ms``: of that, the exposure loop's mean wait per view for earlier views' files
   to be on disk (written, fsynced, renamed) before the next pulse: all but the view before.
 - ``disk_view_store_ms``: the same storage of one view's files (two images of the panel and
-  their record, :meth:`scanner.study.Study.write_with_record`) on the same disk with nothing
+  their record, :meth:`scanner.study_folder.Study.write_with_record`) on the same disk with nothing
   else running, the median of 30, measured just before the scan: how fast the disk is today
   (the figures above move with it; this virtual disk took from 1.4 to 3.3 ms within an hour).
 - ``recon_ready_after_last_view_s``: from the moment the last view is stored to the volume on
@@ -52,9 +52,10 @@ sys.path.insert(0, str(ROOT))
 
 from recon.config import ScanProtocol, load_config, load_protocol  # noqa: E402
 from recon.io import encode_projections, read_projections, read_volume  # noqa: E402
+from scanner.inputs import read_inputs  # noqa: E402
 from scanner.scan import ScanRun, ScanSettings  # noqa: E402
-from scanner.session import read_inputs, run_session  # noqa: E402
-from scanner.study import Study  # noqa: E402
+from scanner.session import run_session  # noqa: E402
+from scanner.study_folder import Study  # noqa: E402
 from sim.detector import SimDetector  # noqa: E402
 from sim.generator import MockGenerator  # noqa: E402
 from sim.stage import MockStage  # noqa: E402

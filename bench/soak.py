@@ -84,15 +84,15 @@ sys.path.insert(0, str(ROOT))
 
 from recon.config import ScanProtocol, load_config  # noqa: E402
 from recon.io import read_projections  # noqa: E402
-from scanner.backends import SIM_GIGE_FRAME_TIMEOUT_S  # noqa: E402
 from scanner.detector_calibration import calibrate_session  # noqa: E402
+from scanner.inputs import read_inputs  # noqa: E402
 from scanner.scan import ScanSettings  # noqa: E402
-from scanner.session import read_inputs  # noqa: E402
-from scanner.study import Study, sha256  # noqa: E402
+from scanner.study_folder import Study, sha256  # noqa: E402
 from scanner.ur import SILENCE_S  # noqa: E402
 from sim.generator import MockGenerator  # noqa: E402
 from sim.stage import MockStage  # noqa: E402
 from sim.ur_controller import FakeURController  # noqa: E402
+from study.simulator import SIM_GIGE_FRAME_TIMEOUT_S  # noqa: E402
 from trajectories.config import ScannerConfig  # noqa: E402
 from trajectories.model import ScannerModel  # noqa: E402
 from trajectories.plan import SAMPLE_DT_S, plan_scan  # noqa: E402

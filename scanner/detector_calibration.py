@@ -14,21 +14,17 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-from recon.geometry import DetectorSpec, View
-from scanner.backends import open_backend
 from scanner.corrections import MapsError, PanelMaps, derive_maps, maps_path
 from scanner.hardware import Backend, DeviceError, Technique
+from scanner.inputs import SessionInputs
+from scanner.registry import Rig, backend_kind, nothing_in_the_beam
 from scanner.scan import OperatorDeclined, PreflightError, ScanSettings, stop_safely
 from scanner.stop import StopRequest, stop_signals
 from trajectories.model import ScannerModel
 from trajectories.move import park_pose
-
-if TYPE_CHECKING:
-    from scanner.session import SessionInputs
 
 AFTER_DARKS = 2
 """Dark frames read after the floods (the first holds the floods' lag)."""
@@ -119,13 +115,6 @@ def calibrate_detector(
     )
 
 
-def beam_clear(panel: DetectorSpec) -> Callable[[View, float], np.ndarray]:
-    """Nothing in the beam: zero line integrals on every pixel of ``panel`` at any time (the
-    simulated panel's subject while it is calibrated)."""
-    clear = np.zeros((panel.rows, panel.cols))
-    return lambda _view, _t_s=0.0: clear
-
-
 def calibrate_session(
     inputs: SessionInputs,
     out: Path,
@@ -139,15 +128,14 @@ def calibrate_session(
     mode and at the technique of its protocol; the maps written under ``out``
     (:meth:`PanelMaps.save`, never over older ones). The simulated backend's panel sees
     nothing in the beam; the arms stay where they stand (the simulated ones at park)."""
-    model = ScannerModel(inputs.scanner)
-    d, e = inputs.protocol.detector, inputs.protocol.exposure
-    panel = DetectorSpec(rows=d.rows, cols=d.cols, pixel_pitch_mm=d.pixel_pitch_mm)
     if not MIN_FRAMES <= frames <= MAX_FRAMES:
         raise ValueError(f"frames must be in [{MIN_FRAMES}, {MAX_FRAMES}], got {frames}")
-    sdd = inputs.protocol.orbit.sdd_mm
-    backend, _ = open_backend(
-        inputs.backend, model, park_pose(model), panel, sdd, beam_clear(panel)
+    model = ScannerModel(inputs.scanner)
+    e, panel = inputs.protocol.exposure, inputs.panel
+    rig = Rig(
+        model, park_pose(model), panel, inputs.protocol.orbit.sdd_mm, nothing_in_the_beam(panel)
     )
+    backend, _ = backend_kind(inputs.backend_kind).open(inputs.backend, rig)
     stop = StopRequest()
     try:
         with stop_signals(stop):

@@ -1,10 +1,9 @@
 """The hardware the scan state machine drives, as typed protocols.
 
-A backend is a set of devices that satisfy these protocols: the simulated one (``sim.backend``:
-mock arms on a virtual clock, the mock generator over a pty, a rendering detector) and the UR one
-(``scanner.ur``: ur-rtde arms, the serial generator and stage drivers, the GigE Vision panel of
-``scanner.gige``). ``sim`` implements them
-structurally and imports nothing from ``scanner`` (docs/design.md).
+A backend is a set of devices that satisfy these protocols: the UR one (``scanner.ur``: ur-rtde
+arms, the serial generator and stage drivers, the GigE Vision panel of ``scanner.gige``) and the
+simulated one (``study.simulator``: mock arms on a virtual clock, the mock generator over a pty, a
+rendering detector), each found by name in :mod:`scanner.registry`.
 
 Units: joint positions in the plan's joint units (degrees for revolute joints, millimetres for
 the lift), times in seconds on the backend's clock, technique in kVp / mA / ms. Every call that

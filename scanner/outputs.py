@@ -144,3 +144,11 @@ def new_outputs(*outputs: Output) -> Iterator[list[Path]]:
         for staging in stagings:
             if staging not in kept:
                 _remove(staging)
+
+
+def new_folder(path: Path) -> Path:
+    """Create ``path`` for output; refuse one that exists with anything in it."""
+    if path.exists() and (not path.is_dir() or any(path.iterdir())):
+        raise FileExistsError(f"{path} exists and is not empty: nothing is overwritten")
+    path.mkdir(parents=True, exist_ok=True)
+    return path

@@ -41,7 +41,7 @@ from scanner.corrections import Corrector, PanelMaps
 from scanner.hardware import Backend, DeviceError, Technique
 from scanner.stop import StopRequest
 from scanner.storage import PendingView, ScanStore, ViewRecord
-from scanner.study import Reservation, StudyError
+from scanner.study_folder import Reservation, StudyError
 from trajectories.model import ScannerModel
 from trajectories.plan import Plan, view_at
 

@@ -39,7 +39,7 @@ import rerun as rr
 
 from recon.geometry import View
 from scanner.storage import SCAN_FOLDERS, ViewRecord
-from scanner.study import Study
+from scanner.study_folder import Study
 from trajectories.plan_recording import frustum
 
 TIMELINE = "scan_time"

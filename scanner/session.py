@@ -13,34 +13,26 @@ from __future__ import annotations
 import shutil
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Protocol
 
 import numpy as np
 
-from calibration.phantom import BBPhantomSpec
 from recon.config import ScanProtocol, load_config, load_protocol
-from recon.geometry import DetectorSpec, Geometry, View
-from recon.volume import Volume
-from scanner.backends import BACKEND_SPECS, load_backend_spec, open_backend
+from recon.geometry import View
 from scanner.corrections import MapsError, PanelMaps, find_maps
-from scanner.detector_calibration import beam_clear, calibrate_detector
 from scanner.hardware import Backend, Technique
+from scanner.inputs import SessionInputs, load_backend_spec, subject
 from scanner.move import MoveResult, move_scanner
+from scanner.registry import Rig, backend_kind
 from scanner.scan import PreflightError, ScanFault, ScanRun, ScanSettings
 from scanner.scan import Progress as ScanProgress
 from scanner.scan_recording import ScanRecorder
 from scanner.stop import StopRequest, stop_signals
 from scanner.storage import ScanStore, ViewRecord
-from scanner.study import MANIFEST, Study, StudyError
-from sim.backend import SimBackendSpec, SimFaults, volume_subject
-from sim.detector import Subject
-from sim.phantoms.bb import project_bb
-from sim.phantoms.knee import KneePhantomSpec, knee_grid, rasterize_knee
-from sim.phantoms.tka import TkaPhantomSpec
-from sim.sway import Sway, SwayingKnee, SwaySpec
+from scanner.study_folder import MANIFEST, Study, StudyError
 from trajectories.config import ScannerConfig
 from trajectories.model import ScannerModel
 from trajectories.move import park_pose
@@ -60,80 +52,6 @@ class ViewSink(Protocol):
     def start(self, store: ScanStore) -> None: ...
 
     def view(self, record: ViewRecord, image: np.ndarray) -> None: ...
-
-
-PHANTOMS = {"knee": KneePhantomSpec, "bb": BBPhantomSpec, "tka": TkaPhantomSpec}
-LEG_HEIGHT_MM = 480.0
-"""Length of leg the simulated panel images, mm, centred on the joint line: more than the cone
-covers at the knee (a leg cut off inside the cone would end in the reconstruction, and in the
-registration's soft tissue, where a patient's does not)."""
-
-
-@dataclass(frozen=True)
-class SessionInputs:
-    """Validated inputs of a session (also the study's config snapshot)."""
-
-    protocol: ScanProtocol
-    scanner: ScannerConfig
-    backend_kind: str
-    backend: object
-    phantom: KneePhantomSpec | BBPhantomSpec | TkaPhantomSpec
-    phantom_voxel_mm: float
-
-    def snapshot(self) -> dict:
-        return {
-            "protocol": self.protocol.model_dump(mode="json"),
-            "scanner": self.scanner.model_dump(mode="json"),
-            "backend": {"kind": self.backend_kind, **self.backend.model_dump(mode="json")},
-            "phantom": {
-                "kind": next(k for k, spec in PHANTOMS.items() if isinstance(self.phantom, spec)),
-                **self.phantom.model_dump(mode="json"),
-            },
-            "phantom_voxel_mm": self.phantom_voxel_mm,
-        }
-
-    @classmethod
-    def from_snapshot(cls, config: dict) -> SessionInputs:
-        backend = dict(config["backend"])
-        kind = backend.pop("kind")
-        phantom = dict(config["phantom"])
-        phantom_spec = PHANTOMS[phantom.pop("kind")]
-        return cls(
-            protocol=ScanProtocol.model_validate(config["protocol"]),
-            scanner=ScannerConfig.model_validate(config["scanner"]),
-            backend_kind=kind,
-            backend=BACKEND_SPECS[kind].model_validate(backend),
-            phantom=phantom_spec.model_validate(phantom),
-            phantom_voxel_mm=float(config["phantom_voxel_mm"]),
-        )
-
-
-def read_inputs(
-    protocol: Path | ScanProtocol,
-    scanner: Path,
-    backend_kind: str,
-    backend_config: Path,
-    phantom: Path,
-    *,
-    phantom_voxel_mm: float = 1.0,
-    phantom_kind: str = "knee",
-) -> SessionInputs:
-    """Read and validate every input before anything is written or moved."""
-    if phantom_kind not in PHANTOMS:
-        raise ValueError(f"phantom kind must be one of {sorted(PHANTOMS)}, got {phantom_kind!r}")
-    if not 0.25 <= phantom_voxel_mm <= 4.0:
-        raise ValueError(f"phantom_voxel_mm must be in [0.25, 4] mm, got {phantom_voxel_mm}")
-    if not isinstance(protocol, ScanProtocol):
-        protocol = load_protocol(protocol)
-    protocol = ScanProtocol.model_validate(protocol.model_dump())  # checks edits, dose included
-    return SessionInputs(
-        protocol=protocol,
-        scanner=load_config(scanner, ScannerConfig),
-        backend_kind=backend_kind,
-        backend=load_backend_spec(backend_kind, backend_config),
-        phantom=load_config(phantom, PHANTOMS[phantom_kind]),
-        phantom_voxel_mm=phantom_voxel_mm,
-    )
 
 
 def plan_stage(study: Study, model: ScannerModel, protocol: ScanProtocol, say: Say) -> Plan:
@@ -186,36 +104,6 @@ def plan_study(
     plan = plan_scan(model, protocol, progress=progress)  # nothing is written unless it holds
     _save_plan(Study.create(study_path, {}), plan, model)
     return plan
-
-
-def subject(inputs: SessionInputs, say: Say, scan_s: float = 1.0) -> Subject:
-    """The phantom as the simulated panel sees it: the steel balls exactly, the knee
-    rasterised and projected (its patient swaying as the backend's ``sway`` says, over a scan
-    of ``scan_s`` seconds), the knee replacement's meshes polychromatically at the protocol's
-    tube voltage."""
-    if isinstance(inputs.phantom, BBPhantomSpec):
-        return lambda view, _t_s=0.0: project_bb(inputs.phantom, Geometry([view]))[0]
-    if isinstance(inputs.phantom, TkaPhantomSpec):
-        from sim.tka_ct import tka_scene, tka_subject  # its meshes and spectrum: only here
-
-        say(f"loading the knee replacement from {inputs.phantom.data}")
-        return tka_subject(tka_scene(inputs.phantom), inputs.protocol.exposure.tube_kv)
-    grid = knee_grid(
-        inputs.phantom,
-        spacing_mm=inputs.phantom_voxel_mm,
-        height_mm=LEG_HEIGHT_MM,
-        below_mm=0.5 * LEG_HEIGHT_MM,
-    )
-    say(f"rasterising the knee phantom ({grid.size_xyz} voxels of {inputs.phantom_voxel_mm} mm)")
-    labels, mu = rasterize_knee(inputs.phantom, grid)
-    sway = inputs.backend.sway if isinstance(inputs.backend, SimBackendSpec) else SwaySpec()
-    if sway.peak_mm == 0:
-        return volume_subject(Volume(mu, grid, "1/mm"))
-    say(f"the patient sways by up to {sway.peak_mm:g} mm at the knee during the scan")
-    moving = Sway(sway, inputs.phantom, scan_s)
-    return SwayingKnee(
-        Volume(mu, grid, "1/mm"), Volume(labels, grid, "label"), inputs.phantom, moving
-    )
 
 
 def run_session(
@@ -307,15 +195,10 @@ def scan_stage(
                     f"config is a {type(backend_override).__name__}"
                 )
             inputs = replace(inputs, backend=backend_override)
-        elif isinstance(inputs.backend, SimBackendSpec) and inputs.backend.faults != SimFaults():
-            injected = ", ".join(
-                f"{k}={v}" for k, v in inputs.backend.faults.model_dump(exclude_none=True).items()
-            )
-            say(
-                f"the simulated faults of the study's backend config ({injected}) are not "
-                "injected again; give --backend-config to inject faults in this session"
-            )
-            quiet = inputs.backend.model_copy(update={"faults": SimFaults()})
+        else:
+            quiet, note = backend_kind(inputs.backend_kind).resumed(inputs.backend)
+            if note:
+                say(note)
             inputs = replace(inputs, backend=quiet)
     elif stage in configs:
         raise StudyError(f"{study.path}: {stage} was started already; continue it with --resume")
@@ -324,33 +207,25 @@ def scan_stage(
         study.save()
     model = ScannerModel(inputs.scanner)
     plan = plan_stage(study, model, inputs.protocol, say)
-    d = inputs.protocol.detector
-    panel = DetectorSpec(rows=d.rows, cols=d.cols, pixel_pitch_mm=d.pixel_pitch_mm)
+    panel = inputs.panel
     store = ScanStore(study, panel, plan.joint_names, len(plan.view_times_s), plan.achieved, stage)
     if store.stored:
         say(f"{len(store.stored)} views already stored and verified")
     commands: list[tuple[float, str]] = []  # the generator's command log of this session
-    seen = subject(inputs, say, plan.scan_duration_s)
-    backend, simulated = open_backend(
-        inputs.backend,
+    rig = Rig(
         model,
         plan.q[0],
         panel,
         inputs.protocol.orbit.sdd_mm,
-        seen,
+        subject(inputs, say, plan.scan_duration_s),
         on_generator_sent=lambda body, t_s: commands.append((t_s, body)),
     )
+    backend, truth = backend_kind(inputs.backend_kind).open(inputs.backend, rig)
     try:
-        maps = panel_maps(inputs, backend, model, plan.q[0], panel, say)
+        maps = panel_maps(inputs, backend, rig, say)
     except BaseException:
         _close(backend)
         raise
-    truth = (lambda: simulated.detector.true_views[-1].matrix) if simulated else (lambda: None)
-    true_poses = (
-        (lambda: seen.poses_at(simulated.detector.true_times_s[-1]))
-        if simulated and isinstance(seen, SwayingKnee)
-        else (lambda: None)
-    )
     recorder = ScanRecorder(study, plan.joint_names, panel.pixel_pitch_mm, stage)
     on_view = recorder.view
     if sink is not None:
@@ -372,8 +247,8 @@ def scan_stage(
         confirm=confirm,
         progress=progress,
         on_view=on_view,
-        truth=truth,
-        true_poses=true_poses,
+        truth=truth.view_matrix if truth else lambda: None,
+        true_poses=truth.body_poses if truth else lambda: None,
         close_backend=False,
         stop=stop,
         maps=maps,
@@ -397,8 +272,8 @@ def scan_stage(
     def finish_records() -> None:
         recorder.close()
         _write_generator_commands(study, store.folder, commands, len(sessions))
-        if simulated is not None:
-            _write_device_events(study, store.folder, simulated.world.events, len(sessions))
+        if truth is not None:
+            _write_device_events(study, store.folder, truth.events(), len(sessions))
 
     with stop_signals(stop):
         try:
@@ -424,26 +299,12 @@ def scan_stage(
         finish_records()
 
 
-SIM_CALIBRATION_FRAMES = 8
-"""Darks and floods of the simulated panel's calibration at the start of a session."""
-
-
-def panel_maps(
-    inputs: SessionInputs,
-    backend: Backend,
-    model: ScannerModel,
-    start_q: np.ndarray,
-    panel: DetectorSpec,
-    say: Say,
-) -> PanelMaps:
+def panel_maps(inputs: SessionInputs, backend: Backend, rig: Rig, say: Say) -> PanelMaps:
     """The maps the scan corrects its frames with: from the backend config's
     ``detector_maps`` folder, for the connected panel's serial number and mode (refused when
-    older than ``max_map_age_days``); with no folder on the simulated backend, the simulated
-    panel is calibrated now (:func:`scanner.detector_calibration.calibrate_detector` on a
-    fault-free twin of the session's devices, beam clear, its panel read directly: the
-    session's own already serves it over GigE Vision when asked to)."""
+    older than ``max_map_age_days``); with no folder, made now by the backend kind's
+    ``calibrate_panel`` when it has one (the simulated panel's), else refused."""
     spec = inputs.backend
-    e = inputs.protocol.exposure
     if spec.detector_maps is not None:
         backend.detector.connect(ScanSettings().device_timeout_s)
         detector = backend.detector
@@ -455,24 +316,17 @@ def panel_maps(
             raise PreflightError(str(err)) from err
         say(f"detector maps of {maps.serial} ({maps.mode}) made {maps.made}")
         return maps
-    if not isinstance(spec, SimBackendSpec):
+    calibrate = backend_kind(inputs.backend_kind).calibrate_panel
+    if calibrate is None:
         raise PreflightError(
             f"the {inputs.backend_kind} backend config names no detector_maps folder: run "
             "`cbct detector-calibrate` and set detector_maps to its output"
         )
-    quiet = {"faults": SimFaults(), "event_log": None, "start_pose": None}
-    twin = spec.model_copy(update=quiet | {"panel_gige_interface": None})  # its camera is open
-    sdd = inputs.protocol.orbit.sdd_mm
-    devices, _ = open_backend(twin, model, start_q, panel, sdd, beam_clear(panel))
-    try:
-        maps = calibrate_detector(
-            devices, Technique(e.tube_kv, e.tube_ma, e.pulse_ms), SIM_CALIBRATION_FRAMES
-        )
-    finally:
-        _close(devices)
+    e = inputs.protocol.exposure
+    maps = calibrate(spec, rig, Technique(e.tube_kv, e.tube_ma, e.pulse_ms))
     say(
-        f"simulated panel calibrated: {int(maps.defects.sum())} defective pixels, lag "
-        f"{maps.lag:.3f}"
+        f"{inputs.backend_kind} panel calibrated: {int(maps.defects.sum())} defective pixels, "
+        f"lag {maps.lag:.3f}"
     )
     return maps
 
@@ -575,11 +429,8 @@ def move_session(
         goal, target = plan_stage(study, model, inputs.protocol, say).q[0], "the plan's start"
     else:
         goal, target = park_pose(model), "park"
-    d = inputs.protocol.detector
-    panel = DetectorSpec(rows=d.rows, cols=d.cols, pixel_pitch_mm=d.pixel_pitch_mm)
-    backend, _ = open_backend(
-        inputs.backend, model, goal, panel, inputs.protocol.orbit.sdd_mm, _no_exposure
-    )
+    rig = Rig(model, goal, inputs.panel, inputs.protocol.orbit.sdd_mm, _no_exposure)
+    backend, _ = backend_kind(inputs.backend_kind).open(inputs.backend, rig)
     stop = StopRequest()
     with stop_signals(stop):
         try:
@@ -590,7 +441,7 @@ def move_session(
             _close(backend)
 
 
-def _no_exposure(view: View) -> np.ndarray:
+def _no_exposure(view: View, t_s: float = 0.0) -> np.ndarray:
     raise RuntimeError("a move never exposes: the panel has nothing to image")
 
 

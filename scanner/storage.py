@@ -36,7 +36,7 @@ from recon.geometry import DetectorSpec, Geometry, View
 from recon.io import encode_projections, read_projections, write_projections
 from recon.motion import BodyMotion, write_motion_csv
 from recon.rtk_xml import write_rtk_geometry
-from scanner.study import (
+from scanner.study_folder import (
     PendingWrite,
     Reservation,
     Study,
@@ -272,8 +272,8 @@ class ScanStore:
 
     def reserve(self, k: int) -> Reservation:
         """Before view ``k``'s pulse: check the room for it (:meth:`check_room`) and allocate
-        its files' space (:meth:`scanner.study.Study.reserve`), so that a disk another program
-        fills after the check cannot refuse a view already exposed. :meth:`start_put` writes
+        its files' space (:meth:`scanner.study_folder.Study.reserve`), so that a disk another
+        program fills after the check cannot refuse a view already exposed. :meth:`start_put` writes
         the reserved files; release the reservation when the view is not acquired after all.
         Raises StudyError (not exposing) when the disk cannot take the view."""
         self.check_room(k)
@@ -304,7 +304,7 @@ class ScanStore:
         """Start storing one view (into the files :meth:`reserve` allocated, when it was
         called): both images, then its record, which carries their sha256, each fsynced under
         a temporary name, the record renamed into place last
-        (:meth:`scanner.study.Study.start_write_with_record`). The view is stored (in
+        (:meth:`scanner.study_folder.Study.start_write_with_record`). The view is stored (in
         :attr:`records`, :attr:`stored`) once :meth:`PendingView.wait` has returned; the
         images must not change until then. The manifest is saved with the stage's status
         (done, or SAFE); a view stored after its last save is verified against its record on

@@ -31,10 +31,9 @@ from sim.panel import SimPanelSpec
 from sim.spellman import MockSpellman
 from sim.sway import SwaySpec
 from sim.vibration import VibrationSpec, vibrate_at
+from trajectories.arms import ARM_JOINTS
 from trajectories.model import ScannerModel
 from trajectories.plan import view_at
-
-ARM_JOINTS = ("base", "shoulder", "elbow", "wrist1", "wrist2", "wrist3")
 
 
 class SimFaults(BaseModel):

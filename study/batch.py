@@ -55,7 +55,7 @@ from matplotlib.ticker import MaxNLocator
 from recon.config import load_config
 from registration.labels import BONE_UNITS
 from registration.settings import Settings
-from scanner.study import Study, StudyError
+from scanner.study_folder import Study, StudyError
 from study.stages import (
     assessment_stage,
     recon_stage,

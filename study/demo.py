@@ -46,14 +46,15 @@ from recon.io import read_projections, write_projections
 from recon.iterative import MIN_SPARSE_VIEWS
 from registration.settings import Settings
 from scanner.detector_calibration import calibrate_session
-from scanner.scan_files import Status
-from scanner.session import SessionInputs, read_inputs, scan_stage
-from scanner.study import Study, StudyError
+from scanner.inputs import SessionInputs, read_inputs
+from scanner.session import scan_stage
+from scanner.study_folder import Study, StudyError
 from sim.backend import SimBackendSpec
 from sim.fluoro import lateral_view, save_sequence, simulate_dewarp_grid, simulate_fluoroscopy
 from sim.motion import flexion_extension
 from sim.phantoms.knee import KneePhantomSpec
 from study import tka as tka_stages
+from study.jobs.simulate import Status
 from study.live_recon import LiveRecon
 from study.stages import (
     Say,

@@ -34,7 +34,7 @@ from recon.preview import save_orthogonal_slices
 from recon.rtk_xml import read_rtk_geometry
 from recon.volume import VolumeGrid
 from registration.labels import BONE_UNITS, LABELS
-from scanner.study import Study, StudyError
+from scanner.study_folder import Study, StudyError
 from sim.phantoms.knee import KneePhantomSpec, attenuation_per_mm, rasterize_knee
 from study.study_recording import record_volume
 

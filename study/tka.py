@@ -30,7 +30,7 @@ from registration.poses import BodyPose, read_poses, write_poses
 from registration.se3 import compose
 from registration.segment import bone_surfaces, segment_bones_with_metal
 from registration.settings import Settings
-from scanner.study import Study
+from scanner.study_folder import Study
 from sim.phantoms.tka import TkaPhantomSpec
 from sim.tka import TRACKED, load_tka, part_poses, read_gait, simulate_tka_fluoro, tka_motion
 from sim.tka_ct import METAL_LABEL, tka_scene, tka_truth

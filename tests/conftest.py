@@ -336,9 +336,9 @@ def panel_maps(tmp_path_factory) -> Callable[..., Path]:
     """``panel_maps(protocol)``: a folder holding the simulated panel's maps in ``protocol``'s
     read-out mode, made once per mode by ``cbct detector-calibrate``'s code on the simulated
     backend (the UR backend's simulated panel is the same panel: same serial number)."""
-    from scanner.cli import CONFIGS
+    from configs import CONFIGS
     from scanner.detector_calibration import calibrate_session
-    from scanner.session import read_inputs
+    from scanner.inputs import read_inputs
 
     folder = tmp_path_factory.mktemp("detector-maps")
     made: set[tuple[int, int]] = set()

@@ -5,9 +5,9 @@ hypothesis (byte flips, truncation, splices, numbers swapped for NaN, inf, huge,
 non-numbers, header fields and values given wrong values or types, pixels set to NaN or inf)
 and checks that the reader either loads it, holding only finite numbers, or refuses it with
 what the command line catches (``ValueError`` or ``OSError`` and their subclasses:
-recon.io.ImageFileError, recon.config.ConfigError; scanner.study.StudyError for study folders)
-with the file named in the message. Nothing else may escape, no example may take longer than
-:data:`DEADLINE`, and the address space is capped at what the process maps plus
+recon.io.ImageFileError, recon.config.ConfigError; scanner.study_folder.StudyError for study
+folders) with the file named in the message. Nothing else may escape, no example may take
+longer than :data:`DEADLINE`, and the address space is capped at what the process maps plus
 :data:`HEADROOM_BYTES`, so a header claiming gigabytes of pixels must be refused before they
 are allocated (an allocation failure reported by ITK fails the test too).
 
@@ -52,9 +52,9 @@ from recon.volume import Volume, VolumeGrid
 from registration.frames import read_frames
 from registration.poses import BodyPose, read_poses, write_poses
 from registration.settings import Settings
-from scanner.backends import load_backend_spec
+from scanner.inputs import load_backend_spec
 from scanner.storage import ScanStore, ViewRecord
-from scanner.study import Study, StudyError
+from scanner.study_folder import Study, StudyError
 from sim.phantoms.knee import KneePhantomSpec
 from sim.phantoms.tka import TkaPhantomSpec
 from trajectories.config import ScannerConfig

@@ -53,3 +53,14 @@ def test_every_import_points_down() -> None:
 def test_every_package_has_a_floor() -> None:
     packages = {p.parent.name for p in ROOT.glob("*/__init__.py")}
     assert packages == set(FLOORS), packages ^ set(FLOORS)
+
+
+def test_the_scanner_never_imports_the_simulator() -> None:
+    """The scanner finds the simulated backend by name (scanner.registry; study.simulator
+    registers it), never by an import: a scanner running the hardware carries no mock device."""
+    arrows = [
+        path.relative_to(ROOT)
+        for path in sorted((ROOT / "scanner").rglob("*.py"))
+        if "sim" in imported_packages(path)
+    ]
+    assert not arrows, arrows

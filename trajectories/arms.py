@@ -80,4 +80,7 @@ ARMS: dict[str, ArmModel] = {
     ),
 }
 
+ARM_JOINTS = ("base", "shoulder", "elbow", "wrist1", "wrist2", "wrist3")
+"""An arm's joints as its controller and the devices name them, base to wrist (the same order
+as :data:`JOINT_NAMES`, the kinematic model's)."""
 JOINT_NAMES = ("shoulder_pan", "shoulder_lift", "elbow", "wrist_1", "wrist_2", "wrist_3")

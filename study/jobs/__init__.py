@@ -1,6 +1,6 @@
 """File-level jobs of the study pipeline, one module each: calibrate (a steel-ball scan, the
 fluoroscopy panel's distortion), reconstruct, segment, register (``cbct register``) and
-assess files.
+assess files, and simulate a scan of a digital phantom.
 
 Each job validates everything it reads before the long work starts and refuses to overwrite:
 outputs go to new files or to a folder that does not exist yet (or is empty).
@@ -18,6 +18,7 @@ from study.jobs.reconstruct import (
 )
 from study.jobs.register import ImplantSpec, RegisterInputs, RegisterOptions, register_files
 from study.jobs.segment import segment_files
+from study.jobs.simulate import simulate_to_folder
 
 __all__ = [
     "PLAN_TOLERANCE_MM",
@@ -34,6 +35,7 @@ __all__ = [
     "reconstruct_files",
     "register_files",
     "segment_files",
+    "simulate_to_folder",
     "write_assessment",
     "write_motion",
 ]

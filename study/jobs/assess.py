@@ -17,7 +17,7 @@ from recon.io import read_volume
 from recon.volume import Volume
 from registration.implants import read_mesh
 from registration.poses import BodyPose, read_poses
-from scanner.scan_files import new_folder
+from scanner.outputs import new_folder
 
 
 def write_assessment(

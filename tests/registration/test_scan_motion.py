@@ -7,11 +7,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from configs import CONFIGS
 from recon.config import load_protocol
 from recon.fdk import fdk_reconstruct
 from recon.volume import VolumeGrid
 from registration.scan_motion import MIN_VIEWS, MotionSettings, estimate_motion
-from scanner.cli import CONFIGS
 from sim.phantoms.knee import KneePhantomSpec, rasterize_knee
 from sim.scan import simulate_knee_scan
 from sim.sway import SwaySpec

@@ -10,14 +10,15 @@ import numpy as np
 import pytest
 import yaml
 
+from configs import CONFIGS
 from recon.io import read_projections
-from scanner.backends import SIM_GIGE_FRAME_TIMEOUT_S
-from scanner.cli import CONFIGS
+from scanner.inputs import read_inputs
 from scanner.scan import ScanFault, ScanSettings
-from scanner.session import read_inputs, run_session
-from scanner.study import Study
+from scanner.session import run_session
+from scanner.study_folder import Study
 from sim.backend import SimBackendSpec
 from sim.gige_panel import FakePanelAddressError, aravis_missing
+from study.simulator import SIM_GIGE_FRAME_TIMEOUT_S
 from tests.scanner.test_ur_scan import tiny_protocol
 
 ADDRESS = "127.0.0.4"

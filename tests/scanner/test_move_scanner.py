@@ -16,19 +16,21 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
+from configs import CONFIGS
 from recon.config import ScanProtocol, load_config
 from recon.geometry import DetectorSpec
-from scanner.backends import open_backend
-from scanner.cli import CONFIGS
 from scanner.corrections import PanelMaps
+from scanner.inputs import read_inputs
 from scanner.move import MoveFault, move_scanner
+from scanner.registry import Rig, nothing_in_the_beam
 from scanner.scan import OperatorDeclined, PreflightError, ScanFault, ScanRun, ScanSettings
-from scanner.session import read_inputs, run_session
+from scanner.session import run_session
 from scanner.stop import StopRequest, stop_signals
 from scanner.storage import ScanStore
-from scanner.study import Study
+from scanner.study_folder import Study
 from sim.backend import SimBackendSpec, SimFaults, SimStartPose
 from study.cli import app
+from study.simulator import open_sim
 from tests.trajectories.conftest import random_rest_pose
 from trajectories.config import ScannerConfig
 from trajectories.model import ScannerModel
@@ -67,14 +69,9 @@ def sim_at(scanner, pose: np.ndarray, **spec):
     model, protocol, plan = scanner
     d = protocol.detector
     panel = DetectorSpec(rows=d.rows, cols=d.cols, pixel_pitch_mm=d.pixel_pitch_mm)
-    return open_backend(
-        SimBackendSpec(start_pose=start_pose(pose), **spec),
-        model,
-        plan.q[0],
-        panel,
-        protocol.orbit.sdd_mm,
-        lambda view: np.zeros((panel.rows, panel.cols)),
-    )
+    rig = Rig(model, plan.q[0], panel, protocol.orbit.sdd_mm, nothing_in_the_beam(panel))
+    backend, truth = open_sim(SimBackendSpec(start_pose=start_pose(pose), **spec), rig)
+    return backend, truth.simulated
 
 
 @pytest.mark.parametrize("seed", range(3))

@@ -14,15 +14,16 @@ import pytest
 import rerun as rr
 import yaml
 
+from configs import CONFIGS
 from recon.config import load_config, load_protocol
 from recon.fdk import fdk_reconstruct
 from recon.io import read_projections, read_stack_header
 from recon.rtk_xml import read_rtk_geometry
 from recon.volume import VolumeGrid
-from scanner.cli import CONFIGS
+from scanner.inputs import read_inputs
 from scanner.scan import OperatorDeclined, ScanFault, ScanSettings
-from scanner.session import read_inputs, run_session
-from scanner.study import Study, StudyError
+from scanner.session import run_session
+from scanner.study_folder import Study, StudyError
 from sim.backend import SimBackendSpec
 from sim.panel import SimPanelSpec
 from sim.phantoms.knee import KneePhantomSpec, rasterize_knee
@@ -269,10 +270,10 @@ def test_at_a_pulse_only_the_view_before_may_not_be_on_disk_yet(tmp_path, monkey
     """A view's files are written while the plan streams on and the next view is exposed, but
     every pulse finds each view acquired before the one before it stored (its images and record
     in place) and its own view's space reserved; SAFE and DONE leave every view stored."""
-    import scanner.session
+    import study.simulator
     from scanner.generator import SerialGenerator
 
-    expose, calibrate = SerialGenerator.expose, scanner.session.calibrate_detector
+    expose, calibrate = SerialGenerator.expose, study.simulator.calibrate_detector
     pulses, not_yet, calibrating = [], 0, False
 
     def calibrating_panel(*args, **kwargs):  # the session's floods before the scan
@@ -303,7 +304,7 @@ def test_at_a_pulse_only_the_view_before_may_not_be_on_disk_yet(tmp_path, monkey
         return expose(self, timeout_s, permit)
 
     monkeypatch.setattr(SerialGenerator, "expose", checked_expose)
-    monkeypatch.setattr(scanner.session, "calibrate_detector", calibrating_panel)
+    monkeypatch.setattr(study.simulator, "calibrate_detector", calibrating_panel)
     run_session(tmp_path / "study", inputs(tmp_path))
     assert len(pulses) == VIEWS
     assert not_yet > 0  # the storage does overlap the next pulse
@@ -337,16 +338,16 @@ def test_a_view_that_cannot_be_stored_stops_the_scan_by_the_pulse_after_next(tmp
     """The storage of view 5 fails (its record cannot be written) while view 6 is exposed: SAFE
     before view 7's pulse at the latest (before view 6's when the failure is known by then),
     views 0-4 stored and view 6 if it was exposed, nothing of view 5 left behind."""
-    import scanner.study
+    import scanner.study_folder
 
-    write_synced = scanner.study._write_synced
+    write_synced = scanner.study_folder._write_synced
 
     def failing(path, parts):
         if path.name == ".view_0005.tmp.json":
             raise OSError(28, "No space left on device")
         return write_synced(path, parts)
 
-    monkeypatch.setattr(scanner.study, "_write_synced", failing)
+    monkeypatch.setattr(scanner.study_folder, "_write_synced", failing)
     with pytest.raises(ScanFault, match="No space left") as fault:
         run_session(tmp_path / "study", inputs(tmp_path))
     pulses = exp_commands(tmp_path / "study", 1)

@@ -18,14 +18,15 @@ import pytest
 import serial
 import yaml
 
-from scanner.cli import CONFIGS
+from configs import CONFIGS
 from scanner.hardware import DeviceError, DeviceTimeout, Technique, XrayGenerator
+from scanner.inputs import read_inputs
 from scanner.scan import ScanFault, ScanSettings
 from scanner.serial_link import FrameError, SerialLink
-from scanner.session import read_inputs, run_session
+from scanner.session import run_session
 from scanner.spellman import SPELLMAN_FRAMING, SpellmanFraming, SpellmanGenerator
 from scanner.spellman import spellman_checksum as host_checksum
-from scanner.study import Study
+from scanner.study_folder import Study
 from sim.spellman import MockSpellman
 from sim.spellman import SpellmanFraming as MockFraming
 from sim.spellman import spellman_checksum as mock_checksum

@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 import yaml
 
-from scanner.study import Study
+from scanner.study_folder import Study
 
 ROOT = Path(__file__).resolve().parents[2]
 BOUND_S = 0.100

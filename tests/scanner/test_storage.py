@@ -17,7 +17,7 @@ import pytest
 from recon.geometry import DetectorSpec, circular_orbit
 from scanner.scan_recording import ScanRecorder
 from scanner.storage import ScanStore, ViewRecord
-from scanner.study import Study, StudyError, sha256
+from scanner.study_folder import Study, StudyError, sha256
 
 
 def test_record_is_written_last_and_names_the_files_it_follows(tmp_path):
@@ -180,7 +180,7 @@ import numpy as np
 from recon.geometry import DetectorSpec, circular_orbit
 from tests.scanner.test_storage import _record
 from scanner.scan_recording import ScanRecorder
-from scanner.study import Study
+from scanner.study_folder import Study
 orbit = circular_orbit(100, 500.0, 1000.0, DetectorSpec(rows=64, cols=64, pixel_pitch_mm=1.0))
 study = Study.create({str(disk / "s")!r}, {{}})
 recorder = ScanRecorder(study, ("rotary", "lift"), 1.0)

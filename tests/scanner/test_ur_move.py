@@ -8,11 +8,12 @@ import numpy as np
 import pytest
 import yaml
 
+from configs import CONFIGS
 from recon.config import load_config
-from scanner.cli import CONFIGS
+from scanner.inputs import read_inputs
 from scanner.scan import OperatorDeclined, ScanSettings
-from scanner.session import read_inputs, run_session
-from scanner.study import Study
+from scanner.session import run_session
+from scanner.study_folder import Study
 from sim.generator import MockGenerator
 from sim.stage import MockStage
 from sim.ur_controller import FakeURController

@@ -12,15 +12,16 @@ import numpy as np
 import pytest
 import yaml
 
+from configs import CONFIGS
 from recon.config import ScanProtocol, load_config
 from recon.geometry import DetectorSpec
 from recon.io import read_projections, read_stack_header
 from recon.rtk_xml import read_rtk_geometry
-from scanner.cli import CONFIGS
 from scanner.detector_calibration import calibrate_session
+from scanner.inputs import read_inputs, subject
 from scanner.scan import ScanSettings
-from scanner.session import read_inputs, run_session, subject
-from scanner.study import Study
+from scanner.session import run_session
+from scanner.study_folder import Study
 from sim.detector import SimDetector
 from sim.generator import MockGenerator
 from sim.gige_panel import FakePanelAddressError, aravis_missing, fake_panel_with_sensor

@@ -10,10 +10,10 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
+from configs import CONFIGS
 from recon.geometry import DetectorSpec, circular_orbit
 from recon.io import write_projections
 from recon.rtk_xml import write_rtk_geometry
-from scanner.cli import CONFIGS
 from scanner.outputs import TEMP_PREFIX
 from study.cli import app
 

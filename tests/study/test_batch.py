@@ -20,8 +20,8 @@ import pyarrow.parquet as pq
 import pytest
 from typer.testing import CliRunner
 
-from scanner.cli import CONFIGS
-from scanner.study import Study
+from configs import CONFIGS
+from scanner.study_folder import Study
 from study import batch
 from study.cli import app
 

@@ -13,13 +13,13 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
+from configs import CONFIGS
 from recon.config import load_protocol
 from recon.fdk import fdk_reconstruct
 from recon.geometry import DetectorSpec
 from recon.io import read_projections, read_volume, write_projections
 from recon.motion import read_motion_csv
 from recon.rtk_xml import PanelHeader, read_rtk_geometry, write_rtk_geometry
-from scanner.cli import CONFIGS
 from sim.phantoms.knee import KneePhantomSpec, rasterize_knee
 from study.cli import app
 

@@ -27,7 +27,7 @@ from recon.io import read_volume
 from recon.motion import read_motion_csv
 from registration.labels import LABELS
 from registration.poses import read_poses
-from scanner.study import Study
+from scanner.study_folder import Study
 from sim.phantoms.knee import KneePhantomSpec, attenuation_per_mm, rasterize_knee
 from study import batch
 from study.cli import app

@@ -8,7 +8,7 @@ import yaml
 from typer.testing import CliRunner
 
 from scanner.corrections import PanelMaps
-from scanner.study import Study
+from scanner.study_folder import Study
 from sim.panel import SimPanelSpec
 from study.cli import app
 from tests.study.test_scan_cli import scan, tiny_protocol

@@ -13,14 +13,15 @@ import numpy as np
 import pytest
 import yaml
 
+from configs import CONFIGS
 from recon.config import load_protocol
 from recon.fdk import fdk_reconstruct
 from recon.io import read_projections, read_volume
 from recon.rtk_xml import read_rtk_geometry
-from scanner.cli import CONFIGS
+from scanner.inputs import read_inputs
 from scanner.scan import ScanFault
-from scanner.session import read_inputs, run_session
-from scanner.study import Study
+from scanner.session import run_session
+from scanner.study_folder import Study
 from sim.backend import SimBackendSpec
 from study.live_recon import BATCH_VIEWS, WORKER_NICENESS, LiveRecon
 from study.stages import recon_geometry, recon_grid, recon_stage, scan_protocol

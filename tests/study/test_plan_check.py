@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from configs import CONFIGS
 from recon.config import load_protocol
 from recon.geometry import Geometry
-from scanner.cli import CONFIGS
 from study.jobs import PLAN_TOLERANCE_MM, check_is_plan
 
 

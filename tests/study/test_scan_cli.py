@@ -9,9 +9,9 @@ import numpy as np
 import yaml
 from typer.testing import CliRunner
 
+from configs import CONFIGS
 from recon.io import read_volume
-from scanner.cli import CONFIGS
-from scanner.study import Study
+from scanner.study_folder import Study
 from study.cli import app
 
 runner = CliRunner()

@@ -1,7 +1,7 @@
-"""File-level acquisition jobs of the console: scan a digital phantom into a new folder.
+"""Scan a digital phantom into a new folder (``cbct simulate-scan``).
 
-Each job validates everything it reads before the long work starts and refuses to overwrite:
-outputs go to new files or to a folder that does not exist yet (or is empty).
+Everything read is validated before the long work starts; the folder must not exist yet, or
+be empty.
 """
 
 from __future__ import annotations
@@ -20,7 +20,8 @@ from recon.io import write_projections, write_volume
 from recon.motion import BodyMotion, write_motion_csv
 from recon.rtk_xml import write_rtk_geometry
 from recon.volume import Volume
-from scanner.study import sha256, software_version
+from scanner.outputs import new_folder
+from scanner.study_folder import sha256, software_version
 from sim.phantoms.bb import project_bb
 from sim.phantoms.knee import KneePhantomSpec
 from sim.scan import add_noise, photons_per_pixel, simulate_knee_scan
@@ -28,14 +29,6 @@ from sim.sway import SwaySpec
 from sim.vibration import VibrationSpec, vibrate
 
 Status = Callable[[str], None]
-
-
-def new_folder(path: Path) -> Path:
-    """Create ``path`` for output; refuse one that exists with anything in it."""
-    if path.exists() and (not path.is_dir() or any(path.iterdir())):
-        raise FileExistsError(f"{path} exists and is not empty: nothing is overwritten")
-    path.mkdir(parents=True, exist_ok=True)
-    return path
 
 
 def write_scan(
