@@ -3,7 +3,7 @@ scene.
 
 Every file states the same poses as ``poses.csv`` (registration.poses): ``T_world_body`` moves a
 bone from where the static scan saw it to where it is in a frame, in world mm, and the world
-frame is DICOM/ITK's LPS patient frame (docs/design.md). What each format adds:
+frame is DICOM/ITK's LPS patient frame (docs/conventions.md). What each format adds:
 
 - ITK (``itk/<bone>/frame_<k>.tfm``): an ``AffineTransform_double_3_3`` in LPS mm holding ITK's
   resampling direction, the inverse of the pose: it maps a point of the frame to the point of

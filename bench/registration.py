@@ -351,7 +351,7 @@ def tka(sequences: int, frames: int, panel: int, bones: bool = False) -> dict:
     medians["out_of_plane_mm"] = "depth_mm_median"
     entry["by_component"] = {
         body: {
-            key: round(float(np.median([getattr(e, field) for e in errors if e.bone == body])), 3)
+            key: round(float(np.median([getattr(e, field) for e in errors if e.body == body])), 3)
             for field, key in medians.items()
         }
         for body in models

@@ -81,7 +81,7 @@ def registration_table(result: dict) -> str:
     )
     rows = []
     for e in entries:
-        by_bone = e.get("rsr_pct_by_bone", {})
+        by_bone = e.get("rsr_pct_by_body", e.get("rsr_pct_by_bone", {}))  # older runs: _bone
         bones = " / ".join(fixed(by_bone[b], 0) if b in by_bone else "–" for b in BONES)
         rows.append(
             [

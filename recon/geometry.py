@@ -120,8 +120,8 @@ class View:
     ) -> View:
         """View from a focal spot and a detector pose.
 
-        ``T_world_detector`` (4x4) follows docs/design.md: its origin is the centre of pixel (0, 0),
-        its x axis is e_u and its y axis is e_v.
+        ``T_world_detector`` (4x4) follows docs/conventions.md: its origin is the centre of pixel
+        (0, 0), its x axis is e_u and its y axis is e_v.
         """
         T = np.asarray(T_world_detector, dtype=np.float64)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):

@@ -1,6 +1,6 @@
 """Volume and projection-stack files: NIfTI (.nii, .nii.gz) and MetaImage (.mha, .mhd).
 
-This module is the file boundary of docs/design.md. In memory, volumes live in the world frame
+This module is the file boundary of docs/conventions.md. In memory, volumes live in the world frame
 (DICOM/ITK LPS) on axis-aligned grids (:class:`~recon.volume.Volume`). On disk, NIfTI stores
 RAS: SimpleITK's NIfTI writer and reader negate x and y (``x_RAS = -x_LPS``,
 ``y_RAS = -y_LPS``) in the sform/qform, so LPS never leaks into RAS or back; the tests check

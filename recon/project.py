@@ -8,9 +8,9 @@ view's normalised depth, ``theta`` the ray's angle to the detector normal). The 
 the same continuous X-ray transform and its adjoint, so ``<A x, y> = <x, A^T y>`` holds to the
 discretisation error of interpolation (second order in voxel and pixel size for smooth x, y).
 
-Boundary convention (docs/design.md, "Data made elsewhere"): voxels are cubes. Along a ray's main
-axis every slice's sample stands for the whole voxel's thickness, so the integral reaches half
-a voxel beyond the outer voxel centres; across it, the bilinear taps fall off into zeros
+Boundary convention (docs/conventions.md, "Views, panels and images"): voxels are cubes. Along a
+ray's main axis every slice's sample stands for the whole voxel's thickness, so the integral reaches
+half a voxel beyond the outer voxel centres; across it, the bilinear taps fall off into zeros
 outside the volume, so the content fades out over the voxel beyond the outer centres. This is
 exactly RTK's Joseph projector (rtk::JosephForwardProjectionImageFilter) run on the volume
 padded with two layers of zero voxels (tests/recon/test_project.py, float precision). RTK on

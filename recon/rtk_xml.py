@@ -16,7 +16,7 @@ at the source (our orbits, recon.geometry), SID and SDD are positive and RTK's m
 mirrored in its plane, e.g. rows along the rotation axis, as RTK's
 ``AddProjection(source, detector, row, column)`` builds it), SID and SDD are negative and
 ``w > 0`` in front. The detector lies at ``w = -SDD``, so a matrix read from RTK is scaled by
-``-sign(SDD)``: ``w > 0`` between source and panel, always (docs/design.md).
+``-sign(SDD)``: ``w > 0`` between source and panel, always (docs/conventions.md).
 
 RTK can express every view with orthogonal pixel axes on a flat panel; skewed axes, parallel
 beams (SDD 0) and cylindrical detectors are refused with the file, projection and field named.

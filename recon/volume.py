@@ -2,7 +2,7 @@
 
 Arrays are indexed ``[z, y, x]``; spacing and origin are given in ``(x, y, z)`` order like ITK,
 the origin being the centre of voxel ``[0, 0, 0]``. The world frame is DICOM/ITK LPS
-(docs/design.md), and grids are axis-aligned in it (identity direction).
+(docs/conventions.md), and grids are axis-aligned in it (identity direction).
 """
 
 from __future__ import annotations

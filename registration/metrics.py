@@ -1,12 +1,12 @@
 """Registration accuracy against ground truth (docs/system.md, "Metrics").
 
-Per bone and frame: the six DoF of docs/design.md (the centroid's translation, mm, and extrinsic
-x-y-z rotation angles, deg) estimated minus true; the translation error split into out-of-plane
-(along the ray from the source through the bone's true centroid: single-plane depth) and
-in-plane (the rest); and the target registration error (TRE), the mean distance between the
-bone's voxels moved by the estimated and by the true pose. Over a run: mean and median TRE,
-the success rate RSR (share of registrations with TRE below a threshold, 1.5 mm), mTrans and
-mRot (means of the absolute translation and rotation DoF errors), seconds per frame.
+Per body and frame: the six DoF of docs/conventions.md (the centroid's translation, mm, and
+extrinsic x-y-z rotation angles, deg) estimated minus true; the translation error split into
+out-of-plane (along the ray from the source through the bone's true centroid: single-plane depth)
+and in-plane (the rest); and the target registration error (TRE), the mean distance between the
+bone's voxels moved by the estimated and by the true pose. Over a run: mean and median TRE, the
+success rate RSR (share of registrations with TRE below a threshold, 1.5 mm), mTrans and mRot (means
+of the absolute translation and rotation DoF errors), seconds per frame.
 """
 
 from __future__ import annotations
@@ -23,9 +23,9 @@ RSR_THRESHOLD_MM = 1.5
 
 @dataclass(frozen=True)
 class PoseError:
-    """Errors of one bone in one frame."""
+    """Errors of one body in one frame."""
 
-    bone: str
+    body: str
     frame: int
     dof: tuple[float, float, float, float, float, float]
     """Estimated minus true (tx, ty, tz) mm and (rx, ry, rz) deg."""
@@ -35,20 +35,21 @@ class PoseError:
 
 
 def six_dof(T: np.ndarray, centroid_mm: np.ndarray) -> np.ndarray:
-    """docs/design.md's 6-DoF vector of a pose: moved centroid (mm), extrinsic xyz angles (deg)."""
+    """The 6-DoF vector of a pose (docs/conventions.md): moved centroid (mm), extrinsic xyz
+    angles (deg)."""
     moved = T[:3, :3] @ centroid_mm + T[:3, 3]
     return np.concatenate((moved, Rotation.from_matrix(T[:3, :3]).as_euler("xyz", degrees=True)))
 
 
 def pose_error(
-    bone: str,
+    body: str,
     frame: int,
     estimated: np.ndarray,
     true: np.ndarray,
     points_mm: np.ndarray,
     view: View,
 ) -> PoseError:
-    """Errors of ``estimated`` against ``true`` for a bone of reference ``points_mm``."""
+    """Errors of ``estimated`` against ``true`` for a body of reference ``points_mm``."""
     centroid = points_mm.mean(axis=0)
     dof = six_dof(estimated, centroid) - six_dof(true, centroid)
     dof[3:] = (dof[3:] + 180.0) % 360.0 - 180.0
@@ -61,7 +62,7 @@ def pose_error(
     est = sample @ estimated[:3, :3].T + estimated[:3, 3]
     tru = sample @ true[:3, :3].T + true[:3, 3]
     tre = float(np.linalg.norm(est - tru, axis=1).mean())
-    return PoseError(bone, frame, tuple(float(x) for x in dof), in_plane, out_of_plane, tre)
+    return PoseError(body, frame, tuple(float(x) for x in dof), in_plane, out_of_plane, tre)
 
 
 def summarize(
@@ -72,7 +73,7 @@ def summarize(
     """Run-level metrics (JSON-ready; keys name their units)."""
     dof = np.abs(np.array([e.dof for e in errors]))
     tre = np.array([e.tre_mm for e in errors])
-    bones = sorted({e.bone for e in errors})
+    bodies = sorted({e.body for e in errors})
     out = {
         "tx_mm": float(dof[:, 0].mean()),
         "ty_mm": float(dof[:, 1].mean()),
@@ -86,9 +87,9 @@ def summarize(
         "tre_mm": float(tre.mean()),
         "tre_mm_median": float(np.median(tre)),
         "rsr_pct": float(100.0 * np.mean(tre < RSR_THRESHOLD_MM)),
-        "rsr_pct_by_bone": {
-            b: float(100.0 * np.mean([e.tre_mm < RSR_THRESHOLD_MM for e in errors if e.bone == b]))
-            for b in bones
+        "rsr_pct_by_body": {
+            b: float(100.0 * np.mean([e.tre_mm < RSR_THRESHOLD_MM for e in errors if e.body == b]))
+            for b in bodies
         },
         "mtrans_mm": float(dof[:, :3].mean()),
         "mrot_deg": float(dof[:, 3:].mean()),

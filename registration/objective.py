@@ -45,7 +45,7 @@ class Objective:
         view: View,
         target_hp: np.ndarray,
         background: Callable[[View], np.ndarray],
-        bone: BodyModel,
+        body: BodyModel,
         carried: tuple[JosephProjector, np.ndarray] | None,
         T0: np.ndarray,
         sigma_px: float,
@@ -55,17 +55,17 @@ class Objective:
         reach: tuple[np.ndarray, ...] = (),
         excluded: np.ndarray | None = None,
     ) -> None:
-        silhouette = bone.render(view, T0, coarse) > 0.02
+        silhouette = body.render(view, T0, coarse) > 0.02
         for T in reach:  # poses the search will visit far from T0: the mask covers them too
-            silhouette |= bone.render(view, T, coarse) > 0.02
+            silhouette |= body.render(view, T, coarse) > 0.02
         if silhouette.sum() < MIN_SILHOUETTE_PX:
-            raise OutOfView(f"bone {bone.name} leaves the field of view")
+            raise OutOfView(f"{body.name} leaves the field of view")
         mask = binary_dilation(silhouette, iterations=max(1, dilation_px))
         if excluded is not None:
             mask &= ~excluded
             if mask.sum() < MIN_SILHOUETTE_PX:
                 raise OutOfView(
-                    f"bone {bone.name} lies where the frame tells nothing: the static scan's "
+                    f"{body.name} lies where the frame tells nothing: the static scan's "
                     "box cuts it, or it is outside the exposed field"
                 )
         rows, cols = np.nonzero(mask)
@@ -82,33 +82,33 @@ class Objective:
         outer = view.cropped(h0, g0, min(view.rows, r1 + halo) - h0, min(view.cols, c1 + halo) - g0)
         inner = (slice(r0 - h0, r1 - h0), slice(c0 - g0, c1 - g0))
         self.background = highpass(background(outer), sigma_px)[inner]
-        self.bone, self.carried, self.T0 = bone, carried, T0
+        self.body, self.carried, self.T0 = body, carried, T0
         self._deformed_inv = None if carried is None else np.linalg.inv(carried[1])
         self.sigma, self.coarse, self.prior = sigma_px, coarse, prior
         self._sharp = None  # a mesh's render: its blur and the high-pass in one filter
-        if isinstance(bone, ImplantModel) and carried is None:
-            blur_px = bone.blur_mm / self.view.pitch_u_mm
+        if isinstance(body, ImplantModel) and carried is None:
+            blur_px = body.blur_mm / self.view.pitch_u_mm
             self._sharp = BlurredHighpass(self.mask.shape, blur_px, sigma_px)
         self.evaluations = 0
         self._unit_target: np.ndarray | None = None
 
     def image(self, T: np.ndarray) -> np.ndarray:
         if self._sharp is not None:
-            return self.background + self._sharp(self.bone.render(self.view, T, blurred=False))
-        moving = self.bone.render(self.view, T, self.coarse, self.spans)
+            return self.background + self._sharp(self.body.render(self.view, T, blurred=False))
+        moving = self.body.render(self.view, T, self.coarse, self.spans)
         if self.carried is not None:
             moving += self.carried[0].project_moved(self.view, T @ self._deformed_inv, self.spans)
         return self.background + highpass(moving, self.sigma)
 
     def __call__(self, x: np.ndarray) -> float:
         self.evaluations += 1
-        return self.cost(compose(np.asarray(x, dtype=np.float64), self.T0, self.bone.centroid_mm))
+        return self.cost(compose(np.asarray(x, dtype=np.float64), self.T0, self.body.centroid_mm))
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
         """Target minus render over the mask, each zero-mean and of unit norm (half the
         squared norm is 1 - NCC), and the prior's terms times sqrt(2), at pose ``x``."""
         self.evaluations += 1
-        T = compose(np.asarray(x, dtype=np.float64), self.T0, self.bone.centroid_mm)
+        T = compose(np.asarray(x, dtype=np.float64), self.T0, self.body.centroid_mm)
         if self._unit_target is None:
             self._unit_target = _unit(self.target[self.mask])
         prior = () if self.prior is None else math.sqrt(2.0) * self.prior(T)

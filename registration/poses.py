@@ -1,9 +1,9 @@
-"""Tracked bodies' poses per frame and their file, ``poses.csv`` (docs/design.md).
+"""Tracked bodies' poses per frame and their file, ``poses.csv`` (docs/conventions.md).
 
 A body is a bone or an implant component. Its pose ``T_world_body`` (4x4) moves it from where
 the static CBCT scan saw it (its reference frame: world coordinates at the time of the scan;
 a component's mesh frame) to where it is in a frame. The 6-DoF row of the file repeats it as
-docs/design.md parameterises poses: the world position of the body's centroid (tx, ty, tz) mm
+docs/conventions.md parameterises poses: the world position of the body's centroid (tx, ty, tz) mm
 and the rotation as extrinsic x-y-z angles (scipy "xyz") in degrees about that centroid. The
 16 matrix entries are authoritative when reading. A file may leave out the similarity,
 seconds, failed and reason columns (files written before them still read): similarity and

@@ -33,7 +33,7 @@ Cost: rasterising dominates (~20 s at 0.5 mm for a 90-degree squat, whose thigh 
 through the field); a 30-frame sequence takes ~30 s on 2 cores at 256^2 or 512^2 pixels.
 
 The views follow recon.geometry: rows increase upward (``e_v = +z``), so display frames with
-``origin="lower"``. The world frame is LPS, mm (docs/design.md).
+``origin="lower"``. The world frame is LPS, mm (docs/conventions.md).
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 The phantom is rasterised on a fine grid, projected through the protocol's views with the
 recon projector, and turned into detector counts with Poisson quantum noise plus Gaussian
 electronic noise at the protocol's technique; the stored projections are line integrals
-``-ln(counts / I0)`` (docs/design.md), and the raw counts are kept beside them.
+``-ln(counts / I0)`` (docs/conventions.md), and the raw counts are kept beside them.
 
 Photon fluence model (stated, not calibrated to a particular tube): ``K (kVp / 100)^2`` photons
 per mm^2 per mAs at 1 m behind the filtration, with K = 2.0e6, scaled by ``(1000 / SDD)^2``.

@@ -435,6 +435,12 @@ headline metrics (frames measured, max |MLD| mm, DDV mm^2, flexion range deg: ov
 frames) repeat on each bone's row."""
 
 
+def _body(row: dict) -> str:
+    """The body a per-frame row of registration.json or metrics.json is of (``body``; studies
+    registered before the key was named so have ``bone``)."""
+    return row["body"] if "body" in row else row["bone"]
+
+
 def _json(path: Path) -> dict:
     return json.loads(path.read_text(encoding="utf-8")) if path.is_file() else {}
 
@@ -452,8 +458,8 @@ def cohort_rows(studies: Sequence[Path], report: BatchReport | None = None) -> l
         assessment = stages.get("assessment", {})
         failure = failures.get(str(path))
         for bone in BONES:
-            tre = [r["tre_mm"] for r in truth if r["bone"] == bone]
-            reg = [r for r in registration if r["bone"] == bone]
+            tre = [r["tre_mm"] for r in truth if _body(r) == bone]
+            reg = [r for r in registration if _body(r) == bone]
             ncc = [r["ncc"] for r in reg if r["ncc"] is not None and math.isfinite(r["ncc"])]
             rows.append(
                 {

@@ -1,6 +1,6 @@
 """The scanner's hardware description (``configs/scanner.yaml``): axes, arms, tools, obstacles.
 
-Frames: the world (docs/design.md) -> rotary axis about world z through the platform centre ->
+Frames: the world (docs/conventions.md) -> rotary axis about world z through the platform centre ->
 carriage lifted along z by the lift -> arm bases mounted on the carriage. Every placement is
 ``xyz_mm`` plus extrinsic ``rpy_deg`` (scipy "xyz"). Units are in the field names.
 """

@@ -1,7 +1,7 @@
 """A rerun recording (.rrd) of a plan: the scanner moving through its scan, in millimetres.
 
-Written headless to a file (no viewer, no network). Entity layout, world frame of docs/design.md
-(+z up, LPS), lengths in mm:
+Written headless to a file (no viewer, no network). Entity layout, world frame of
+docs/conventions.md (+z up, LPS), lengths in mm:
 
 - ``world``: view coordinates (right-handed, z up).
 - ``world/obstacles/<name>``: collision objects fixed to the world (platform, floor trimmed to

@@ -1,7 +1,7 @@
 """Digital phantoms: additive ellipsoids (Shepp–Logan) and a standing knee.
 
-Both give ground truth in world mm (docs/design.md frame): ellipsoid phantoms have exact analytic
-projections; the knee phantom has labels, attenuation, bone poses and landmarks.
+Both give ground truth in world mm (docs/conventions.md frame): ellipsoid phantoms have exact
+analytic projections; the knee phantom has labels, attenuation, bone poses and landmarks.
 """
 
 from __future__ import annotations

@@ -374,7 +374,7 @@ def _write(
     per_frame = [
         {
             "frame": r.frame,
-            "bone": name,
+            "body": name,
             "ncc": b.ncc,
             "gradient_ncc": b.gradient_ncc,
             "seconds": b.seconds,

@@ -81,6 +81,8 @@ def test_register_writes_poses_and_metrics(inputs, measured) -> None:
     measured("tre_mm_median", metrics["tre_mm_median"], below=1.0)  # sub-voxel, matched case
     report = json.loads((out / "registration.json").read_text())
     assert len(report["frames"]) == FRAMES * len(TRACK_ORDER)
+    assert sorted(r["body"] for r in report["frames"]) == sorted(TRACK_ORDER * FRAMES)
+    assert set(metrics["rsr_pct_by_body"]) == set(TRACK_ORDER)
     assert "TRE mean" in result.output
     again = runner.invoke(app, _args(paths, out))
     assert again.exit_code == 2 and "exists" in again.output

@@ -158,3 +158,8 @@ def test_bad_input_is_refused_and_nothing_is_written(tmp_path):
     assert time.monotonic() - started < 15
     assert not out.exists()
     assert sorted(p.name for p in study.iterdir()) == ["study.json"]
+
+
+def test_per_frame_rows_read_by_body_and_by_the_older_bone_key() -> None:
+    assert batch._body({"body": "femur", "ncc": 0.9}) == "femur"
+    assert batch._body({"bone": "patella", "ncc": 0.9}) == "patella"  # registered before
