@@ -68,7 +68,9 @@ def read_view(
             XMALab/Autoscoper MayaCam 2.0 (its image size must be the frames'), or None.
     """
     if (geometry_path is None) == (calibration_path is None):
-        raise ValueError("give the fluoroscopy view as one of an RTK geometry or a calibration")
+        raise ValueError(
+            "give the fluoroscopy view as one of an RTK geometry or a JointTrack or MayaCam file"
+        )
     if geometry_path is not None:
         return fluoroscopy_view(geometry_path, frames)
     rows, cols = frames.data.shape[1:]

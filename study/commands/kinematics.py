@@ -60,8 +60,10 @@ def register(
     calibration: Annotated[
         Path | None,
         typer.Option(
-            help="the fluoroscopy view as a JointTrack calibration (JT_INTCALIB) or an "
-            "XMALab/Autoscoper MayaCam 2.0 file (with --pixel-pitch-mm)"
+            "--view-file",
+            "--calibration",
+            help="the fluoroscopy view as a JointTrack JT_INTCALIB file or an XMALab/Autoscoper "
+            "MayaCam 2.0 file (with --pixel-pitch-mm); --calibration is those programs' word",
         ),
     ] = None,
     polarity: Annotated[

@@ -101,7 +101,7 @@ def _args(folder: Path, out: Path, *extra: str) -> list[str]:
         "register",
         "--frames",
         str(folder / "frames"),
-        "--calibration",
+        "--view-file",
         str(folder / "calibration.txt"),
         "--implant",
         f"femur={folder / 'femur.stl'}",
@@ -158,7 +158,10 @@ def test_bad_input_is_refused_before_any_work(case, tmp_path):
     wrong = tmp_path / "calibration.txt"
     wrong.write_text("JT_INTCALIB\n1198\n0\n0\n0.373\n")
     args = _args(folder, tmp_path / "b")
-    args[args.index("--calibration") + 1] = str(wrong)
+    args[args.index("--view-file") + 1] = str(wrong)
+    result = runner.invoke(app, [*args, "--pixel-pitch-mm", "0.75"])
+    assert result.exit_code == 2 and "pixel size 0.373 mm, the frames'" in result.output
+    args[args.index("--view-file")] = "--calibration"  # JointTrack's word for the same file
     result = runner.invoke(app, [*args, "--pixel-pitch-mm", "0.75"])
     assert result.exit_code == 2 and "pixel size 0.373 mm, the frames'" in result.output
     result = runner.invoke(app, [*_args(folder, tmp_path / "c"), "--implant-unit", "m"])
