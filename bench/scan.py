@@ -52,6 +52,7 @@ sys.path.insert(0, str(ROOT))
 
 from recon.config import ScanProtocol, load_config, load_protocol  # noqa: E402
 from recon.io import encode_projections, read_projections, read_volume  # noqa: E402
+from scanner.detector_calibration import calibrate_session  # noqa: E402
 from scanner.inputs import read_inputs  # noqa: E402
 from scanner.scan import ScanRun, ScanSettings  # noqa: E402
 from scanner.session import run_session  # noqa: E402
@@ -212,6 +213,7 @@ def ur_fake_scan(tmp: Path) -> float:
                     "detector_host": "127.0.0.3",
                     "stage_port": stage.port,
                     "generator_port": generator.port,
+                    "detector_maps": str(tmp / "maps"),
                 }
             )
         )
@@ -223,6 +225,7 @@ def ur_fake_scan(tmp: Path) -> float:
             CONFIGS / "phantoms" / "knee.yaml",
             phantom_voxel_mm=2.0,
         )
+        calibrate_session(inputs, tmp / "maps", 8)  # a scan refuses a panel without its maps
         started = time.perf_counter()
         run_session(tmp / "ur", inputs, settings=ScanSettings(device_timeout_s=2.0))
         return time.perf_counter() - started
