@@ -223,3 +223,11 @@ class Backend:
     def close(self) -> None:
         for device in (self.generator, self.detector, *self.groups):
             device.close()
+
+
+def close_quietly(backend: Backend) -> None:
+    """Close the devices; a failure to close must not mask what happened before."""
+    try:
+        backend.close()
+    except Exception:
+        pass

@@ -23,7 +23,7 @@ import numpy as np
 from recon.config import ScanProtocol, load_config, load_protocol
 from recon.geometry import View
 from scanner.corrections import MapsError, PanelMaps, find_maps
-from scanner.hardware import Backend, Technique
+from scanner.hardware import Backend, Technique, close_quietly
 from scanner.inputs import SessionInputs, load_backend_spec, subject
 from scanner.move import MoveResult, move_scanner
 from scanner.registry import Rig, backend_kind
@@ -224,7 +224,7 @@ def scan_stage(
     try:
         maps = panel_maps(inputs, backend, rig, say)
     except BaseException:
-        _close(backend)
+        close_quietly(backend)
         raise
     recorder = ScanRecorder(study, plan.joint_names, panel.pixel_pitch_mm, stage)
     on_view = recorder.view
@@ -289,13 +289,13 @@ def scan_stage(
             if park:
                 park_after_scan()
         except BaseException:
-            _close(backend)
+            close_quietly(backend)
             try:  # the scan's own failure is the one to report (e.g. a full disk fails both)
                 finish_records()
             except Exception as err:
                 say(f"the recording and device logs of this session were not finished: {err}")
             raise
-        _close(backend)
+        close_quietly(backend)
         finish_records()
 
 
@@ -438,16 +438,8 @@ def move_session(
                 study, backend, model, goal, target, settings or ScanSettings(), confirm, say, stop
             )
         finally:
-            _close(backend)
+            close_quietly(backend)
 
 
 def _no_exposure(view: View, t_s: float = 0.0) -> np.ndarray:
     raise RuntimeError("a move never exposes: the panel has nothing to image")
-
-
-def _close(backend: Backend) -> None:
-    """Close the devices; a failure to close must not mask what happened before."""
-    try:
-        backend.close()
-    except Exception:
-        pass

@@ -124,6 +124,14 @@ class SimBackendSpec(BaseModel):
         return self
 
 
+def vibrated_view(
+    model: ScannerModel, q: np.ndarray, panel: DetectorSpec, vibration: VibrationSpec
+) -> View:
+    """The view the joints ``q`` (the plan's units) realise on arms that vibrate as
+    ``vibration`` says, at their rotary angle ``q[0]`` (deg)."""
+    return vibrate_at(view_at(model, q, panel), vibration, rotary_deg=float(q[0]))
+
+
 def volume_subject(volume: Volume) -> Subject:
     """Line integrals of a still attenuation volume (1/mm) through one view (recon
     projector), at any time."""
@@ -186,7 +194,7 @@ def simulated_scanner(
     def true_view() -> View:
         with world.lock:
             q = world.q_true.copy()
-        return vibrate_at(view_at(model, q, panel), spec.vibration, rotary_deg=float(q[0]))
+        return vibrated_view(model, q, panel, spec.vibration)
 
     detector = SimDetector(
         panel,

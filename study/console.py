@@ -1,5 +1,5 @@
-"""What every command of the operator console ``cbct`` shares: the console, progress bars,
-errors in words with the exit statuses, and the checks of options."""
+"""What every command of the operator console ``cbct`` shares: the console and what it tells,
+progress bars, errors in words with the exit statuses, and the checks of options."""
 
 from __future__ import annotations
 
@@ -12,6 +12,12 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, Ti
 from recon.attenuation import ENERGY_RANGE_KEV
 
 console = Console(stderr=True)
+
+
+def tell(message: str) -> None:
+    """Print ``message`` (rich markup) on the console as written: wrapped softly, so a path
+    stays whole, and not highlighted, so numbers and paths keep the colours given."""
+    console.print(message, soft_wrap=True, highlight=False)
 
 
 def views_progress() -> Progress:
@@ -50,7 +56,7 @@ FAILED = 1
 def fail(message: str, code: int = REFUSED) -> None:
     """Print an error in words and exit with ``code``: :data:`REFUSED` (the default) or
     :data:`FAILED`."""
-    console.print(f"[bold red]error:[/] {message}", soft_wrap=True, highlight=False)
+    tell(f"[bold red]error:[/] {message}")
     raise typer.Exit(code)
 
 
@@ -67,16 +73,14 @@ def confirmation(yes: bool):
 
     def confirm(question: str) -> bool:
         if yes:
-            console.print(f"{question} [bold]yes[/] (--yes)", soft_wrap=True, highlight=False)
+            tell(f"{question} [bold]yes[/] (--yes)")
             return True
         try:
             return typer.confirm(question, default=False, err=True)
         except typer.Abort:  # no answer: end of input, or Ctrl-D
-            console.print(
+            tell(
                 "\n[yellow]no answer[/] (no terminal to answer on?): taken as no; give --yes "
-                "to answer yes without a terminal",
-                soft_wrap=True,
-                highlight=False,
+                "to answer yes without a terminal"
             )
             return False
 

@@ -31,7 +31,7 @@ from scanner.backends import generator_driver
 from scanner.corrections import PanelMaps
 from scanner.detector_calibration import calibrate_detector
 from scanner.generator import SerialGenerator
-from scanner.hardware import Backend, Clock, Detector, Technique
+from scanner.hardware import Backend, Clock, Detector, Technique, close_quietly
 from scanner.inputs import SessionInputs
 from scanner.registry import (
     BackendKind,
@@ -51,6 +51,7 @@ from sim.backend import (
     SimFaults,
     SimulatedScanner,
     simulated_scanner,
+    vibrated_view,
     volume_subject,
 )
 from sim.detector import FrameTimeout, SimDetector
@@ -58,8 +59,6 @@ from sim.phantoms.bb import project_bb
 from sim.phantoms.knee import KneePhantomSpec, knee_grid, rasterize_knee
 from sim.phantoms.tka import TkaPhantomSpec
 from sim.sway import Sway, SwayingKnee
-from sim.vibration import vibrate_at
-from trajectories.plan import view_at
 
 SIM_GIGE_WINDOW_MS = 100.0
 """The simulated panel's integration window over GigE Vision, ms: the pulse comes well within
@@ -135,7 +134,7 @@ def calibrate_sim_panel(spec: SimBackendSpec, rig: Rig, technique: Technique) ->
     try:
         return calibrate_detector(devices, technique, SIM_CALIBRATION_FRAMES)
     finally:
-        devices.close()
+        close_quietly(devices)
 
 
 def resumed_sim(spec: SimBackendSpec) -> tuple[SimBackendSpec, str | None]:
@@ -162,8 +161,7 @@ def open_sim_panel(
     ``driver`` delivers."""
 
     def measured_view() -> View:
-        q = measured_q()
-        return vibrate_at(view_at(rig.model, q, rig.panel), spec.vibration, rotary_deg=float(q[0]))
+        return vibrated_view(rig.model, measured_q(), rig.panel, spec.vibration)
 
     detector = SimDetector(
         rig.panel,

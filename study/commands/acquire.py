@@ -20,6 +20,7 @@ from study.console import (
     confirmation,
     console,
     fail,
+    tell,
     views_done,
     views_progress,
 )
@@ -45,12 +46,10 @@ def plan(
     except (ValueError, OSError) as err:
         fail(str(err))
     console.print(_plan_table(result), soft_wrap=True)
-    console.print(
+    tell(
         f"[green]wrote[/] {out / 'plan'} and {out / 'plan' / 'recording.rrd'} "
         f"(open with: rerun {out / 'plan' / 'recording.rrd'}); scan it with: cbct scan "
-        f"--study {out} --protocol {protocol}",
-        soft_wrap=True,
-        highlight=False,
+        f"--study {out} --protocol {protocol}"
     )
 
 
@@ -156,10 +155,8 @@ def simulate_scan(
             )
     except (ValueError, OSError) as err:
         fail(str(err))
-    console.print(
-        f"[green]wrote[/] {len(written)} files to {out} (projections.mha, geometry.xml, scan.json)",
-        soft_wrap=True,
-        highlight=False,
+    tell(
+        f"[green]wrote[/] {len(written)} files to {out} (projections.mha, geometry.xml, scan.json)"
     )
 
 
@@ -220,11 +217,9 @@ def scan(
                 fail("--resume continues the study with its own protocol: drop --protocol")
             scanned = Study.open(study).stage("scan")
             if scanned.get("status") == "complete":
-                console.print(
+                tell(
                     f"[green]scan complete already[/]: {scanned.get('views')} views in "
-                    f"{study / 'scan'}; nothing to resume",
-                    soft_wrap=True,
-                    highlight=False,
+                    f"{study / 'scan'}; nothing to resume"
                 )
                 raise typer.Exit(0)
             inputs = None
@@ -314,19 +309,15 @@ def scan(
         )
     ready = time.perf_counter() - last_view
     stage = done.stage("scan")
-    console.print(
+    tell(
         f"[green]scan complete[/]: {stage['views']} views, {stage['dose_mas']:.1f} mAs in "
         f"{study / 'scan'} (projections.mha, geometry.xml; recording: rerun "
-        f"{study / 'scan' / 'recording.rrd'})",
-        soft_wrap=True,
-        highlight=False,
+        f"{study / 'scan' / 'recording.rrd'})"
     )
-    console.print(
+    tell(
         f"[green]volume[/] reconstructed during the scan (backlog at the last view: "
         f"{backlog_at_end} views; recon stage written {ready:.1f} s after it): "
-        f"{study / 'recon' / 'volume.nii.gz'} (+ .mha, dicom/, slices.png)",
-        soft_wrap=True,
-        highlight=False,
+        f"{study / 'recon' / 'volume.nii.gz'} (+ .mha, dicom/, slices.png)"
     )
 
 
@@ -364,11 +355,7 @@ def move(
         if result.move
         else " (nothing moved)"
     )
-    console.print(
-        f"[green]at {result.target}[/]{how}: largest joint error {result.error:.3f} deg (mm)",
-        soft_wrap=True,
-        highlight=False,
-    )
+    tell(f"[green]at {result.target}[/]{how}: largest joint error {result.error:.3f} deg (mm)")
 
 
 def detector_calibrate(
@@ -414,11 +401,9 @@ def detector_calibrate(
         except KeyboardInterrupt as err:
             fail(f"{err or 'interrupted'}: X-ray off, nothing written")
     s = maps.summary()
-    console.print(
+    tell(
         f"[green]maps written[/]: {path}\n  offset {s['offset_adu_median']:.0f} ADU, flood "
         f"{s['flood_adu_median']:.0f} ADU above it, dark noise {s['dark_noise_adu']:.2f} ADU, "
         f"lag {s['lag']:.3f}\n  {s['defective_pixels']} defective pixels; defective rows "
-        f"{s['defective_rows']}, columns {s['defective_cols']}",
-        soft_wrap=True,
-        highlight=False,
+        f"{s['defective_rows']}, columns {s['defective_cols']}"
     )

@@ -19,6 +19,7 @@ from study.console import (
     checked_unit,
     console,
     fail,
+    tell,
     views_done,
     views_progress,
 )
@@ -54,15 +55,13 @@ def calibrate(
     summary = result.summary()
     used = [v for v in result.views if v.status == "calibrated"]
     deviation = np.array([v.source_deviation_mm for v in used])
-    console.print(
+    tell(
         f"[green]wrote[/] {study / 'calibration'}: {summary['calibrated_views']} of "
         f"{summary['views']} views calibrated, reprojection RMS median "
         f"{summary['reprojection_rms_px_median']:.3f} px (max "
         f"{summary['reprojection_rms_px_max']:.3f} px, worst views "
         f"{summary['worst_views']}), source deviation from the plan median "
-        f"{np.median(deviation):.2f} mm",
-        soft_wrap=True,
-        highlight=False,
+        f"{np.median(deviation):.2f} mm"
     )
     if summary["uncalibrated_views"]:
         console.print(
@@ -96,12 +95,10 @@ def calibrate_fluoro(
             distortion.write(written)
     except (ValueError, OSError) as err:
         fail(str(err))
-    console.print(
+    tell(
         f"[green]wrote[/] {out}: {distortion.balls} balls, residual RMS "
         f"{distortion.rms_mm:.3f} mm (max {distortion.max_mm:.3f}), largest displacement "
-        f"{distortion.max_displacement_mm:.2f} mm",
-        soft_wrap=True,
-        highlight=False,
+        f"{distortion.max_displacement_mm:.2f} mm"
     )
 
 
@@ -257,12 +254,10 @@ def recon(
     except (ValueError, OSError) as err:
         fail(str(err))
     grid = result.volume.grid
-    console.print(
+    tell(
         f"[green]wrote[/] {out}: {grid.size_xyz} voxels of {grid.spacing_mm[0]:.3g} mm in "
         f"{time.perf_counter() - start:.1f} s; {100 * (1 - result.mask.mean()):.1f} % of voxels "
-        f"masked (seen over < {min_coverage_deg:g} deg)",
-        soft_wrap=True,
-        highlight=False,
+        f"masked (seen over < {min_coverage_deg:g} deg)"
     )
 
 
@@ -319,4 +314,4 @@ def segment(
         for name, value in LABELS.items()
         if name not in ("air", "soft_tissue")
     )
-    console.print(f"[green]wrote[/] {out}: {found}", soft_wrap=True, highlight=False)
+    tell(f"[green]wrote[/] {out}: {found}")

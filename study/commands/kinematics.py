@@ -14,8 +14,8 @@ from configs import CONFIGS
 from recon.attenuation import DEFAULT_EFFECTIVE_ENERGY_KEV
 from study.console import (
     checked_unit,
-    console,
     fail,
+    tell,
     views_done,
     views_progress,
 )
@@ -175,12 +175,10 @@ def register(
             f"; TRE mean {metrics['tre_mm']:.2f} mm (median {metrics['tre_mm_median']:.2f}), "
             f"RSR {metrics['rsr_pct']:.1f} %"
         )
-    console.print(line, soft_wrap=True, highlight=False)
-    console.print(
+    tell(line)
+    tell(
         f"  JointTrack poses beside it ({', '.join(sorted(p.name for p in out.glob('*.jts')))}), "
-        f"overlays in {out / 'overlays'}",
-        soft_wrap=True,
-        highlight=False,
+        f"overlays in {out / 'overlays'}"
     )
 
 
@@ -325,19 +323,15 @@ def assess(
         fail(str(err))
     kin = result.kinematics
     if not kin.sufficient:
-        console.print(
+        tell(
             f"[bold red]{insufficient_text(kin)}[/] The report, marked so, is at "
-            f"{out / 'report.html'}.",
-            soft_wrap=True,
-            highlight=False,
+            f"{out / 'report.html'}."
         )
         raise typer.Exit(1)
-    console.print(
+    tell(
         f"[green]wrote[/] {out / 'report.html'}: {measured_text(kin)}, flexion "
         f"{np.nanmin(kin.flexion_deg):.0f}..{np.nanmax(kin.flexion_deg):.0f} deg, max |MLD| "
-        f"{np.nanmax(np.abs(kin.mld_mm)):.2f} mm, {int(kin.flagged.sum())} frame(s) flagged",
-        soft_wrap=True,
-        highlight=False,
+        f"{np.nanmax(np.abs(kin.mld_mm)):.2f} mm, {int(kin.flagged.sum())} frame(s) flagged"
     )
 
 
@@ -371,9 +365,7 @@ def export(
             written = jobs.export_files(poses, labels, staged, volume)
     except (ValueError, OSError) as err:
         fail(str(err))
-    console.print(
+    tell(
         f"[green]wrote[/] {len(written)} files to {out}: 3D Slicer scene {out / 'scene.mrml'}, "
-        f"ITK transforms in {out / 'itk'}, Autoscoper tracks in {out / 'autoscoper'}",
-        soft_wrap=True,
-        highlight=False,
+        f"ITK transforms in {out / 'itk'}, Autoscoper tracks in {out / 'autoscoper'}"
     )

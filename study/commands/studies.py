@@ -17,6 +17,7 @@ from study.console import (
     check_range,
     console,
     fail,
+    tell,
     views_done,
     views_progress,
 )
@@ -98,7 +99,7 @@ def demo(
         )
     except KeyboardInterrupt:
         fail(f"interrupted; continue with: cbct demo --resume --out {out}", FAILED)
-    console.print(summary, soft_wrap=True, highlight=False)
+    tell(summary)
 
 
 def batch(
@@ -202,20 +203,16 @@ def batch(
             cluster.close()
     files = batch_job.write_cohort(cohort, paths, report, action)
     console.print(_batch_table(report, len(paths)), soft_wrap=True)
-    console.print(
+    tell(
         f"[green]wrote[/] {files.csv}, {files.parquet.name}, {files.html.name} "
-        f"in {files.html.parent}",
-        soft_wrap=True,
-        highlight=False,
+        f"in {files.html.parent}"
     )
     failures = report.failures()
     if failures:
         lines = "\n".join(f"  {s}: {o.task}: {o.error}" for s, o in failures.items())
-        console.print(
+        tell(
             f"[bold red]{len(failures)} of {len(paths)} studies failed[/] (the others are "
-            f"done; fix these and rerun):\n{lines}",
-            soft_wrap=True,
-            highlight=False,
+            f"done; fix these and rerun):\n{lines}"
         )
         raise typer.Exit(FAILED)
 
