@@ -24,6 +24,7 @@ from assessment.knee import KneeAssessment
 from assessment.results import MLD_FLAG_MM
 from assessment.screening import screen
 from registration.poses import BodyPose, poses_by_frame
+from registration.roles import playing
 
 NOTCH_HALF_WIDTH_MM = 8.0
 """Half the intercondylar notch's width: articular points nearer the component's mid-plane are
@@ -115,8 +116,8 @@ def assess_components(
     Args:
         femoral: The femoral component (its frame is the femur's tracked pose's).
         plateau: The insert, or the tray where there is no insert mesh (the tray's frame).
-        poses: Per frame the femoral component's pose ("femur") and the tray's
-            ("tibia_fibula" or "tibia").
+        poses: Per frame the pose of the body playing the femur (the femoral component) and
+            of the one playing the tibia (the tray), registration.roles.
         side: Which knee; a left one is refused (the components' frames are not mirrored yet).
         plateau_offset_mm: Shift of the TP plane along its normal, mm.
         flag_mm: MLD flag threshold, mm.
@@ -132,19 +133,19 @@ def assess_components(
             f"--tka from component meshes: side {side!r}; only right knees so far (a left "
             "knee's component frames are not mirrored into a right one's yet)"
         )
-    tibia_name = "tibia_fibula" if any(p.body == "tibia_fibula" for p in poses) else "tibia"
-    frames, stacks = poses_by_frame(poses, ("femur", tibia_name))
+    femur_name, tibia_name = playing((p.body for p in poses), "femur", "tibia")
+    frames, stacks = poses_by_frame(poses, (femur_name, tibia_name))
     femur = femoral_anatomy(femoral)
     tibia = plateau_anatomy(plateau, plateau_offset_mm)
     if not insert:
         tibia = replace(tibia, surface_mm=None)
     kinematics = knee_kinematics(
-        femur, tibia, frames, stacks["femur"], stacks[tibia_name], side, flag_mm, (0.0, 0.0)
+        femur, tibia, frames, stacks[femur_name], stacks[tibia_name], side, flag_mm, (0.0, 0.0)
     )
     kinematics = screen(
         kinematics,
         poses,
-        {"femur": "femoral component", tibia_name: "tibial tray"},
+        {femur_name: "femoral component", tibia_name: "tibial tray"},
         "the insert" if insert else "the tray",
     )
     return KneeAssessment(kinematics, femur, tibia)

@@ -2,7 +2,8 @@
 
 Labels follow registration.labels (the phantom's and the segmentation's convention:
 femur 2, tibia 3, fibula 4, patella 5) plus :data:`INSERT_LABEL` for a TKA polyethylene insert.
-The tibia's pose may be given as "tibia" or "tibia_fibula" (the unit registration tracks).
+The femur and the tibia are the bodies playing them (registration.roles: the tibia's pose may
+be given as "tibia" or "tibia_fibula", the unit registration tracks).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from assessment.screening import screen
 from recon.volume import Volume
 from registration.labels import BONE_LABELS, INSERT_LABEL, LABELS
 from registration.poses import BodyPose, poses_by_frame
+from registration.roles import playing
 
 
 @dataclass(frozen=True)
@@ -35,14 +37,6 @@ class KneeAssessment:
     kinematics: KneeKinematics
     femur: FemurAnatomy
     tibia: TibiaAnatomy
-
-
-def _tibia_name(poses: list[BodyPose]) -> str:
-    names = {p.body for p in poses}
-    for name in ("tibia_fibula", "tibia"):
-        if name in names:
-            return name
-    raise ValueError("no tibia poses: expected bone 'tibia_fibula' or 'tibia' in the poses")
 
 
 def check_bones_present(labels: Volume, poses: list[BodyPose]) -> None:
@@ -88,8 +82,8 @@ def assess_knee(
     if side not in ("right", "left"):
         raise ValueError(f"side must be 'right' or 'left', got {side!r}")
     check_bones_present(labels, poses)
-    tibia_name = _tibia_name(poses)
-    frames, stacks = poses_by_frame(poses, ("femur", tibia_name))
+    femur_name, tibia_name = playing((p.body for p in poses), "femur", "tibia")
+    frames, stacks = poses_by_frame(poses, (femur_name, tibia_name))
     anatomy_labels = mirror_x(labels) if side == "left" else labels
     femur = femur_anatomy(anatomy_labels, LABELS["femur"])
     if tka:
@@ -101,12 +95,12 @@ def assess_knee(
     else:
         tibia = tibia_anatomy(anatomy_labels, LABELS["tibia"], plateau_offset_mm)
     kinematics = knee_kinematics(
-        femur, tibia, frames, stacks["femur"], stacks[tibia_name], side, flag_mm
+        femur, tibia, frames, stacks[femur_name], stacks[tibia_name], side, flag_mm
     )
     kinematics = screen(
         kinematics,
         poses,
-        {"femur": "femur", tibia_name: "tibia"},
+        {femur_name: "femur", tibia_name: "tibia"},
         "the polyethylene insert" if tka else "the tibial plateau",
     )
     return KneeAssessment(kinematics, femur, tibia)

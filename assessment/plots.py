@@ -28,6 +28,7 @@ from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 from assessment.results import KneeKinematics
 from assessment.viewer import COLORS as BODY_COLORS
 from assessment.viewer import MotionScene, decimated, view_direction
+from registration.roles import KNOWN_ROLES
 
 DPI = 100
 """Resolution of every PNG, dots per inch."""
@@ -369,7 +370,8 @@ def frames_beside_4d_png(kin: KneeKinematics, images: dict[int, Path], scene: Mo
             normals = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
             normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
             shade = 0.35 + 0.65 * np.abs(normals @ look)
-            rgb = np.array(matplotlib.colors.to_rgb(BODY_COLORS.get(name, "#b0b0b0")))
+            colour = BODY_COLORS.get(KNOWN_ROLES.get(name), "#b0b0b0")
+            rgb = np.array(matplotlib.colors.to_rgb(colour))
             ax.add_collection3d(
                 Poly3DCollection(triangles, facecolors=shade[:, None] * rgb, linewidths=0)
             )

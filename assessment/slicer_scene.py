@@ -24,6 +24,8 @@ from urllib.parse import quote, unquote
 
 import numpy as np
 
+from registration.roles import KNOWN_ROLES
+
 LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
 """DICOM/ITK patient frame (LPS) to Slicer's world (RAS), and back: its own inverse."""
 SLICER_VERSION = "Slicer 5.8.1 33241"
@@ -32,8 +34,8 @@ RAS whatever the storage says."""
 STL_HEADER = b"SPACE=LPS dualarm-cbct bone surface, mm"
 IDENTITY = "1 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1"
 """A proxy transform's matrix before the browser sets it (row-major 4x4)."""
-COLORS = {"femur": "0.95 0.85 0.55", "tibia_fibula": "0.55 0.80 0.95", "patella": "0.90 0.55 0.55"}
-"""Model colours (RGB 0..1) per bone; others are grey."""
+COLORS = {"femur": "0.95 0.85 0.55", "tibia": "0.55 0.80 0.95", "patella": "0.90 0.55 0.55"}
+"""Model colours (RGB 0..1) of the body playing each role (registration.roles); others grey."""
 
 
 def ras_to_parent(T_world_body: np.ndarray) -> np.ndarray:
@@ -155,7 +157,7 @@ def write_scene(
             root,
             "ModelDisplay",
             f"vtkMRMLModelDisplayNode{n}",
-            color=COLORS.get(bone, "0.8 0.8 0.8"),
+            color=COLORS.get(KNOWN_ROLES.get(bone), "0.8 0.8 0.8"),
             visibility="true",
         )
         _node(

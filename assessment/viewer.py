@@ -22,6 +22,7 @@ import trimesh
 from assessment.kinematics import MIRROR
 from assessment.knee import KneeAssessment
 from registration.overlays import COLOURS as OUTLINE_COLOURS
+from registration.roles import KNOWN_ROLES, playing
 
 VENDOR = Path(__file__).parent / "vendor"
 THREE_JS = VENDOR / "three.module.min.js"
@@ -33,10 +34,11 @@ MAX_FACES = 6000
 PLANE_HALF_MM = 32.0
 """Half the side of the square drawn for the TP plane, mm."""
 COLORS = {
-    name: "#" + "".join(f"{round(0.6 * c + 0.4 * 255):02x}" for c in rgb)
-    for name, rgb in OUTLINE_COLOURS.items()
+    role: "#" + "".join(f"{round(0.6 * c + 0.4 * 255):02x}" for c in rgb)
+    for role, rgb in OUTLINE_COLOURS.items()
 }
-"""Body colours: the overlays' outline colours, lightened for shading; others grey."""
+"""Colours of the bodies playing each role: the overlays' outline colours, lightened for
+shading; others grey."""
 CONDYLE_COLORS = ("#1f77b4", "#ff7f0e")
 """Medial and lateral condyle points: the plots' medial and lateral colours."""
 
@@ -100,7 +102,7 @@ def motion_scene(
     kin = assessment.kinematics
     index = {int(f): i for i, f in enumerate(frames)}
     rows = [index[int(f)] for f in kin.frames]
-    tibia = "tibia_fibula" if "tibia_fibula" in poses else "tibia"
+    (tibia,) = playing(poses, "tibia")
     anatomy = assessment.tibia  # of the mirrored knee for a left one
     medial, anterior = anatomy.plane_axes
     normal, center = anatomy.plateau_normal, anatomy.plateau_center_mm
@@ -187,7 +189,7 @@ def scene_json(scene: MotionScene) -> str:
         bodies.append(
             {
                 "name": name,
-                "color": COLORS.get(name, "#b0b0b0"),
+                "color": COLORS.get(KNOWN_ROLES.get(name), "#b0b0b0"),
                 "vertices": _b64(vertices, "<f4"),
                 "faces": _b64(faces, "<u4"),
                 "poses": np.round(scene.poses[name].transpose(0, 2, 1).reshape(-1, 16), 4).tolist(),

@@ -295,16 +295,16 @@ def tka(sequences: int, frames: int, panel: int, bones: bool = False) -> dict:
     models = {
         body: implant_model(
             body,
-            knee.meshes[part],
-            knee.materials[part],
+            knee.meshes[body],
+            knee.materials[body],
             attached=[
                 (knee.meshes[p], knee.materials[p])
                 for p in (*attached, *(TKA_FIXED_BONES[body] if bones else ()))
             ],
         )
-        for body, (part, attached) in TKA_TRACKED.items()
+        for body, attached in TKA_TRACKED.items()
     }
-    truth = {body: part_poses(knee, motion, part) for body, (part, _) in TKA_TRACKED.items()}
+    truth = {body: part_poses(knee, motion, body) for body in TKA_TRACKED}
     errors, first, warm, render_s = [], [], [], []
     for seq in range(sequences):
         started = time.perf_counter()
@@ -361,10 +361,10 @@ def tka(sequences: int, frames: int, panel: int, bones: bool = False) -> dict:
 
 TKA_DATA = ROOT.parent / "shared" / "data" / "tka-fluoro-jtml"
 TKA_COMPONENTS = {
-    "femur": ("KR_left_8_fem.stl", "fem"),
-    "tibia_fibula": ("KR_left_8_tib.stl", "tib"),
+    "femoral_component": ("KR_left_8_fem.stl", "fem"),
+    "tibial_tray": ("KR_left_8_tib.stl", "tib"),
 }
-"""The JTML components: the tracker's body -> (mesh, JTML's short name)."""
+"""The JTML components: the tracked body -> (mesh, JTML's short name)."""
 
 
 def edge_optimum(
@@ -437,8 +437,7 @@ def real_tka(
             for f in files
         ]
     images = [
-        sitk.GetArrayFromImage(sitk.ReadImage(str(f))).reshape(masks["femur"][0].shape)
-        for f in files
+        sitk.GetArrayFromImage(sitk.ReadImage(str(f))).reshape(stack.data.shape[1:]) for f in files
     ]
     distances = [edge_distances_px(image) for image in images]  # to each frame's edges
     reference_fit = {

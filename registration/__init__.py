@@ -31,6 +31,7 @@ _EXPORTS = {
     "BodyPose": "registration.poses",
     "read_poses": "registration.poses",
     "write_poses": "registration.poses",
+    "roles_of": "registration.roles",
     "segment_bones": "registration.segment",
     "bone_surfaces": "registration.segment",
 }

@@ -16,6 +16,7 @@ from registration.poses import read_poses as read_poses
 from registration.poses import write_poses as write_poses
 from registration.results import BodyResult as BodyResult
 from registration.results import FrameResult as FrameResult
+from registration.roles import roles_of as roles_of
 from registration.segment import bone_surfaces as bone_surfaces
 from registration.segment import segment_bones as segment_bones
 from registration.settings import Settings as Settings

@@ -237,8 +237,9 @@ class ImplantModel:
     insert) sums each part's ``mu L``: its faces carry their part's attenuation.
 
     Attributes:
-        name: the body's name (registration.settings.TRACK_ORDER: the femoral component
-            carries the femur's, the tibial tray the tibia's).
+        name: the body's name (registration.roles.COMPONENT_NAMES: femoral_component,
+            tibial_tray; its role, the bone it replaces, follows from it or is given to the
+            tracker).
         vertices_mm: the mesh's vertices in its own frame (V, 3), mm.
         faces: the mesh's triangles (T, 3), outward by their winding.
         face_mu: each face's attenuation, its part's material's, 1/mm (T,).
@@ -496,7 +497,9 @@ def implant_body(
     :func:`implant_model`).
 
     Args:
-        name: The body's name: the bone it stands for (registration.settings.TRACK_ORDER).
+        name: The body's name (registration.roles: ``femoral_component``, ``tibial_tray`` and
+            ``patellar_component`` play the bone they replace; any other name needs its role
+            given to the tracker).
         path: The component's mesh, an STL, OBJ or PLY file.
         material: Its material, one of :data:`MATERIALS`.
         unit: The mesh's unit (:data:`MESH_UNITS_MM`).
@@ -508,9 +511,9 @@ def implant_body(
         >>> with tempfile.TemporaryDirectory() as folder:
         ...     mesh = Path(folder) / "block.stl"
         ...     _ = trimesh.creation.box(extents=(60.0, 10.0, 40.0)).export(mesh)
-        ...     body = implant_body("femur", mesh)
+        ...     body = implant_body("femoral_component", mesh)
         >>> body.name, body.centroid_mm.round(3).tolist()  # the mesh's frame is the body's
-        ('femur', [0.0, 0.0, 0.0])
+        ('femoral_component', [0.0, 0.0, 0.0])
     """
     if material not in MATERIALS:
         raise ValueError(f"{path}: material {material!r}; one of {sorted(MATERIALS)}")
@@ -531,7 +534,7 @@ def implant_model(
     voxels at least half inside. ValueError for a radiolucent material.
 
     Args:
-        name: The body's name (the bone it stands for).
+        name: The body's name (:func:`implant_body`'s).
         mesh: The closed component mesh (mm).
         material: Its material; must be radiopaque.
         energy_kev: Effective energy (keV) of the attenuation coefficient.

@@ -17,13 +17,14 @@ from scipy.ndimage import binary_erosion
 
 from recon.geometry import View
 from registration.implants import ImplantModel
+from registration.roles import KNOWN_ROLES
 
 COLOURS = {
     "femur": (255, 150, 30),
-    "tibia_fibula": (40, 210, 255),
+    "tibia": (40, 210, 255),
     "patella": (240, 60, 240),
 }
-"""Outline colour of each body (RGB)."""
+"""Outline colour of the body playing each role (RGB; registration.roles)."""
 BONE_SILHOUETTE = 0.02
 """A bone's DRR above this (line integral) is its silhouette (as the objective's)."""
 
@@ -48,7 +49,7 @@ def overlay(frame: np.ndarray, outlines: dict[str, tuple[np.ndarray, bool]]) -> 
     rows, cols = np.indices(frame.shape)
     for name, (line, failed) in outlines.items():
         draw = line & ((rows + cols) % 6 < 3) if failed else line
-        rgb[draw] = COLOURS.get(name, (255, 255, 0))
+        rgb[draw] = COLOURS.get(KNOWN_ROLES.get(name), (255, 255, 0))
     return rgb
 
 

@@ -47,8 +47,8 @@ class BodyPose:
 
     Attributes:
         frame: frame number.
-        body: the body's name (e.g. "femur", "tibia_fibula", "patella"; a component by the
-            bone it replaces).
+        body: the body's name (a bone's: "femur", "tibia_fibula", "patella"; a component's:
+            "femoral_component", "tibial_tray"; registration.roles).
         T_world_body: 4x4 rigid motion from the reference (CBCT) pose, mm.
         similarity: the registration's similarity at this pose (NaN when unknown).
         seconds: time the registration spent on it (NaN when unknown).

@@ -21,11 +21,6 @@ from registration.settings import Settings
 Prior = Callable[[np.ndarray], np.ndarray]
 """A prior: pose 4x4 (mm) -> its terms, whose squared norm is its cost."""
 
-CARRIER = {"patella": "femur"}
-"""Bodies whose motion the KPM predicts relative to another body, registered before them each
-frame: the patella rides in the femur's trochlea, so it is carried by the femur's new pose
-and extrapolated in the femur's frame."""
-
 MAX_KPM_STEP = (25.0, 25.0)
 """A frame-to-frame motion beyond (mm, deg) is not extrapolated (it is a failure, not motion)."""
 
@@ -34,19 +29,16 @@ KPM_LAMBDA = np.arange(-1.5, 2.51, 0.25)
 it one and a half times to repeating it two and a half times (then Brent about the best)."""
 
 
-def carried_pose(name: str, poses: dict[str, np.ndarray]) -> np.ndarray:
-    """The pose of body ``name`` in its carrier's frame (:data:`CARRIER`, when tracked), else
-    in the world, 4x4 (mm)."""
-    carrier = CARRIER.get(name)
+def carried_pose(name: str, carrier: str | None, poses: dict[str, np.ndarray]) -> np.ndarray:
+    """The pose of body ``name`` in its ``carrier``'s frame (registration.roles.carriers: the
+    patella's is the femur's) when ``poses`` holds it, else in the world, 4x4 (mm)."""
     if carrier not in poses:
         return poses[name]
     return np.linalg.inv(poses[carrier]) @ poses[name]
 
 
-def carrier_pose(name: str, poses: dict[str, np.ndarray]) -> np.ndarray:
-    """The pose of body ``name``'s carrier (:data:`CARRIER`) in ``poses``, else the identity,
-    4x4 (mm)."""
-    carrier = CARRIER.get(name)
+def carrier_pose(carrier: str | None, poses: dict[str, np.ndarray]) -> np.ndarray:
+    """The pose of the body ``carrier`` in ``poses``, else the identity, 4x4 (mm)."""
     return poses[carrier] if carrier in poses else np.eye(4)
 
 

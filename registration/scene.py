@@ -13,8 +13,9 @@ from recon.geometry import View
 from registration import search
 from registration.drr import SoftTissue, scene
 from registration.objective import BodyModel, Objective
-from registration.priors import CARRIER, Prior, depth_prior, joined, patellofemoral_prior
+from registration.priors import Prior, depth_prior, joined, patellofemoral_prior
 from registration.resolution import frame_blur, model_blur
+from registration.roles import Role, carriers, roles_of
 from registration.se3 import compose
 from registration.settings import Settings
 from registration.targets import Targets
@@ -37,6 +38,7 @@ class Scene:
         field: bool (rows, cols), the pixels the beam reaches (the rest, and the band where
             the high-pass filter sees the field's edge, is left out of the similarity); None:
             every pixel.
+        roles: each body's anatomical role, by name (registration.roles.roles_of).
     """
 
     def __init__(
@@ -47,8 +49,13 @@ class Scene:
         settings: Settings,
         soft_tissue: SoftTissue | None = None,
         field: np.ndarray | None = None,
+        roles: dict[str, Role] | None = None,
     ) -> None:
         self.view, self.settings = view, settings
+        self.roles = roles_of(bodies, roles)
+        """Each body's anatomical role, by name."""
+        self.carriers = carriers(self.roles)
+        """Each carried body's carrier, by name (the patella's is the body playing the femur)."""
         frames = np.asarray(frames, dtype=np.float32)
         if field is not None and np.shape(field) != frames.shape[1:]:
             raise ValueError(f"field of {np.shape(field)} pixels for frames of {frames.shape[1:]}")
@@ -184,14 +191,14 @@ class Scene:
 
     def prior(self, name: str, poses: Poses) -> Prior | None:
         """The priors of body ``name`` as a function of its pose, or None: the patellofemoral
-        prior of a carried body (:data:`CARRIER`) against its carrier's estimate, and the
+        prior of a carried body (:attr:`carriers`) against its carrier's estimate, and the
         depth prior against the frame before (registration.priors)."""
         s, center = self.settings, self.bodies[name].centroid_mm
-        carrier = CARRIER.get(name)
+        carrier = self.carriers.get(name)
         patellofemoral = depth = None
         if carrier in poses:
             patellofemoral = patellofemoral_prior(s, poses[carrier], center, self.view)
-        sigma_mm = s.depth_step_sigma_mm.get(name)
+        sigma_mm = s.depth_step_sigma_mm.get(name, s.depth_step_sigma_mm.get(self.roles[name]))
         if sigma_mm is not None and name in self.before:
             depth = depth_prior(s, sigma_mm, self.view, center, self.before[name])
         return joined([patellofemoral, depth])

@@ -7,14 +7,6 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, NonNegativeFloat, PositiveFloat, PositiveInt
 
-TRACK_ORDER = ("tibia_fibula", "femur", "patella")
-"""The tracked bodies' names, in the order they are registered each frame (largest and
-slowest first); an implant component is named by the bone it replaces."""
-
-LONG_BONES = ("tibia_fibula", "femur")
-"""The bodies a first frame searches alone (the rest of the scene still at its starting
-estimate); the others are searched against them."""
-
 
 class Settings(BaseModel):
     """Registration settings (mm and degrees); YAML files load with recon.config.load_config

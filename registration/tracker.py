@@ -33,7 +33,6 @@ from registration.drr import SoftTissue
 from registration.implants import ImplantModel
 from registration.objective import BodyModel, OutOfView
 from registration.priors import (
-    CARRIER,
     KPM_LAMBDA,
     carried_pose,
     carrier_pose,
@@ -42,10 +41,11 @@ from registration.priors import (
     predict,
 )
 from registration.results import BodyResult, FrameResult
+from registration.roles import LONE_ROLES, Role, tracking_order
 from registration.scene import Poses, Scene
 from registration.se3 import twist_exp
 from registration.search import kinematic_line_search
-from registration.settings import LONG_BONES, TRACK_ORDER, Settings
+from registration.settings import Settings
 
 Refined = Callable[[Poses], tuple[np.ndarray, int, float, float]]
 """A refinement of one body from poses: its pose, the evaluations, its NCC and gradient NCC."""
@@ -57,9 +57,8 @@ class Tracker:
     Args:
         view: the fluoroscopy view at full resolution.
         frames: line integrals (F, rows, cols).
-        bodies: the tracked bodies by name (a subset of :data:`TRACK_ORDER`): bones
-            (registration.drr.bone_models) or implant components
-            (registration.implants.implant_model).
+        bodies: the tracked bodies by name: bones (registration.drr.bone_models) or implant
+            components (registration.implants.implant_model).
         settings: registration settings.
         soft_tissue: the soft tissue, deformed by the femur and the tibia
             (registration.drr.SoftTissue); None leaves it out.
@@ -67,6 +66,10 @@ class Tracker:
             field, a collimator's shutters: registration.frames.Frames.field); the rest, and
             the band where the high-pass filter sees the field's edge, is left out of the
             similarity. None: every pixel.
+        roles: each body's anatomical role (femur, tibia, patella) by name, for bodies whose
+            names do not say it (registration.roles.roles_of: bones and components named as
+            the pipeline names them need none). The roles set the order bodies are registered
+            in, which are searched alone first, and which is carried by which.
     """
 
     def __init__(
@@ -77,17 +80,22 @@ class Tracker:
         settings: Settings | None = None,
         soft_tissue: SoftTissue | None = None,
         field: np.ndarray | None = None,
+        roles: dict[str, Role] | None = None,
     ) -> None:
-        unknown = sorted(set(bodies) - set(TRACK_ORDER))
-        if unknown or not bodies:
-            raise ValueError(f"tracked bodies are named from {TRACK_ORDER}, got {sorted(bodies)}")
-        self.order = tuple(b for b in TRACK_ORDER if b in bodies)
-        """The tracked bodies in the order they are registered in a frame."""
+        if not bodies:
+            raise ValueError("no body to track")
         self.view = view
         self.settings = settings or Settings()
-        self.scene = Scene(view, frames, bodies, self.settings, soft_tissue, field)
+        self.scene = Scene(view, frames, bodies, self.settings, soft_tissue, field, roles)
         """The frames and the bodies, as each body's searches see them."""
+        self.order = tracking_order(self.scene.roles)
+        """The tracked bodies in the order they are registered in a frame."""
         self._last_ncc: dict[str, float] = {}
+
+    @property
+    def roles(self) -> dict[str, Role]:
+        """Each tracked body's anatomical role, by name."""
+        return self.scene.roles
 
     @property
     def frames(self) -> np.ndarray:
@@ -204,7 +212,7 @@ class Tracker:
             for name in self.order:
                 start = time.perf_counter()
                 poses[name], n = self.scene.global_search(
-                    frame, name, poses, lone=name in LONG_BONES
+                    frame, name, poses, lone=self.roles[name] in LONE_ROLES
                 )
                 spent[name] = (time.perf_counter() - start, n)
         bodies: dict[str, BodyResult] = {}
@@ -315,7 +323,11 @@ class Tracker:
         previous = self._last_ncc.get(name, score)
         if not (score < s.fail_ncc or score < previous - s.drop_ncc):
             return poses, score, grad, 0
-        wide = {**poses, name: carrier_pose(name, poses) @ carried_pose(name, history[-1])}
+        carrier = self.scene.carriers.get(name)
+        wide = {
+            **poses,
+            name: carrier_pose(carrier, poses) @ carried_pose(name, carrier, history[-1]),
+        }
         wide[name], n = self.scene.global_search(frame, name, wide, scale=0.5)
         wide[name], m, wide_score, wide_grad = refined(wide)
         if wide_score - self.scene.penalty(name, wide) > score - self.scene.penalty(name, poses):
@@ -347,8 +359,9 @@ class Tracker:
         relative to its carrier; else ``poses[name]`` as it is."""
         if len(history) >= 2:
             return self._kpm(frame, name, poses, history)
-        if history and name in CARRIER:  # carried at its last relative pose
-            return carrier_pose(name, poses) @ carried_pose(name, history[-1]), 0
+        carrier = self.scene.carriers.get(name)
+        if history and carrier is not None:  # carried at its last relative pose
+            return carrier_pose(carrier, poses) @ carried_pose(name, carrier, history[-1]), 0
         return poses[name], 0
 
     def _predicted(self, name: str, history: list[Poses]) -> np.ndarray:
@@ -363,10 +376,11 @@ class Tracker:
     ) -> tuple[np.ndarray, int]:
         """Line search along the kinematic direction (registration.priors.kinematic_direction)
         from the last pose: a scan of :data:`KPM_LAMBDA` steps, then Brent between the best
-        one's neighbours. A carried body (:data:`CARRIER`) moves along its motion relative to
-        its carrier, from the carrier's pose in this frame."""
-        base = carrier_pose(name, poses)
-        carried = [carried_pose(name, h) for h in history[-3:]]
+        one's neighbours. A carried body (the patella) moves along its motion relative to its
+        carrier, from the carrier's pose in this frame."""
+        carrier = self.scene.carriers.get(name)
+        base = carrier_pose(carrier, poses)
+        carried = [carried_pose(name, carrier, h) for h in history[-3:]]
         xi = kinematic_direction(carried, self.scene.bodies[name].centroid_mm)
         start = base @ carried[-1]
         if xi is None:

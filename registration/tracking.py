@@ -22,6 +22,7 @@ from registration.jointtrack import read_calibration
 from registration.mayacam import is_mayacam, read_mayacam
 from registration.objective import BodyModel
 from registration.results import FrameResult
+from registration.roles import Role
 from registration.settings import Settings
 from registration.tracker import Tracker
 
@@ -101,6 +102,7 @@ def track(
     settings: Settings | None = None,
     soft_tissue: SoftTissue | None = None,
     progress: Callable[[int, int], None] | None = None,
+    roles: dict[str, Role] | None = None,
 ) -> list[FrameResult]:
     """Track bodies through fluoroscopy frames, in memory.
 
@@ -108,9 +110,9 @@ def track(
         frames: The frames (:func:`registration.read_frames`), or their line integrals
             (frames, rows, cols).
         view: The fluoroscopy view (:func:`read_view`).
-        bodies: The tracked bodies' models by name (registration.settings.TRACK_ORDER): a
-            static scan's bones (registration.bone_models) or implant components
-            (registration.implant_body), a component named by the bone it replaces.
+        bodies: The tracked bodies' models by name: a static scan's bones
+            (registration.bone_models: femur, tibia_fibula, patella) or implant components
+            (registration.implant_body: femoral_component, tibial_tray, patellar_component).
         start: The first frame's poses, 4x4 (mm) by body; None: each bone where the static
             scan has it (the identity) and each component found in the first frame
             (registration.autostart).
@@ -118,11 +120,13 @@ def track(
         soft_tissue: The static scan's soft tissue (registration.drr.SoftTissue), scored
             with the bones; None leaves it out.
         progress: Called with (frames done, frames in all) after each frame.
+        roles: Each body's anatomical role (femur, tibia, patella) by name, for bodies named
+            otherwise (registration.roles.roles_of).
 
     Returns:
         One result per frame, numbered from 0.
     """
-    return tracked(frames, view, bodies, start, settings, soft_tissue, progress)[1]
+    return tracked(frames, view, bodies, start, settings, soft_tissue, progress, roles)[1]
 
 
 def tracked(
@@ -133,6 +137,7 @@ def tracked(
     settings: Settings | None,
     soft_tissue: SoftTissue | None,
     progress: Callable[[int, int], None] | None,
+    roles: dict[str, Role] | None = None,
 ) -> tuple[Tracker, list[FrameResult]]:
     """:func:`track`, and the tracker that tracked: its bodies carry the blurs it matched
     (registration.tracker.Tracker.bodies, frame_blur_mm).
@@ -145,6 +150,7 @@ def tracked(
         settings: As :func:`track`'s.
         soft_tissue: As :func:`track`'s.
         progress: As :func:`track`'s.
+        roles: As :func:`track`'s.
     """
     if isinstance(frames, Frames):
         data, field, where = frames.data, frames.field, f"{frames.header.source} with the view"
@@ -152,7 +158,7 @@ def tracked(
         data, field, where = np.asarray(frames, dtype=np.float32), None, "the frames with the view"
         if data.ndim != 3:
             raise ValueError(f"frames of shape {data.shape}: give a stack (frames, rows, cols)")
-    tracker = Tracker(view, data, bodies, settings, soft_tissue, field)
+    tracker = Tracker(view, data, bodies, settings, soft_tissue, field, roles)
     given = dict(start or {})
     for name in (b for b in bodies if b not in given and not isinstance(bodies[b], ImplantModel)):
         given[name] = np.eye(4)  # a bone where the static scan has it

@@ -65,11 +65,11 @@ PARTS = {
 }
 """Each part of the knee: its mesh file, the OpenSim body that carries it, its material."""
 
-TRACKED = {"femur": ("femoral_component", ()), "tibia_fibula": ("tibial_tray", ("tibial_insert",))}
-"""The tracked bodies (the bones' names, as the tracker's): the component that stands for each,
-and the parts fixed to it that move with it (the tray's insert)."""
-FIXED_BONES = {"femur": ("femur",), "tibia_fibula": ("tibia", "fibula")}
-"""The bones each tracked body's component is fixed to."""
+TRACKED = {"femoral_component": (), "tibial_tray": ("tibial_insert",)}
+"""The tracked components (each plays the bone it replaces: registration.roles), and the parts
+fixed to each that move with it (the tray's insert)."""
+FIXED_BONES = {"femoral_component": ("femur",), "tibial_tray": ("tibia", "fibula")}
+"""The bones each tracked component is fixed to."""
 
 
 @dataclass(frozen=True)

@@ -61,9 +61,7 @@ COMPONENTS = {
     "femur": "femoral_component",
     "tibia": "tibial_tray",
 }
-"""The tracked bodies' components (the femoral component carries the femur's name)."""
-TRACKED_NAME = {"femur": "femur", "tibia": "tibia_fibula"}
-"""The tracker's name of each component's body (its poses')."""
+"""The tracked components by the role each plays (registration.roles)."""
 INSERT = "tibial_insert"
 """The polyethylene insert: the TKA report's plateau plane (in the tray's frame)."""
 
@@ -99,10 +97,10 @@ def fluoro_stage(study: Study, frames: int, panel: int, seed: int, say: Say) -> 
         for part in (*COMPONENTS.values(), INSERT):
             knee.meshes[part].export(components / f"{part}.stl")
         poses, centroids = [], {}
-        for body, (part, _) in TRACKED.items():
-            moved = part_poses(knee, motion, part)
+        for body in TRACKED:
+            moved = part_poses(knee, motion, body)
             poses += [BodyPose(k, body, moved[k]) for k in range(frames)]
-            centroids[body] = np.asarray(knee.meshes[part].centroid)
+            centroids[body] = np.asarray(knee.meshes[body].centroid)
         poses.sort(key=lambda p: (p.frame, p.body))
         write_poses(folder / "poses.csv", poses, centroids)
         rng = np.random.default_rng([seed, 35])
@@ -269,9 +267,7 @@ def assessment_stage(study: Study, say: Say) -> bool:
             None,
             folder,
             "right",
-            implants={
-                TRACKED_NAME[body]: components / f"{part}.stl" for body, part in COMPONENTS.items()
-            },
+            implants={role: components / f"{part}.stl" for role, part in COMPONENTS.items()},
             insert=insert,
             overlays=study.path / "registration" / "overlays",
         ).kinematics

@@ -38,8 +38,9 @@ def register(
     implant: Annotated[
         list[str] | None,
         typer.Option(
-            help="BODY=MESH: an implant component standing for the femur, tibia or "
-            "patella (STL, OBJ or PLY); repeatable"
+            help="ROLE=MESH: an implant component playing the femur, tibia or patella "
+            "(STL, OBJ or PLY), tracked as femoral_component, tibial_tray or "
+            "patellar_component; repeatable"
         ),
     ] = None,
     material: Annotated[
@@ -195,16 +196,16 @@ def _frame_range(text: str) -> tuple[int, int, int]:
 
 
 def _body_words(option: str, given: list[str] | None) -> dict[str, str]:
-    """``BODY=VALUE`` options as the tracker's body name -> value; ValueError naming the
-    option and the value otherwise."""
-    from study.jobs.register import body_name
+    """``BODY=VALUE`` options as the body's role (femur, tibia, patella) -> value; ValueError
+    naming the option and the value otherwise."""
+    from study.jobs.register import body_role
 
     out: dict[str, str] = {}
     for item in given or ():
         body, sep, value = item.partition("=")
         if not sep or not value:
             raise ValueError(f"{option} {item!r}: give BODY=VALUE, e.g. femur=...")
-        name = body_name(body.strip())
+        name = body_role(body.strip())
         if name in out:
             raise ValueError(f"{option}: {body} given twice")
         out[name] = value.strip()
@@ -212,10 +213,10 @@ def _body_words(option: str, given: list[str] | None) -> dict[str, str]:
 
 
 def _attachments(given: list[str] | None) -> dict[str, tuple[tuple[Path, str], ...]]:
-    """``--attach BODY=MESH:MATERIAL`` options as the tracker's body name -> its parts (mesh,
+    """``--attach BODY=MESH:MATERIAL`` options as the body's role -> its parts (mesh,
     material); ValueError naming the value otherwise."""
     from registration.implants import ATTACHABLE
-    from study.jobs.register import body_name
+    from study.jobs.register import body_role
 
     out: dict[str, tuple[tuple[Path, str], ...]] = {}
     for item in given or ():
@@ -225,7 +226,7 @@ def _attachments(given: list[str] | None) -> dict[str, tuple[tuple[Path, str], .
             raise ValueError(
                 f"--attach {item!r}: give BODY=MESH:MATERIAL, MATERIAL one of {sorted(ATTACHABLE)}"
             )
-        name = body_name(body.strip())
+        name = body_role(body.strip())
         out[name] = (*out.get(name, ()), (Path(mesh.strip()), material))
     return out
 

@@ -17,6 +17,7 @@ from recon.io import read_volume
 from recon.volume import Volume
 from registration.implants import read_mesh
 from registration.poses import BodyPose, read_poses
+from registration.roles import KNOWN_ROLES, playing
 from scanner.outputs import new_folder
 
 
@@ -61,11 +62,12 @@ def write_component_assessment(
     insert: bool = True,
 ) -> KneeAssessment:
     """:func:`write_assessment` of a knee replacement from its tracked components' poses:
-    ``components`` by body ("femur": the femoral component, "tibia_fibula" or "tibia": the
-    tray), ``plateau`` the insert (``insert``) or the tray in the tray's frame
-    (assessment.components)."""
+    ``components`` by the name of the body their poses are given under (the femoral
+    component's plays the femur, the tray's the tibia: registration.roles), ``plateau`` the
+    insert (``insert``) or the tray in the tray's frame (assessment.components)."""
+    (femoral,) = playing(components, "femur")
     result = assess_components(
-        components["femur"],
+        components[femoral],
         plateau,
         poses,
         side,
@@ -133,8 +135,9 @@ def assess_files(
 ) -> KneeAssessment:
     """``cbct assess``: read poses.csv and the label volume, then :func:`write_assessment`
     (``overlays``: the registration's overlays folder, for the report's player); or, with
-    ``implants`` (body -> mesh: the femoral component as "femur", the tray as "tibia_fibula"
-    or "tibia") and ``insert`` (in the tray's frame; else the tray's top is the plateau),
+    ``implants`` (role -> mesh: the femoral component's as "femur", the tray's as "tibia", or
+    each under its body's name; the poses of the bodies playing those roles move them) and
+    ``insert`` (in the tray's frame; else the tray's top is the plateau),
     :func:`write_component_assessment`."""
     if out.exists():
         raise FileExistsError(f"{out} exists: choose a new output folder")
@@ -142,13 +145,14 @@ def assess_files(
         check_static_volume(volume)
     poses = read_poses(poses_path)
     if implants:
-        meshes = {body: read_mesh(path, implant_unit)[0] for body, path in implants.items()}
-        tibia = next((b for b in ("tibia_fibula", "tibia") if b in meshes), None)
-        if "femur" not in meshes or tibia is None:
+        by_role = {KNOWN_ROLES.get(word): path for word, path in implants.items()}
+        if set(by_role) != {"femur", "tibia"}:
             raise ValueError(
-                f"--implant: {sorted(meshes)}; give femur=FEMORAL_COMPONENT and "
-                "tibia=TRAY (the bodies the registration tracked them as)"
+                f"--implant: {sorted(implants)}; give femur=FEMORAL_COMPONENT and tibia=TRAY"
             )
+        femoral, tibia = playing((p.body for p in poses), "femur", "tibia")
+        bodies = {"femur": femoral, "tibia": tibia}
+        meshes = {bodies[r]: read_mesh(path, implant_unit)[0] for r, path in by_role.items()}
         plateau = meshes[tibia] if insert is None else read_mesh(insert, implant_unit)[0]
         return write_component_assessment(
             meshes,

@@ -1,19 +1,19 @@
-"""``cbct register``: track bodies through a fluoroscopy sequence from files, and write what
-was found (registration.tracking.track does the tracking).
+"""``cbct register``: track bodies through a fluoroscopy sequence from files, and write what was
+found (registration.tracking.track does the tracking).
 
-Inputs are the bodies to track: the static scan's bones (attenuation volume and its labels)
-and implant components (their CAD meshes, registration.implants), a component standing for the
-bone it replaces; the frames (an RTK projection stack of line integrals, DICOM, or TIFF/PNG
-images: registration.frames) and their view (RTK geometry XML: one view, or one identical view
-per frame, the scanner holding still during fluoroscopy; or a JointTrack calibration); and,
-optionally, the panel's distortion (calibration.dewarp_grid: the frames are dewarped before
-anything else). Outputs go to a new folder: ``poses.csv`` (registration.poses), one JointTrack
-``.jts`` per body (its poses in JointTrack's camera frame of the view: ``femur.jts``,
-``tibia.jts``, ``patella.jts``), ``overlays/`` (every frame with each body's outline at its
-registered pose), ``registration.json`` (per body and frame: NCC, gradient NCC, seconds,
-evaluations, failure flag; the settings; the meshes read; the dewarp's fit),
-``distortion.json`` (when dewarped) and, given the true (or reference) poses,
-``metrics.json`` (registration.metrics.summarize and per-frame errors).
+Inputs are the bodies to track: the static scan's bones (attenuation volume and its labels) and
+implant components (their CAD meshes, registration.implants), each playing the role of the bone
+it replaces (registration.roles); the frames (an RTK projection stack of line integrals, DICOM,
+or TIFF/PNG images: registration.frames) and their view (RTK geometry XML: one view, or one
+identical view per frame, the scanner holding still during fluoroscopy; or a JointTrack
+calibration); and, optionally, the panel's distortion (calibration.dewarp_grid: the frames are
+dewarped before anything else). Outputs go to a new folder: ``poses.csv`` (registration.poses),
+one JointTrack ``.jts`` per body, named by its role (its poses in JointTrack's camera frame of
+the view: ``femur.jts``, ``tibia.jts``, ``patella.jts``), ``overlays/`` (every frame with each
+body's outline at its registered pose), ``registration.json`` (per body and frame: NCC, gradient
+NCC, seconds, evaluations, failure flag; the settings; the meshes read; the dewarp's fit),
+``distortion.json`` (when dewarped) and, given the true (or reference) poses, ``metrics.json``
+(registration.metrics.summarize and per-frame errors).
 """
 
 from __future__ import annotations
@@ -47,30 +47,26 @@ from registration.metrics import as_rows, pose_error, summarize
 from registration.overlays import write_overlays
 from registration.poses import BodyPose, poses_by_frame, read_poses, write_poses
 from registration.results import FrameResult
-from registration.settings import TRACK_ORDER, Settings
+from registration.roles import (
+    COMPONENT_NAMES,
+    KNOWN_ROLES,
+    Role,
+    body_playing,
+    roles_of,
+    tracking_order,
+)
+from registration.settings import Settings
 from registration.tracker import Tracker
 from registration.tracking import read_view, tracked
-
-BODY_NAMES = {
-    "femur": "femur",
-    "tibia": "tibia_fibula",
-    "tibia_fibula": "tibia_fibula",
-    "patella": "patella",
-}
-"""A body's name as given (``--implant tibia=...``) -> the tracker's
-(registration.settings.TRACK_ORDER)."""
-
-
-FILE_NAMES = {"femur": "femur", "tibia_fibula": "tibia", "patella": "patella"}
-"""The tracker's name -> the body's name in file names (``tibia.jts``)."""
 
 
 @dataclass(frozen=True)
 class ImplantSpec:
-    """An implant component to track: which body it stands for (femur, tibia or patella), its
-    mesh file, the mesh's unit, its material (registration.implants) and the parts fixed to it
-    (``attached``: each a mesh file in the component mesh's frame and unit, and its material
-    from :data:`registration.implants.ATTACHABLE`: a tray's insert, the bone the component is
+    """An implant component to track: the role it plays (``body``: femur, tibia or patella;
+    it is tracked as registration.roles.COMPONENT_NAMES names it), its mesh file, the mesh's
+    unit, its material (registration.implants) and the parts fixed to it (``attached``: each a
+    mesh file in the component mesh's frame and unit, and its material from
+    :data:`registration.implants.ATTACHABLE`: a tray's insert, the bone the component is
     fixed to), rendered with it."""
 
     body: str
@@ -80,27 +76,54 @@ class ImplantSpec:
     attached: tuple[tuple[Path, str], ...] = ()
 
 
-def body_name(name: str) -> str:
-    """The tracker's name of a body given as femur, tibia (tibia_fibula) or patella."""
-    if name not in BODY_NAMES:
-        raise ValueError(f"body {name!r}: one of femur, tibia, patella")
-    return BODY_NAMES[name]
+def body_role(word: str) -> Role:
+    """The role of a body given by name on the command line: femur, tibia (or tibia_fibula),
+    patella, or a component's name (registration.roles.KNOWN_ROLES); ValueError otherwise."""
+    role = KNOWN_ROLES.get(word)
+    if role is None:
+        raise ValueError(f"body {word!r}: one of femur, tibia, patella")
+    return role
+
+
+def _tracked(word: str, roles: dict[str, Role]) -> str | None:
+    """The tracked body a name stands for: itself when tracked, else the body playing its role
+    (``tibia`` for the tracked ``tibia_fibula`` or ``tibial_tray``), else None."""
+    if word in roles:
+        return word
+    role = KNOWN_ROLES.get(word)
+    return None if role is None else body_playing(role, roles)
+
+
+def _file_rows(poses: list[BodyPose], roles: dict[str, Role]) -> list[BodyPose]:
+    """The rows of a poses.csv for the tracked bodies: each body's own, else those of the
+    first name of its role the file has (registration.roles.KNOWN_ROLES's order: an older
+    run's ``tibia_fibula`` rows for the tracked ``tibial_tray``)."""
+    named = {p.body for p in poses}
+    source = {}
+    for body, role in roles.items():
+        older = (n for n, r in KNOWN_ROLES.items() if r == role and n in named)
+        source[body if body in named else next(older, body)] = body
+    return [replace(p, body=source[p.body]) for p in poses if p.body in source]
 
 
 def _poses_by_body(
-    given: Path | dict[str, Path], bodies: tuple[str, ...], view: View, what: str
+    given: Path | dict[str, Path], roles: dict[str, Role], view: View, what: str
 ) -> dict[str, np.ndarray]:
-    """Each body's poses (F, 4, 4), world: from one poses.csv, or per body from a poses.csv
-    or a JointTrack .jts (in the view's camera frame: registration.jointtrack.camera_frame)."""
+    """Each tracked body's poses (F, 4, 4), world: from one poses.csv, or per body (by its
+    name or its role) from a poses.csv or a JointTrack .jts (in the view's camera frame:
+    registration.jointtrack.camera_frame). A poses.csv row names its body or a body of the
+    same role (an implant component written under its bone's name)."""
+    bodies = tuple(roles)
     if not isinstance(given, dict):
-        frames, stacks = poses_by_frame(read_poses(given), bodies)
+        frames, stacks = poses_by_frame(_file_rows(read_poses(given), roles), bodies)
         if not np.array_equal(frames, np.arange(len(frames))):
             raise ValueError(f"{given}: {what} poses must number the frames from 0 on")
         return stacks
     stacks = {}
-    for name, path in given.items():
-        if name not in bodies:
-            raise ValueError(f"{path}: {what} poses for {name!r}, which is not tracked")
+    for word, path in given.items():
+        name = _tracked(word, roles)
+        if name is None:
+            raise ValueError(f"{path}: {what} poses for {word!r}, which is not tracked")
         if Path(path).suffix.lower() == ".jts":
             stacks[name] = read_jointtrack_poses(path, view)
         else:
@@ -114,15 +137,15 @@ def _poses_by_body(
 
 def _initial(
     given: Path | dict[str, Path] | None,
-    bodies: tuple[str, ...],
+    roles: dict[str, Role],
     view: View,
     first: int = 0,
 ) -> dict[str, np.ndarray]:
     """Starting poses of frame ``first``: the reference (CBCT or mesh) pose, or that frame's
     row of ``given``."""
     if given is None:
-        return {name: np.eye(4) for name in bodies}
-    stacks = _poses_by_body(given, bodies, view, "initial")
+        return {name: np.eye(4) for name in roles}
+    stacks = _poses_by_body(given, roles, view, "initial")
     for name, stack in stacks.items():
         if len(stack) <= first:
             raise ValueError(
@@ -133,14 +156,14 @@ def _initial(
 
 
 def _truth(
-    given: Path | dict[str, Path], count: int, bodies: tuple[str, ...], view: View
+    given: Path | dict[str, Path], count: int, roles: dict[str, Role], view: View
 ) -> list[dict[str, np.ndarray]]:
     """True (or reference) poses of frames 0..count-1 (ValueError if one is missing)."""
-    stacks = _poses_by_body(given, bodies, view, "true")
+    stacks = _poses_by_body(given, roles, view, "true")
     for name, stack in stacks.items():
         if len(stack) < count:
             raise ValueError(f"true poses of {name} for {len(stack)} frames, not {count}")
-    return [{b: stacks[b][k] for b in bodies} for k in range(count)]
+    return [{b: stacks[b][k] for b in roles} for k in range(count)]
 
 
 def _named_paths(what: str, given: Path | dict[str, Path] | None) -> dict[str, Path | None]:
@@ -230,7 +253,7 @@ def register_files(
     """``cbct register``: track every body through every frame and write the results.
 
     The bodies: the static scan's bones (a volume and its labels) and implant components
-    (their meshes), a component standing for the bone it replaces. Every input is read and
+    (their meshes), each component playing the role of the bone it replaces. Every input is read and
     checked before the (long) registration starts; ``out`` must not exist and is written only
     at the end.
 
@@ -247,12 +270,12 @@ def register_files(
     _check(inputs, out)
     frames, numbers, view = _frames_and_view(inputs, options)
     models, soft, source, meshes = _bodies(inputs, options)
-    bodies = tuple(b for b in TRACK_ORDER if b in models)
+    roles = {name: roles_of(models)[name] for name in tracking_order(roles_of(models))}
     count = int(numbers[-1]) + 1
-    truth = None if inputs.truth is None else _truth(inputs.truth, count, bodies, view)
+    truth = None if inputs.truth is None else _truth(inputs.truth, count, roles, view)
     start = None  # implants alone: searched
     if inputs.initial is not None or inputs.volume is not None or not meshes:
-        start = _initial(inputs.initial, bodies, view, int(numbers[0]))
+        start = _initial(inputs.initial, roles, view, int(numbers[0]))
     tracker, found = tracked(frames, view, models, start, options.settings, soft, progress)
     results = [replace(r, frame=int(numbers[r.frame])) for r in found]
     _write(out, results, models, view, tracker, truth, options.distortion, source, frames, meshes)
@@ -324,7 +347,7 @@ def _bodies(
         models = bone_models(volume, labels)
         soft = SoftTissue.of(volume, labels)
     for spec in inputs.implants:
-        name = body_name(spec.body)
+        name = COMPONENT_NAMES[body_role(spec.body)]
         if spec.material not in MATERIALS:
             raise ValueError(f"{spec.mesh}: material {spec.material!r}; one of {sorted(MATERIALS)}")
         mesh, report = read_mesh(spec.mesh, spec.unit)
@@ -367,9 +390,9 @@ def _write(
     ]
     write_poses(out / "poses.csv", poses, centroids)
     T_camera_world = np.linalg.inv(camera_frame(view))
-    for name in models:  # JointTrack's poses, in its camera frame of the view
+    for name, role in roles_of(models).items():  # JointTrack's, in its camera frame; by role
         stack = [T_camera_world @ r.bodies[name].T_world_body for r in results]
-        write_jts(out / f"{FILE_NAMES[name]}.jts", stack)
+        write_jts(out / f"{role}.jts", stack)
     write_overlays(out / "overlays", frames.data, view, models, results)
     per_frame = [
         {

@@ -109,3 +109,16 @@ def test_cbct_assess_takes_the_components_and_refuses_a_left_knee(knee, tmp_path
     assert not (tmp_path / "left").exists()
     alone = CliRunner().invoke(app, ["assess", "--poses", str(poses), "--out", str(tmp_path / "x")])
     assert alone.exit_code == 2 and "--labels" in alone.output
+
+
+def test_the_components_under_their_own_names_assess_as_under_their_bones(knee):
+    """The body playing each role is read by its role: poses named femoral_component and
+    tibial_tray give the kinematics of the same poses named femur and tibia_fibula."""
+    knee, motion, _ = knee
+    parts = (knee.meshes["femoral_component"], knee.meshes["tibial_insert"])
+    older = assess_components(*parts, _poses(motion)).kinematics
+    names = {"femur": "femoral_component", "tibia_fibula": "tibial_tray"}
+    renamed = [BodyPose(p.frame, names[p.body], p.T_world_body) for p in _poses(motion)]
+    ours = assess_components(*parts, renamed).kinematics
+    np.testing.assert_array_equal(ours.flexion_deg, older.flexion_deg)
+    np.testing.assert_array_equal(ours.medial_distance_mm, older.medial_distance_mm)

@@ -16,10 +16,12 @@ import pytest
 from recon.geometry import DetectorSpec, View
 from recon.volume import Volume, VolumeGrid
 from registration.drr import BoneModel, SoftTissue, bone_models, scene
-from registration.settings import TRACK_ORDER
+from registration.labels import BONE_UNITS
 from sim.fluoro import add_fluoro_noise, lateral_view
 from sim.motion import squat_motion
 from sim.phantoms.knee import KneePhantomSpec, rasterize_knee
+
+BONES = tuple(BONE_UNITS)  # the static scan's bones, the bodies tracked
 
 SPEC = KneePhantomSpec()
 GRID = VolumeGrid.centered((90, 90, 220), 1.0, (0.0, -4.0, 490.0))
@@ -45,7 +47,7 @@ def knee_case(seed) -> KneeCase:
     soft = SoftTissue.of(volume, labels)
     view = lateral_view(SPEC, DetectorSpec(rows=160, cols=160, pixel_pitch_mm=1.92))
     motion = squat_motion(SPEC, frames=FRAMES, max_flexion_deg=30.0, seed=seed)
-    truth = [{b: motion.poses[b][k] for b in TRACK_ORDER} for k in range(FRAMES)]
+    truth = [{b: motion.poses[b][k] for b in BONES} for k in range(FRAMES)]
     clean = np.stack([scene(view, models, t, soft) for t in truth])
     frames = add_fluoro_noise(clean, 2.0e5, np.random.default_rng(3 + seed))[1]
     return KneeCase(volume, labels, models, soft, view, truth, frames)

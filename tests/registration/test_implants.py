@@ -163,7 +163,7 @@ def test_real_frames_are_tracked_as_the_reference_is(seed, measured):
     outlines no farther from the frame's edges than the reference's (0.20-0.38 px nearer)."""
     entry = _real_tka()([seed], frames=3, start=(2.0, 5.0, 2.0), global_init=False)
     assert entry["registrations_failed"] == 0
-    for name in ("femur", "tibia_fibula"):
+    for name in ("femoral_component", "tibial_tray"):
         figures = entry[name]
         measured(f"{name}_in_plane_mm", figures["in_plane_mm_median"], below=1.0)
         measured(f"{name}_rotation_deg", figures["rotation_deg_median"], below=1.5)
@@ -184,7 +184,7 @@ def test_real_frames_meet_the_issues_targets_from_a_far_start(seed, measured):
     in-plane and 20 mm in depth; the issue's targets against the reference."""
     entry = _real_tka()([seed])
     assert entry["registrations_failed"] == 0
-    for name in ("femur", "tibia_fibula"):
+    for name in ("femoral_component", "tibial_tray"):
         measured(f"{name}_in_plane_mm", entry[name]["in_plane_mm_median"], below=0.5)
         measured(f"{name}_depth_mm", entry[name]["depth_mm_median"], below=2.0)
         measured(f"{name}_rotation_deg", entry[name]["rotation_deg_median"], below=1.0)

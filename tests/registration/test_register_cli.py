@@ -20,13 +20,16 @@ from recon.io import write_projections, write_volume
 from recon.rtk_xml import PanelHeader, write_rtk_geometry
 from recon.volume import Volume, VolumeGrid
 from registration.frames import read_frames
+from registration.labels import BONE_UNITS
 from registration.poses import BodyPose, read_poses, write_poses
 from registration.se3 import compose
-from registration.settings import TRACK_ORDER, Settings
+from registration.settings import Settings
 from registration.tracking import fluoroscopy_view
 from sim.fluoro import DISTORTION_MAX_MM, distort, lateral_view, simulate_dewarp_grid
 from sim.phantoms.knee import KneePhantomSpec
 from study.cli import app
+
+BONES = tuple(BONE_UNITS)  # the static scan's bones, the bodies tracked
 
 runner = CliRunner()
 FRAMES = 3
@@ -44,13 +47,13 @@ def inputs(knee_case, seed, tmp_path_factory):
         "geometry": write_rtk_geometry(folder / "view.xml", Geometry([c.view] * FRAMES)),
     }
     centroids = {b: m.centroid_mm for b, m in c.models.items()}
-    truth = [BodyPose(k, b, c.truth[k][b]) for k in range(FRAMES) for b in TRACK_ORDER]
+    truth = [BodyPose(k, b, c.truth[k][b]) for k in range(FRAMES) for b in BONES]
     paths["truth"] = write_poses(folder / "truth.csv", truth, centroids)
     rng = np.random.default_rng(5 + seed)
     start = [  # frames 0 and 1 (a range may start at 1), each 2 mm and 2 deg off at most
         BodyPose(k, b, compose(rng.uniform(-2, 2, 6), c.truth[k][b], centroids[b]))
         for k in (0, 1)
-        for b in TRACK_ORDER
+        for b in BONES
     ]
     paths["initial"] = write_poses(folder / "initial.csv", start, centroids)
     # the tests of what cbct register reads start within 2 mm and 2 deg: no global search
@@ -73,16 +76,14 @@ def test_register_writes_poses_and_metrics(inputs, measured) -> None:
     result = runner.invoke(app, _args(paths, out, truth=paths["truth"], initial=paths["initial"]))
     assert result.exit_code == 0, result.output
     poses = read_poses(out / "poses.csv")
-    assert {(p.frame, p.body) for p in poses} == {
-        (k, b) for k in range(FRAMES) for b in TRACK_ORDER
-    }
+    assert {(p.frame, p.body) for p in poses} == {(k, b) for k in range(FRAMES) for b in BONES}
     metrics = json.loads((out / "metrics.json").read_text())
-    assert metrics["registrations"] == FRAMES * len(TRACK_ORDER)
+    assert metrics["registrations"] == FRAMES * len(BONES)
     measured("tre_mm_median", metrics["tre_mm_median"], below=1.0)  # sub-voxel, matched case
     report = json.loads((out / "registration.json").read_text())
-    assert len(report["frames"]) == FRAMES * len(TRACK_ORDER)
-    assert sorted(r["body"] for r in report["frames"]) == sorted(TRACK_ORDER * FRAMES)
-    assert set(metrics["rsr_pct_by_body"]) == set(TRACK_ORDER)
+    assert len(report["frames"]) == FRAMES * len(BONES)
+    assert sorted(r["body"] for r in report["frames"]) == sorted(BONES * FRAMES)
+    assert set(metrics["rsr_pct_by_body"]) == set(BONES)
     assert "TRE mean" in result.output
     again = runner.invoke(app, _args(paths, out))
     assert again.exit_code == 2 and "exists" in again.output

@@ -145,8 +145,8 @@ def test_components_are_tracked_and_handed_on_as_jointtrack_poses(case, measured
     assert sorted(p.name for p in (out / "overlays").iterdir()) == [
         f"frame_{k:04d}.png" for k in range(FRAMES)
     ]
-    names = {p.body for p in read_csv(out / "poses.csv")}
-    assert names == {"femur", "tibia_fibula"}
+    names = {p.body for p in read_csv(out / "poses.csv")}  # each plays the bone it replaces
+    assert names == {"femoral_component", "tibial_tray"}
 
 
 def test_bad_input_is_refused_before_any_work(case, tmp_path):
@@ -154,7 +154,10 @@ def test_bad_input_is_refused_before_any_work(case, tmp_path):
     short = write_poses(tmp_path / "short.jts", truth["femur"][:1])
     given = ["--truth", f"femur={short}", "--truth", f"tibia={folder / 'tibia_true.jts'}"]
     result = runner.invoke(app, _args(folder, tmp_path / "a", *given))
-    assert result.exit_code == 2 and "true poses of femur for 1 frames, not 3" in result.output
+    assert (
+        result.exit_code == 2
+        and "true poses of femoral_component for 1 frames, not 3" in result.output
+    )
     wrong = tmp_path / "calibration.txt"
     wrong.write_text("JT_INTCALIB\n1198\n0\n0\n0.373\n")
     args = _args(folder, tmp_path / "b")

@@ -17,10 +17,12 @@ from registration.metrics import pose_error
 from registration.priors import patellofemoral_deviation, predict
 from registration.se3 import compose
 from registration.segment import BONE_UNITS
-from registration.settings import TRACK_ORDER, Settings
+from registration.settings import Settings
 from registration.tracker import Tracker
 from sim.motion import squat_motion
 from sim.phantoms.knee import KneePhantomSpec
+
+BONES = tuple(BONE_UNITS)  # the static scan's bones, the bodies tracked
 
 VOXEL_MM = 1.0
 SETTINGS = Settings(pyramid_mm=(3.84, 1.92), de_popsize=8, de_maxiter=15, powell_maxfev=250)
@@ -74,7 +76,7 @@ def test_soft_tissue_bends_with_the_knee_and_moves_rigidly_with_the_leg(
 ) -> None:
     c = knee_case
     soft, view = c.soft, c.view
-    rest = {b: np.eye(4) for b in TRACK_ORDER}
+    rest = {b: np.eye(4) for b in BONES}
     data, w, grid = soft.deformed(np.eye(4), np.eye(4))
     # at the static scan's pose the lattice is the scan's and nothing moves
     assert grid == soft.grid and np.array_equal(data, soft.data)
@@ -143,7 +145,7 @@ def test_kpm_prediction_beats_the_previous_pose_on_smooth_motion(knee_case, seed
     models, view = knee_case.models, knee_case.view
     motion = squat_motion(KneePhantomSpec(), frames=30, seed=1 + seed)
     ratio = {}
-    for name in TRACK_ORDER:
+    for name in BONES:
         poses = motion.poses[name]
         points = models[name].points_mm
         stay = [
@@ -300,7 +302,7 @@ def test_least_squares_refinement_reaches_the_derivative_free_optimum_with_fewer
     tracker = Tracker(c.view, c.frames, c.models, SETTINGS, c.soft)
     start = _start(c.truth[2], c.models, 1.0, seed=5 + seed)
     in_plane, excess, renders, scores = [], [], [], []
-    for name in TRACK_ORDER:
+    for name in BONES:
         poses = {**c.truth[2], name: start[name]}
         pose, n, _ = tracker.scene.least_squares(2, name, poses, tracker.levels[:-1])
         pose, m, objective = tracker.scene.least_squares(

@@ -13,13 +13,15 @@ import pytest
 from recon.geometry import DetectorSpec
 from recon.volume import Volume, VolumeGrid
 from registration.drr import SoftTissue, bone_models, scene
-from registration.labels import LABELS
+from registration.labels import BONE_UNITS, LABELS
 from registration.metrics import pose_error
-from registration.settings import TRACK_ORDER, Settings
+from registration.settings import Settings
 from registration.tracker import Tracker
 from sim.fluoro import add_fluoro_noise, lateral_view
 from sim.motion import squat_motion
 from sim.phantoms.knee import KneePhantomSpec, rasterize_knee
+
+BONES = tuple(BONE_UNITS)  # the static scan's bones, the bodies tracked
 
 SPEC = KneePhantomSpec()
 VOXEL_MM = 1.0
@@ -41,7 +43,7 @@ def cut_case(seed):
     volume, labels = _scan(CUT_MM)
     view = lateral_view(SPEC, DetectorSpec(rows=160, cols=160, pixel_pitch_mm=1.92))
     motion = squat_motion(SPEC, frames=12, max_flexion_deg=30.0, seed=seed)
-    truth = {b: motion.poses[b][6] for b in TRACK_ORDER}  # 15 degrees, the femur leaning
+    truth = {b: motion.poses[b][6] for b in BONES}  # 15 degrees, the femur leaning
     # the whole leg's flesh bent at the knee as the cut scan's model bends it (the principal
     # axes of bones cut short lean a few degrees off the whole bones'): only the cut differs
     cut = SoftTissue.of(volume, labels)
