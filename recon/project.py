@@ -26,6 +26,7 @@ import math
 
 import numba
 import numpy as np
+from scipy.ndimage import maximum_filter1d, minimum_filter1d
 
 from recon.geometry import Geometry, View
 from recon.volume import VolumeGrid
@@ -57,6 +58,22 @@ def check_in_front(geometry: Geometry, grid: VolumeGrid) -> None:
 def full_spans(rows: int, cols: int) -> np.ndarray:
     """Column spans (rows, 2) covering a whole ``rows x cols`` panel."""
     return np.tile(np.array([0, cols], dtype=np.int64), (rows, 1))
+
+
+def row_spans(mask: np.ndarray, margin_px: int) -> np.ndarray:
+    """Per row of a panel, the columns (start, stop) within ``margin_px`` (chessboard) of the
+    pixels ``mask`` (bool (rows, cols)) holds, (0, 0) where a row holds none: the spans a
+    projection of those pixels alone traces (a render's high-pass reaches ``4 sigma`` beyond
+    a registration's mask)."""
+    cols = mask.shape[1]
+    index = np.arange(cols)
+    size = 2 * margin_px + 1
+    lo = minimum_filter1d(np.where(mask, index, cols).min(axis=1), size, mode="nearest")
+    hi = maximum_filter1d(np.where(mask, index + 1, 0).max(axis=1), size, mode="nearest")
+    empty = hi <= lo
+    lo, hi = np.maximum(lo - margin_px, 0), np.minimum(hi + margin_px, cols)
+    lo[empty] = hi[empty] = 0
+    return np.column_stack((lo, hi)).astype(np.int64)
 
 
 def _view_arrays(geometry: Geometry) -> tuple[np.ndarray, ...]:

@@ -7,10 +7,10 @@ import math
 from collections.abc import Callable
 
 import numpy as np
-from scipy.ndimage import binary_dilation, maximum_filter1d, minimum_filter1d
+from scipy.ndimage import binary_dilation
 
 from recon.geometry import View
-from recon.project import JosephProjector
+from recon.project import JosephProjector, row_spans
 from registration.drr import BoneModel
 from registration.implants import ImplantModel
 from registration.se3 import compose
@@ -75,7 +75,7 @@ class Objective:
         self.view = view.cropped(r0, c0, r1 - r0, c1 - c0)
         self.crop = (slice(r0, r1), slice(c0, c1))
         self.mask = mask[self.crop]
-        self.spans = _row_spans(self.mask, math.ceil(4 * sigma_px))
+        self.spans = row_spans(self.mask, math.ceil(4 * sigma_px))
         self.target = target_hp[self.crop]
         halo = int(4 * sigma_px + 0.5) + 1  # scipy's Gaussian reaches 4 sigma: exact in the crop
         h0, g0 = max(0, r0 - halo), max(0, c0 - halo)
@@ -138,17 +138,3 @@ def _unit(values: np.ndarray) -> np.ndarray:
     centred = values.astype(np.float64) - values.mean(dtype=np.float64)
     norm = np.linalg.norm(centred)
     return centred / norm if norm > 0 else centred
-
-
-def _row_spans(mask: np.ndarray, margin_px: int) -> np.ndarray:
-    """Per row, the columns (start, stop) within ``margin_px`` (chessboard) of ``mask``: where
-    the high-pass of a render reaches the mask (the Gaussian's truncation at 4 sigma)."""
-    cols = mask.shape[1]
-    index = np.arange(cols)
-    size = 2 * margin_px + 1
-    lo = minimum_filter1d(np.where(mask, index, cols).min(axis=1), size, mode="nearest")
-    hi = maximum_filter1d(np.where(mask, index + 1, 0).max(axis=1), size, mode="nearest")
-    empty = hi <= lo
-    lo, hi = np.maximum(lo - margin_px, 0), np.minimum(hi + margin_px, cols)
-    lo[empty] = hi[empty] = 0
-    return np.column_stack((lo, hi)).astype(np.int64)

@@ -44,7 +44,7 @@ from scipy.spatial.transform import Rotation
 from recon.fdk import estimate_orbit, fdk_reconstruct, plane_basis
 from recon.geometry import Geometry
 from recon.motion import BodyMotion
-from recon.project import JosephProjector
+from recon.project import JosephProjector, row_spans
 from recon.volume import Volume, VolumeGrid
 from registration.labels import LABELS
 from registration.segment import _soft_tissue_level, segment_bones
@@ -288,31 +288,34 @@ class _Fit:
         self.parts = [JosephProjector(*_cropped(volume * w, grid)) for w in weights]
         self.centers, self.projections, self.geometry = centers, projections, geometry
         self.trusted = trusted
+        self.spans = [row_spans(mask, 0) for mask in trusted]  # the rays fitted, alone traced
 
     def view(self, i: int, poses: np.ndarray, iterations: int) -> np.ndarray:
         """The poses (K, 4, 4) of view ``i`` fitted from ``poses``."""
-        view, mask = self.geometry[i], self.trusted[i]
-        measured = self.projections[i][mask]
+        measured = self.projections[i][self.trusted[i]]
         k = len(self.parts)
         theta = np.concatenate([_params(T, c) for T, c in zip(poses, self.centers, strict=True)])
         scale = np.tile(np.array([1.0, 1.0, 1.0, _LEVER_MM, _LEVER_MM, _LEVER_MM]), k)
         for _ in range(iterations):
-            base = [
-                part.project_moved(view, _pose(theta[6 * b : 6 * b + 6], self.centers[b]))[mask]
-                for b, part in enumerate(self.parts)
-            ]
+            base = [self._projection(b, i, theta[6 * b : 6 * b + 6]) for b in range(k)]
             residual = measured - sum(base)
             J = np.empty((residual.size, 6 * k), dtype=np.float64)
-            for b, part in enumerate(self.parts):
+            for b in range(k):
                 for j in range(6):
                     moved = theta[6 * b : 6 * b + 6].copy()
                     moved[j] += _STEP[j]
-                    image = part.project_moved(view, _pose(moved, self.centers[b]))[mask]
+                    image = self._projection(b, i, moved)
                     J[:, 6 * b + j] = (image - base[b]) / (_STEP[j] * scale[6 * b + j])
             normal = J.T @ J
             normal[np.diag_indices_from(normal)] += _DAMPING * np.trace(normal) / (6 * k)
             theta = theta + np.linalg.solve(normal, J.T @ residual) / scale
         return np.stack([_pose(theta[6 * b : 6 * b + 6], self.centers[b]) for b in range(k)])
+
+    def _projection(self, b: int, i: int, theta: np.ndarray) -> np.ndarray:
+        """Body ``b``'s line integrals through view ``i``'s fitted pixels, at its parameters
+        ``theta`` (6,)."""
+        pose = _pose(theta, self.centers[b])
+        return self.parts[b].project_moved(self.geometry[i], pose, self.spans[i])[self.trusted[i]]
 
     def all_views(
         self,
