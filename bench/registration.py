@@ -92,9 +92,10 @@ from recon.rtk_peer import rtk_forward_project  # noqa: E402
 from recon.volume import Volume, VolumeGrid  # noqa: E402
 from registration.drr import SoftTissue, bone_models, scene  # noqa: E402
 from registration.frames import read_frames  # noqa: E402
-from registration.implants import MATERIALS, implant_model, read_mesh  # noqa: E402
+from registration.implants import implant_model  # noqa: E402
 from registration.jointtrack import read_calibration  # noqa: E402
 from registration.jointtrack import read_poses as read_jts  # noqa: E402
+from registration.meshes import MATERIALS, read_mesh  # noqa: E402
 from registration.metrics import (  # noqa: E402
     camera_differences,
     edge_distances_px,

@@ -4,12 +4,12 @@ from registration.drr import BoneModel as BoneModel
 from registration.drr import bone_models as bone_models
 from registration.frames import Frames as Frames
 from registration.frames import read_frames as read_frames
-from registration.implants import MATERIALS as MATERIALS
 from registration.implants import ImplantModel as ImplantModel
 from registration.implants import implant_body as implant_body
 from registration.implants import implant_model as implant_model
-from registration.implants import read_mesh as read_mesh
 from registration.jointtrack import read_jointtrack_poses as read_jointtrack_poses
+from registration.meshes import MATERIALS as MATERIALS
+from registration.meshes import read_mesh as read_mesh
 from registration.objective import BodyModel as BodyModel
 from registration.poses import BodyPose as BodyPose
 from registration.poses import read_poses as read_poses

@@ -39,14 +39,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import ndimage
-from scipy.spatial.transform import Rotation
 
 from recon.fdk import estimate_orbit, fdk_reconstruct, plane_basis
 from recon.geometry import Geometry
 from recon.motion import BodyMotion
-from recon.project import JosephProjector, row_spans
+from recon.project import JosephProjector
 from recon.volume import Volume, VolumeGrid
 from registration.labels import LABELS
+from registration.motion_fit import ViewFit, cropped, recentred
 from registration.segment import _soft_tissue_level, segment_bones
 
 BODY_LABELS: dict[str, tuple[int, ...]] = {
@@ -67,15 +67,9 @@ for, mm: a "semi-flexed" sway peaks at 3-5 mm at the knee, and 1.2-1.6 times tha
 ends of the bones in the field; beyond, bones blur in the first volume past what its
 segmentation and the fit start from, and a scan is to be repeated."""
 
-_STEP = np.array([0.3, 0.3, 0.3, *np.radians([0.3, 0.3, 0.3])])
-"""Finite-difference steps of the six parameters: mm, and radians."""
-_LEVER_MM = 50.0
-"""Rotations are damped as the displacement they cause this far from the body's centre."""
 _NEGLIGIBLE = 1e-3
 """A body's share below which a voxel is wholly the other body's (each body's projector then
 holds only its part of the field)."""
-_DAMPING = 1e-6
-"""Levenberg-Marquardt damping, relative to the mean of the normal matrix's diagonal."""
 _COARSEST_MM = 2.0
 """The one-body stage runs at twice the estimate's voxel, but no coarser than this, mm: the
 bones' cortex must still stand out of the soft tissue there."""
@@ -174,32 +168,6 @@ class MotionEstimate:
         return f"moved up to {peak:.1f} mm (at view {view}; {parts}): compensated"
 
 
-def _pose(theta: np.ndarray, center: np.ndarray) -> np.ndarray:
-    """4x4 rigid motion of 6 parameters: a rotation vector (rad) about ``center`` and a
-    translation of it (mm)."""
-    T = np.eye(4)
-    R = Rotation.from_rotvec(theta[3:]).as_matrix()
-    T[:3, :3] = R
-    T[:3, 3] = center + theta[:3] - R @ center
-    return T
-
-
-def _params(T: np.ndarray, center: np.ndarray) -> np.ndarray:
-    """The 6 parameters of :func:`_pose` of ``T``."""
-    R = T[:3, :3]
-    return np.concatenate((T[:3, 3] - center + R @ center, Rotation.from_matrix(R).as_rotvec()))
-
-
-def recentred(poses: np.ndarray, centers: np.ndarray) -> np.ndarray:
-    """Poses (N, K, 4, 4) moved so that each body's mean pose is the identity: the volume
-    reconstructed through them shows the patient's average pose."""
-    out = np.empty_like(poses)
-    for k in range(poses.shape[1]):
-        mean = np.mean([_params(T, centers[k]) for T in poses[:, k]], axis=0)
-        out[:, k] = poses[:, k] @ np.linalg.inv(_pose(mean, centers[k]))
-    return out
-
-
 def tissue_box(volume: Volume, margin_mm: float = 10.0) -> VolumeGrid:
     """The part of ``volume``'s grid holding tissue (above half the soft-tissue level) plus
     ``margin_mm``, on the same voxels: the estimate leaves the field's air out."""
@@ -261,84 +229,6 @@ def trusted_pixels(
     return out
 
 
-def _cropped(volume: np.ndarray, grid: VolumeGrid) -> tuple[np.ndarray, VolumeGrid]:
-    """The slab of axial slices holding any non-zero voxel (a body's part of the volume)."""
-    filled = np.flatnonzero(np.abs(volume).max(axis=(1, 2)) > 0)
-    if filled.size == 0:
-        return volume[:2], VolumeGrid((2, *grid.shape[1:]), grid.spacing_mm, grid.origin_mm)
-    z0, z1 = max(int(filled[0]) - 2, 0), min(int(filled[-1]) + 3, volume.shape[0])
-    origin = np.asarray(grid.origin_mm) + np.array([0.0, 0.0, z0 * grid.spacing_mm[2]])
-    sub = VolumeGrid((z1 - z0, *grid.shape[1:]), grid.spacing_mm, tuple(origin))
-    return np.ascontiguousarray(volume[z0:z1]), sub
-
-
-class _Fit:
-    """Gauss-Newton of every view's body poses against one volume split into bodies."""
-
-    def __init__(
-        self,
-        volume: np.ndarray,
-        grid: VolumeGrid,
-        weights: np.ndarray,
-        centers: np.ndarray,
-        projections: np.ndarray,
-        geometry: Geometry,
-        trusted: np.ndarray,
-    ) -> None:
-        self.parts = [JosephProjector(*_cropped(volume * w, grid)) for w in weights]
-        self.centers, self.projections, self.geometry = centers, projections, geometry
-        self.trusted = trusted
-        self.spans = [row_spans(mask, 0) for mask in trusted]  # the rays fitted, alone traced
-
-    def view(self, i: int, poses: np.ndarray, iterations: int) -> np.ndarray:
-        """The poses (K, 4, 4) of view ``i`` fitted from ``poses``."""
-        measured = self.projections[i][self.trusted[i]]
-        k = len(self.parts)
-        theta = np.concatenate([_params(T, c) for T, c in zip(poses, self.centers, strict=True)])
-        scale = np.tile(np.array([1.0, 1.0, 1.0, _LEVER_MM, _LEVER_MM, _LEVER_MM]), k)
-        for _ in range(iterations):
-            base = [self._projection(b, i, theta[6 * b : 6 * b + 6]) for b in range(k)]
-            residual = measured - sum(base)
-            J = np.empty((residual.size, 6 * k), dtype=np.float64)
-            for b in range(k):
-                for j in range(6):
-                    moved = theta[6 * b : 6 * b + 6].copy()
-                    moved[j] += _STEP[j]
-                    image = self._projection(b, i, moved)
-                    J[:, 6 * b + j] = (image - base[b]) / (_STEP[j] * scale[6 * b + j])
-            normal = J.T @ J
-            normal[np.diag_indices_from(normal)] += _DAMPING * np.trace(normal) / (6 * k)
-            theta = theta + np.linalg.solve(normal, J.T @ residual) / scale
-        return np.stack([_pose(theta[6 * b : 6 * b + 6], self.centers[b]) for b in range(k)])
-
-    def _projection(self, b: int, i: int, theta: np.ndarray) -> np.ndarray:
-        """Body ``b``'s line integrals through view ``i``'s fitted pixels, at its parameters
-        ``theta`` (6,)."""
-        pose = _pose(theta, self.centers[b])
-        return self.parts[b].project_moved(self.geometry[i], pose, self.spans[i])[self.trusted[i]]
-
-    def all_views(
-        self,
-        start: np.ndarray | None,
-        iterations: int,
-        progress: Callable[[int, int], None] | None,
-    ) -> np.ndarray:
-        """Every view's poses (N, K, 4, 4), each fitted from ``start``'s; with ``start`` None,
-        the first from the identity and each next one from the view before it (the patient
-        moves little between views)."""
-        n, k = len(self.geometry), len(self.parts)
-        out = np.empty((n, k, 4, 4))
-        for i in range(n):
-            if start is not None:
-                first = start[i]
-            else:
-                first = out[i - 1] if i else np.tile(np.eye(4), (k, 1, 1))
-            out[i] = self.view(i, first, iterations)
-            if progress is not None:
-                progress(i + 1, n)
-        return out
-
-
 def _missed(
     projections: np.ndarray,
     geometry: Geometry,
@@ -354,7 +244,7 @@ def _missed(
     volume = first.volume.data * first.mask
     weights = np.ones((1, *grid.shape), np.float32) if motion is None else motion.on(grid)
     poses = np.tile(np.eye(4), (len(geometry), 1, 1, 1)) if motion is None else motion.poses
-    parts = [JosephProjector(*_cropped(volume * w, grid)) for w in weights]
+    parts = [JosephProjector(*cropped(volume * w, grid)) for w in weights]
     missed = np.array(projections, dtype=np.float32, copy=True)
     for i, view in enumerate(geometry):
         for part, T in zip(parts, poses[i], strict=True):
@@ -504,7 +394,7 @@ def estimate_motion(
     n = len(geometry)
     seconds: dict[str, float] = {}
 
-    def fitted(stage: str, fit: _Fit, start: np.ndarray | None, iterations: int) -> np.ndarray:
+    def fitted(stage: str, fit: ViewFit, start: np.ndarray | None, iterations: int) -> np.ndarray:
         report = None if progress is None else lambda d, t: progress(stage, d, t)
         return recentred(fit.all_views(start, iterations, report), fit.centers)
 
@@ -532,7 +422,7 @@ def estimate_motion(
         center = coarse.index_to_world(np.argwhere(bone).mean(axis=0)[::-1])
         leg = np.ones((1, *coarse.shape), np.float32)
         trusted = trusted_pixels(views, Volume(volume, coarse, "1/mm"), mask, settings.margin_mm)
-        fit = _Fit(volume, coarse, leg, center[None], small, views, trusted)
+        fit = ViewFit(volume, coarse, leg, center[None], small, views, trusted)
         poses = fitted("one body", fit, None, 2)
     motion = BodyMotion((LEG,), poses)
     surfaces = {LEG: _surface(bone, coarse)}
@@ -563,7 +453,7 @@ def estimate_motion(
             else:
                 start = motion.poses
             tell(f"{stage}: the thigh and the shank registered to each of {n} views")
-            fit = _Fit(volume, fine, weights, centers, proj, geometry, trusted)
+            fit = ViewFit(volume, fine, weights, centers, proj, geometry, trusted)
             motion = BodyMotion(tuple(BODY_LABELS), fitted(stage, fit, start, 1), weights, fine)
     with _timed(seconds, "consistency"):
         # motion is kept only where the projections agree with a volume made through it

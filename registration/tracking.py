@@ -15,9 +15,7 @@ from recon.rtk_xml import read_rtk_geometry
 from registration.autostart import candidate_poses
 from registration.drr import SoftTissue
 from registration.frames import Frames
-from registration.implants import (
-    ImplantModel,
-)
+from registration.implants import ImplantModel
 from registration.jointtrack import read_calibration
 from registration.mayacam import is_mayacam, read_mayacam
 from registration.objective import BodyModel

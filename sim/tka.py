@@ -39,13 +39,8 @@ from scipy.ndimage import gaussian_filter
 from scipy.spatial.transform import Rotation
 
 from recon.geometry import DetectorSpec, View
-from registration.implants import (
-    ATTACHABLE,
-    Material,
-    ray_lengths,
-    read_mesh,
-    size_range_mm,
-)
+from registration.implants import ray_lengths
+from registration.meshes import ATTACHABLE, Material, read_mesh, size_range_mm
 from sim.fluoro import lateral_view
 from sim.phantoms.knee import KneePhantomSpec
 

@@ -27,8 +27,9 @@ from scipy import ndimage
 
 from recon.geometry import View
 from recon.volume import VolumeGrid
-from registration.implants import inside_fraction, ray_lengths
+from registration.implants import ray_lengths
 from registration.labels import INSERT_LABEL, LABELS
+from registration.meshes import inside_fraction
 from sim.phantoms.tka import TkaPhantomSpec
 from sim.spectrum import COMPOSITIONS, Spectrum, tube_spectrum
 from sim.tka import cylinder_chords, load_tka, part_poses, read_gait, tka_motion

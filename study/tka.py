@@ -24,7 +24,7 @@ from recon.mar import nmar
 from recon.preview import save_orthogonal_slices
 from recon.rtk_xml import write_rtk_geometry
 from recon.volume import Volume
-from registration.implants import read_mesh
+from registration.meshes import read_mesh
 from registration.placement import place_components
 from registration.poses import BodyPose, read_poses, write_poses
 from registration.se3 import compose

@@ -215,7 +215,7 @@ def _body_words(option: str, given: list[str] | None) -> dict[str, str]:
 def _attachments(given: list[str] | None) -> dict[str, tuple[tuple[Path, str], ...]]:
     """``--attach BODY=MESH:MATERIAL`` options as the body's role -> its parts (mesh,
     material); ValueError naming the value otherwise."""
-    from registration.implants import ATTACHABLE
+    from registration.meshes import ATTACHABLE
     from study.jobs.register import body_role
 
     out: dict[str, tuple[tuple[Path, str], ...]] = {}

@@ -15,7 +15,7 @@ from assessment.series import bone_mesh, export_series, record_series
 from assessment.viewer import motion_scene
 from recon.io import read_volume
 from recon.volume import Volume
-from registration.implants import read_mesh
+from registration.meshes import read_mesh
 from registration.poses import BodyPose, read_poses
 from registration.roles import KNOWN_ROLES, playing
 from scanner.outputs import new_folder

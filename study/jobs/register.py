@@ -33,16 +33,11 @@ from recon.static_volume import StaticSource, StaticUnit, read_attenuation
 from recon.volume import Volume
 from registration.drr import SoftTissue, bone_models
 from registration.frames import Frames, read_frames
-from registration.implants import (
-    ATTACHABLE,
-    MATERIALS,
-    implant_model,
-    read_mesh,
-    size_range_mm,
-)
+from registration.implants import implant_model
 from registration.jointtrack import camera_frame, read_calibration, read_jointtrack_poses
 from registration.jointtrack import write_poses as write_jts
 from registration.mayacam import is_mayacam
+from registration.meshes import ATTACHABLE, MATERIALS, read_mesh, size_range_mm
 from registration.metrics import as_rows, pose_error, summarize
 from registration.overlays import write_overlays
 from registration.poses import BodyPose, poses_by_frame, read_poses, write_poses
@@ -66,7 +61,7 @@ class ImplantSpec:
     it is tracked as registration.roles.COMPONENT_NAMES names it), its mesh file, the mesh's
     unit, its material (registration.implants) and the parts fixed to it (``attached``: each a
     mesh file in the component mesh's frame and unit, and its material from
-    :data:`registration.implants.ATTACHABLE`: a tray's insert, the bone the component is
+    :data:`registration.meshes.ATTACHABLE`: a tray's insert, the bone the component is
     fixed to), rendered with it."""
 
     body: str

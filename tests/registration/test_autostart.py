@@ -6,8 +6,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from registration.autostart import binning, candidate_poses
-from registration.implants import MATERIALS, implant_model
+from registration.implants import implant_model
 from registration.jointtrack import camera_view
+from registration.meshes import MATERIALS
 from tests.registration.test_register_implants import component
 
 

@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from registration.implants import MATERIALS, implant_model, ray_lengths, read_mesh, voxelize
+from registration.implants import implant_model, ray_lengths
 from registration.jointtrack import camera_view, read_calibration, read_poses
+from registration.meshes import MATERIALS, read_mesh, voxelize
 from registration.settings import Settings
 from registration.tracker import Tracker
 

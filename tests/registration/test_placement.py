@@ -10,7 +10,7 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from recon.volume import VolumeGrid
-from registration.implants import inside_fraction
+from registration.meshes import inside_fraction
 from registration.placement import place_components
 from sim.phantoms.tka import TkaPhantomSpec
 from sim.tka import load_tka

@@ -13,8 +13,9 @@ import trimesh
 from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
-from registration.implants import MATERIALS, implant_model
+from registration.implants import implant_model
 from registration.jointtrack import camera_view, read_poses, write_calibration, write_poses
+from registration.meshes import MATERIALS
 from registration.poses import read_poses as read_csv
 from study.cli import app
 

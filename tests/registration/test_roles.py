@@ -8,7 +8,8 @@ import pytest
 import trimesh
 
 from recon.geometry import DetectorSpec, circular_orbit
-from registration.implants import MATERIALS, implant_model
+from registration.implants import implant_model
+from registration.meshes import MATERIALS
 from registration.poses import BodyPose, write_poses
 from registration.roles import playing, roles_of
 from registration.tracker import Tracker
