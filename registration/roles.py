@@ -124,11 +124,23 @@ def carriers(roles: Mapping[str, Role]) -> dict[str, str]:
     return out
 
 
+def first_playing(role: Role, bodies: Iterable[str]) -> str | None:
+    """The first of ``bodies`` (named as the pipeline names them) to play ``role`` in
+    :data:`KNOWN_ROLES`' order (the bone units first), or None.
+
+    Examples:
+        >>> first_playing("tibia", ["tibia", "fibula", "tibia_fibula"])
+        'tibia_fibula'
+    """
+    names = set(bodies)
+    return next((n for n, r in KNOWN_ROLES.items() if r == role and n in names), None)
+
+
 def playing(bodies: Iterable[str], *wanted: Role) -> tuple[str, ...]:
     """The names of the bodies playing each ``wanted`` role among ``bodies`` (named as the
     pipeline names them; others are passed over), in the order asked; where several play a
-    role (a simulation's truth has the tibia, the fibula and their unit), the first of
-    :data:`KNOWN_ROLES`' order (the bone units first).
+    role (a simulation's truth has the tibia, the fibula and their unit), the first
+    (:func:`first_playing`).
 
     Raises:
         ValueError: No body plays a wanted role.
@@ -142,11 +154,11 @@ def playing(bodies: Iterable[str], *wanted: Role) -> tuple[str, ...]:
     names = list(dict.fromkeys(bodies))
     found = []
     for role in wanted:
-        named = [n for n, r in KNOWN_ROLES.items() if r == role and n in names]
-        if not named:
+        name = first_playing(role, names)
+        if name is None:
             raise ValueError(
                 f"poses of {names}: no body plays the {role} (a {role}'s names: "
                 f"{sorted(n for n, r in KNOWN_ROLES.items() if r == role)})"
             )
-        found.append(named[0])
+        found.append(name)
     return tuple(found)

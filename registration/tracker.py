@@ -323,11 +323,7 @@ class Tracker:
         previous = self._last_ncc.get(name, score)
         if not (score < s.fail_ncc or score < previous - s.drop_ncc):
             return poses, score, grad, 0
-        carrier = self.scene.carriers.get(name)
-        wide = {
-            **poses,
-            name: carrier_pose(carrier, poses) @ carried_pose(name, carrier, history[-1]),
-        }
+        wide = {**poses, name: self._carried_forward(name, poses, history[-1])}
         wide[name], n = self.scene.global_search(frame, name, wide, scale=0.5)
         wide[name], m, wide_score, wide_grad = refined(wide)
         if wide_score - self.scene.penalty(name, wide) > score - self.scene.penalty(name, poses):
@@ -359,10 +355,15 @@ class Tracker:
         relative to its carrier; else ``poses[name]`` as it is."""
         if len(history) >= 2:
             return self._kpm(frame, name, poses, history)
-        carrier = self.scene.carriers.get(name)
-        if history and carrier is not None:  # carried at its last relative pose
-            return carrier_pose(carrier, poses) @ carried_pose(name, carrier, history[-1]), 0
+        if history and name in self.scene.carriers:  # carried at its last relative pose
+            return self._carried_forward(name, poses, history[-1]), 0
         return poses[name], 0
+
+    def _carried_forward(self, name: str, poses: Poses, last: Poses) -> np.ndarray:
+        """Body ``name`` at its pose relative to its carrier in ``last`` (the frame before),
+        carried by the carrier's pose in ``poses`` (in the world where it has no carrier)."""
+        carrier = self.scene.carriers.get(name)
+        return carrier_pose(carrier, poses) @ carried_pose(name, carrier, last)
 
     def _predicted(self, name: str, history: list[Poses]) -> np.ndarray:
         """Body ``name``'s constant-velocity prediction from the last two frames."""

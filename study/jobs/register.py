@@ -47,6 +47,7 @@ from registration.roles import (
     KNOWN_ROLES,
     Role,
     body_playing,
+    first_playing,
     roles_of,
     tracking_order,
 )
@@ -96,8 +97,7 @@ def _file_rows(poses: list[BodyPose], roles: dict[str, Role]) -> list[BodyPose]:
     named = {p.body for p in poses}
     source = {}
     for body, role in roles.items():
-        older = (n for n, r in KNOWN_ROLES.items() if r == role and n in named)
-        source[body if body in named else next(older, body)] = body
+        source[body if body in named else first_playing(role, named) or body] = body
     return [replace(p, body=source[p.body]) for p in poses if p.body in source]
 
 
@@ -265,7 +265,8 @@ def register_files(
     _check(inputs, out)
     frames, numbers, view = _frames_and_view(inputs, options)
     models, soft, source, meshes = _bodies(inputs, options)
-    roles = {name: roles_of(models)[name] for name in tracking_order(roles_of(models))}
+    found_roles = roles_of(models)
+    roles = {name: found_roles[name] for name in tracking_order(found_roles)}
     count = int(numbers[-1]) + 1
     truth = None if inputs.truth is None else _truth(inputs.truth, count, roles, view)
     start = None  # implants alone: searched
@@ -385,7 +386,7 @@ def _write(
     ]
     write_poses(out / "poses.csv", poses, centroids)
     T_camera_world = np.linalg.inv(camera_frame(view))
-    for name, role in roles_of(models).items():  # JointTrack's, in its camera frame; by role
+    for name, role in tracker.roles.items():  # JointTrack's, in its camera frame; by role
         stack = [T_camera_world @ r.bodies[name].T_world_body for r in results]
         write_jts(out / f"{role}.jts", stack)
     write_overlays(out / "overlays", frames.data, view, models, results)
