@@ -33,6 +33,8 @@ import threading
 import time
 from pathlib import Path
 
+from measures import cpu_model
+
 BENCH = Path(__file__).resolve().parent
 ROOT = BENCH.parent
 OUT = BENCH / "out" / "all.json"
@@ -103,18 +105,6 @@ def git_commit() -> tuple[str | None, bool | None]:
     except (OSError, subprocess.CalledProcessError):
         return None, None
     return commit, bool(status)
-
-
-def cpu_model() -> str | None:
-    """The CPU's model name (/proc/cpuinfo), e.g. "AMD EPYC 9B14"; None where it is not told."""
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or None
 
 
 def machine() -> dict:

@@ -1,11 +1,35 @@
-"""Measures the benchmarks share: a process's peak memory, SSIM over a region, the central
-cylinder of a volume and the bone Dice of a reconstruction's segmentation."""
+"""Measures the benchmarks share: the machine's CPU, a process's peak memory, SSIM over a
+region, the central cylinder of a volume and the bone Dice of a reconstruction's
+segmentation."""
 
 from __future__ import annotations
 
+import platform
 from pathlib import Path
 
 import numpy as np
+
+
+def cpu_model() -> str:
+    """The CPU's model name with its family, model and the code numba compiles for, e.g.
+    "AMD EPYC (family 25 model 1, znver3)": a virtual machine often hides the model number,
+    and two "AMD EPYC" hosts of different generations run the same kernels 3x apart."""
+    fields: dict[str, str] = {}
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as f:
+            for line in f:
+                key, _, value = line.partition(":")
+                if not key.strip():
+                    break  # the first processor's block is enough
+                fields.setdefault(key.strip(), value.strip())
+    except OSError:
+        pass
+    import llvmlite.binding
+
+    name = fields.get("model name") or platform.processor() or platform.machine()
+    facts = [f"family {fields['cpu family']} model {fields['model']}"] if "model" in fields else []
+    facts.append(llvmlite.binding.get_host_cpu_name())
+    return f"{name} ({', '.join(facts)})"
 
 
 def peak_resident_mb() -> float:

@@ -64,7 +64,6 @@ import contextlib
 import json
 import math
 import os
-import platform
 import resource
 import signal
 import subprocess
@@ -81,6 +80,9 @@ import yaml
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+sys.path.append(str(ROOT / "bench"))  # measures; after the packages, never before
+
+from measures import cpu_model  # noqa: E402
 
 from recon.config import ScanProtocol, load_config  # noqa: E402
 from recon.io import read_projections  # noqa: E402
@@ -846,15 +848,6 @@ def soak(
         and not untimed
     )
     return result
-
-
-def cpu_model() -> str:
-    """The CPU's model name (/proc/cpuinfo), or the machine type."""
-    with contextlib.suppress(OSError):
-        for line in Path("/proc/cpuinfo").read_text(encoding="utf-8").splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    return platform.machine()
 
 
 def main() -> None:
