@@ -12,7 +12,11 @@ kernels load from numba's cache; RTK has nothing to warm), then times the recons
 the process's peak resident memory is reported as measured (it includes the interpreter and
 the libraries). Both use a plain ramp (Ram-Lak) filter and both threads of this machine.
 
-Prints one JSON object ``{"cases": [...]}``; see ``KEYS`` for each entry.
+Then the consoles as a user runs them, start-up and file writing included: ``cbct recon``
+against RTK's ``rtkfdk`` on RTK's Shepp-Logan, 240 views of 320 x 320 pixels (1 mm) on a circle
+into 160^3 voxels of 1 mm (``CONSOLE``), each command timed twice in a fresh process.
+
+Prints one JSON object ``{"cases": [...], "console": {...}}``; see ``KEYS`` for each case.
 
 Usage: ``python bench/recon.py [--small] [--out DIR]`` (``--small`` runs a 64^3 version in
 about a minute to check the harness).
@@ -77,6 +81,9 @@ SMALL = {
     "knee_voxel_mm": 1.0,
     "travel_mm": 200.0,
 }
+CONSOLE = {"views": 240, "panel": 320, "pitch_mm": 1.0, "size": 160, "voxel_mm": 1.0}
+"""The console comparison's scan and grid (``--small``: :data:`CONSOLE_SMALL`)."""
+CONSOLE_SMALL = {"views": 60, "panel": 80, "pitch_mm": 4.0, "size": 40, "voxel_mm": 4.0}
 SID_MM, SDD_MM = 600.0, 1000.0
 
 
@@ -240,6 +247,73 @@ def measure(case: str, kind: str, folder: Path, log) -> dict:
     return entry
 
 
+def console(cfg: dict, root: Path, log) -> dict:
+    """``cbct recon`` and ``rtkfdk`` on the same files, each run twice as a user runs it (a
+    fresh process: start-up, reading, reconstruction and writing), wall seconds."""
+    from recon.rtk_peer import rtk_shepp_logan
+
+    panel = DetectorSpec(rows=cfg["panel"], cols=cfg["panel"], pixel_pitch_mm=cfg["pitch_mm"])
+    geometry = circular_orbit(cfg["views"], SID_MM, SDD_MM, panel)
+    grid = VolumeGrid.centered((cfg["size"],) * 3, cfg["voxel_mm"], (0.0, 0.0, 0.0))
+    folder = root / "console"
+    log(f"RTK analytic Shepp-Logan projections for the consoles: {cfg['views']} views")
+    write_scan(
+        folder,
+        rtk_shepp_logan(geometry, grid, 0.45 * cfg["size"] * cfg["voxel_mm"])[0],
+        geometry,
+        grid,
+    )
+    size, voxel = [str(cfg["size"])] * 3, str(cfg["voxel_mm"])
+    bin_dir = Path(sys.executable).parent
+    commands = {
+        "ours": [
+            str(bin_dir / "cbct"),
+            "recon",
+            "--projections",
+            str(folder / "projections.mha"),
+            "--geometry",
+            str(folder / "geometry.xml"),
+            "--out",
+            "OUT.nii.gz",
+            "--size",
+            *size,
+            "--spacing-mm",
+            voxel,
+        ],
+        "rtk": [
+            str(bin_dir / "rtkfdk"),
+            "-g",
+            str(folder / "geometry.xml"),
+            "--path",
+            str(folder),
+            "--regexp",
+            "projections.mha",
+            "--nodisplaced",  # a centred panel (its FOV step rejects the panel rotation we write)
+            "-o",
+            "OUT.mha",
+            "--dimension",
+            ",".join(size),
+            "--spacing",
+            ",".join([voxel] * 3),
+        ],
+    }
+    seconds: dict[str, list[float]] = {}
+    for run in range(2):
+        for name, command in commands.items():
+            log(f"console {name}, run {run + 1}")
+            out = folder / f"{name}-{run}"
+            argv = [a.replace("OUT", str(out)) for a in command]
+            start = time.perf_counter()
+            subprocess.run(argv, check=True, capture_output=True)
+            seconds.setdefault(name, []).append(round(time.perf_counter() - start, 2))
+    return {
+        **cfg,
+        "ours_s": seconds["ours"],
+        "rtk_s": seconds["rtk"],
+        "speed_ratio": round(min(seconds["rtk"]) / min(seconds["ours"]), 2),
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--small", action="store_true", help="64^3 harness check")
@@ -260,7 +334,9 @@ def main() -> None:
         root = args.out or Path(tmp)
         jobs = shepp_logan_inputs(cfg, root, log) + knee_inputs(cfg, root, log)
         cases = [measure(case, kind, folder, log) for case, kind, folder in jobs]
-    print(json.dumps({"benchmark": "recon", "config": cfg, "cases": cases}, indent=1))
+        consoles = console(CONSOLE_SMALL if args.small else CONSOLE, root, log)
+    result = {"benchmark": "recon", "config": cfg, "cases": cases, "console": consoles}
+    print(json.dumps(result, indent=1))
 
 
 if __name__ == "__main__":
