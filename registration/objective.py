@@ -133,6 +133,43 @@ class Objective:
             return 1.0 + penalty
 
 
+class JointObjective:
+    """One body's objective over several views of a time point: the mean of each view's
+    :class:`Objective` (its -NCC and its prior), at the same pose in the common world.
+
+    ``residuals`` stacks the views' residuals scaled by ``1/sqrt(N)`` (half the squared norm is
+    the mean of ``1 - NCC`` plus the priors); ``scores`` are the views' mean NCC and gradient
+    NCC. Raises :class:`OutOfView` only when every view loses the body: a view that does not
+    see it is left out.
+    """
+
+    def __init__(self, objectives: list[Objective]) -> None:
+        if not objectives:
+            raise ValueError("no view holds the body")
+        self.views = objectives
+        self.body, self.T0 = objectives[0].body, objectives[0].T0
+        self.evaluations = 0
+
+    def __call__(self, x: np.ndarray) -> float:
+        self.evaluations += 1
+        return self.cost(compose(np.asarray(x, dtype=np.float64), self.T0, self.body.centroid_mm))
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        """The views' residuals (:meth:`Objective.residuals`) stacked, over ``sqrt(N)``."""
+        self.evaluations += 1
+        scale = 1.0 / math.sqrt(len(self.views))
+        return np.concatenate([o.residuals(x) for o in self.views]) * scale
+
+    def scores(self, T: np.ndarray) -> tuple[float, float]:
+        """The views' mean NCC and mean gradient NCC at pose ``T`` (no prior)."""
+        pairs = np.array([o.scores(T) for o in self.views])
+        return float(pairs[:, 0].mean()), float(pairs[:, 1].mean())
+
+    def cost(self, T: np.ndarray) -> float:
+        """The views' mean cost (:meth:`Objective.cost`) at pose ``T``."""
+        return float(np.mean([o.cost(T) for o in self.views]))
+
+
 def _unit(values: np.ndarray) -> np.ndarray:
     """``values`` less their mean, scaled to unit norm (float64; zeros when constant)."""
     centred = values.astype(np.float64) - values.mean(dtype=np.float64)

@@ -1,10 +1,12 @@
 """One view's frames and the bodies tracked in them: a body's objective on a pyramid level
 (the other bodies and the soft tissue at their estimates, the frame prepared to match, the
-body's priors) and the searches on it, level by level (docs/algorithms/registration.md)."""
+body's priors) and the searches on it, level by level (docs/algorithms/registration.md).
+:class:`Searches` holds the searches, which registration.views runs on several views."""
 
 from __future__ import annotations
 
 import math
+from abc import ABC, abstractmethod
 from dataclasses import replace
 
 import numpy as np
@@ -12,7 +14,7 @@ import numpy as np
 from recon.geometry import View
 from registration import search
 from registration.drr import SoftTissue, scene
-from registration.objective import BodyModel, Objective
+from registration.objective import BodyModel, JointObjective, Objective
 from registration.priors import Prior, depth_prior, joined, patellofemoral_prior
 from registration.resolution import frame_blur, model_blur
 from registration.roles import Role, carriers, roles_of
@@ -25,7 +27,88 @@ Poses = dict[str, np.ndarray]
 """Poses by body name, each 4x4 (mm)."""
 
 
-class Scene:
+class Searches(ABC):
+    """The searches on one body's objective, level by level: a :class:`Scene`'s, or several
+    views' at once (registration.views.Views)."""
+
+    settings: Settings
+    bodies: dict[str, BodyModel]
+    levels: tuple[int, ...]
+
+    @abstractmethod
+    def objective(
+        self,
+        frame: int,
+        level: int,
+        name: str,
+        poses: Poses,
+        lone: bool = False,
+        reach: tuple[np.ndarray, ...] = (),
+        beside: tuple[str, ...] = (),
+    ) -> Objective | JointObjective:
+        """The objective of body ``name`` on pyramid ``level`` of ``frame``, the others at
+        ``poses`` (:meth:`Scene.objective`)."""
+
+    def refine(
+        self, frame: int, name: str, poses: Poses, scale: float = 1.0, polish: bool = False
+    ) -> tuple[np.ndarray, int]:
+        """Coarse to fine: Powell (bounded about the start by ``scale`` x refine_range) on the
+        coarsest level, Nelder-Mead on the finer ones (on every level without Powell);
+        ``polish``: Nelder-Mead on the finest level only."""
+        s = self.settings
+        box = (scale * s.refine_range[0], scale * s.refine_range[1])
+        evaluations = 0
+        levels = self.levels[-1:] if polish and s.powell else self.levels
+        for i, level in enumerate(levels, start=len(self.levels) - len(levels)):
+            objective = self.objective(frame, level, name, poses)
+            by_powell = s.powell and i == 0
+            if by_powell:
+                x = search.powell(objective, box, s)
+            if not by_powell or len(self.levels) == 1:
+                x0 = x if by_powell else np.zeros(6)
+                fine = i == len(self.levels) - 1
+                x = search.nelder_mead(objective, x0, 0.3 if fine and i > 0 else 1.0, s)
+            poses = {**poses, name: compose(x, poses[name], self.bodies[name].centroid_mm)}
+            evaluations += objective.evaluations
+        return poses[name], evaluations
+
+    def least_squares(
+        self, frame: int, name: str, poses: Poses, levels: tuple[int, ...]
+    ) -> tuple[np.ndarray, int, Objective]:
+        """Levenberg-Marquardt on each of ``levels`` in turn, at most ``ls_max_steps`` steps
+        each (coarse, finest). Returns the pose, the evaluations and the last level's
+        objective."""
+        evaluations = 0
+        for level in levels:
+            objective = self.objective(frame, level, name, poses)
+            max_steps = self.settings.ls_max_steps[int(level == self.levels[-1])]
+            x = search.levenberg_marquardt(objective, self.settings, max_steps)
+            poses = {**poses, name: compose(x, poses[name], self.bodies[name].centroid_mm)}
+            evaluations += objective.evaluations
+        return poses[name], evaluations, objective
+
+    def global_search(
+        self,
+        frame: int,
+        name: str,
+        poses: Poses,
+        scale: float = 1.0,
+        lone: bool = False,
+        beside: tuple[str, ...] = (),
+    ) -> tuple[np.ndarray, int]:
+        """Differential evolution in a box aligned with the body's principal axes at its
+        current pose (registration.search.global_search) on the coarsest level."""
+        objective = self.objective(frame, self.levels[0], name, poses, lone, beside=beside)
+        axes = poses[name][:3, :3] @ search.principal_axes(self.bodies[name].points_mm)
+        x = search.global_search(objective, axes, self.settings, scale)
+        return compose(x, poses[name], self.bodies[name].centroid_mm), objective.evaluations
+
+    def score(self, frame: int, name: str, poses: Poses) -> tuple[float, float]:
+        """Body ``name``'s NCC and gradient NCC at ``poses`` on the finest level."""
+        return self.objective(frame, self.levels[-1], name, poses).scores(poses[name])
+
+
+class Scene(Searches):
     """A fluoroscopy sequence's frames and the bodies tracked in them, as one body's searches
     see them.
 
@@ -92,60 +175,6 @@ class Scene:
         self._targets.keep_frame(frame)
         self.before = before
 
-    def refine(
-        self, frame: int, name: str, poses: Poses, scale: float = 1.0, polish: bool = False
-    ) -> tuple[np.ndarray, int]:
-        """Coarse to fine: Powell (bounded about the start by ``scale`` x refine_range) on the
-        coarsest level, Nelder-Mead on the finer ones (on every level without Powell);
-        ``polish``: Nelder-Mead on the finest level only."""
-        s = self.settings
-        box = (scale * s.refine_range[0], scale * s.refine_range[1])
-        evaluations = 0
-        levels = self.levels[-1:] if polish and s.powell else self.levels
-        for i, level in enumerate(levels, start=len(self.levels) - len(levels)):
-            objective = self.objective(frame, level, name, poses)
-            by_powell = s.powell and i == 0
-            if by_powell:
-                x = search.powell(objective, box, s)
-            if not by_powell or len(self.levels) == 1:
-                x0 = x if by_powell else np.zeros(6)
-                fine = i == len(self.levels) - 1
-                x = search.nelder_mead(objective, x0, 0.3 if fine and i > 0 else 1.0, s)
-            poses = {**poses, name: compose(x, poses[name], self.bodies[name].centroid_mm)}
-            evaluations += objective.evaluations
-        return poses[name], evaluations
-
-    def least_squares(
-        self, frame: int, name: str, poses: Poses, levels: tuple[int, ...]
-    ) -> tuple[np.ndarray, int, Objective]:
-        """Levenberg-Marquardt on each of ``levels`` in turn, at most ``ls_max_steps`` steps
-        each (coarse, finest). Returns the pose, the evaluations and the last level's
-        objective."""
-        evaluations = 0
-        for level in levels:
-            objective = self.objective(frame, level, name, poses)
-            max_steps = self.settings.ls_max_steps[int(level == self.levels[-1])]
-            x = search.levenberg_marquardt(objective, self.settings, max_steps)
-            poses = {**poses, name: compose(x, poses[name], self.bodies[name].centroid_mm)}
-            evaluations += objective.evaluations
-        return poses[name], evaluations, objective
-
-    def global_search(
-        self,
-        frame: int,
-        name: str,
-        poses: Poses,
-        scale: float = 1.0,
-        lone: bool = False,
-        beside: tuple[str, ...] = (),
-    ) -> tuple[np.ndarray, int]:
-        """Differential evolution in a box aligned with the body's principal axes at its
-        current pose (registration.search.global_search) on the coarsest level."""
-        objective = self.objective(frame, self.levels[0], name, poses, lone, beside=beside)
-        axes = poses[name][:3, :3] @ search.principal_axes(self.bodies[name].points_mm)
-        x = search.global_search(objective, axes, self.settings, scale)
-        return compose(x, poses[name], self.bodies[name].centroid_mm), objective.evaluations
-
     def objective(
         self,
         frame: int,
@@ -207,10 +236,6 @@ class Scene:
         """The prior's cost of body ``name`` at ``poses`` (0 without a prior)."""
         prior = self.prior(name, poses)
         return 0.0 if prior is None else float(np.sum(prior(poses[name]) ** 2))
-
-    def score(self, frame: int, name: str, poses: Poses) -> tuple[float, float]:
-        """Body ``name``'s NCC and gradient NCC at ``poses`` on the finest level."""
-        return self.objective(frame, self.levels[-1], name, poses).scores(poses[name])
 
     def _truncation(
         self, level: int, name: str, poses: Poses, reach: tuple[np.ndarray, ...]

@@ -1,5 +1,5 @@
 """BoneAxis-Reg's tracker: every body (a bone or an implant component) in every frame of a
-single-plane fluoroscopy sequence (docs/algorithms/registration.md).
+fluoroscopy sequence seen by one camera or several (docs/algorithms/registration.md).
 
 Each body is scored against the scene (registration.objective): the soft tissue and the other
 bodies at their current estimates stay fixed while one moves. Frame by frame:
@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 
 import numpy as np
@@ -46,6 +46,7 @@ from registration.scene import Poses, Scene
 from registration.se3 import twist_exp
 from registration.search import kinematic_line_search
 from registration.settings import Settings
+from registration.views import Views
 
 Refined = Callable[[Poses], tuple[np.ndarray, int, float, float]]
 """A refinement of one body from poses: its pose, the evaluations, its NCC and gradient NCC."""
@@ -55,8 +56,11 @@ class Tracker:
     """Registers every body in every frame of a fluoroscopy sequence.
 
     Args:
-        view: the fluoroscopy view at full resolution.
-        frames: line integrals (F, rows, cols).
+        view: the fluoroscopy view at full resolution, or one per camera (biplane and
+            multi-view fluoroscopy, registration.views: each body's pose is scored on every
+            view that sees it; the first view's depth is the KPM's held depth).
+        frames: line integrals (F, rows, cols), or one such stack per view (frames paired by
+            index).
         bodies: the tracked bodies by name: bones (registration.drr.bone_models) or implant
             components (registration.implants.implant_model).
         settings: registration settings.
@@ -65,7 +69,7 @@ class Tracker:
         field: bool (rows, cols), the pixels the beam reaches (an image intensifier's round
             field, a collimator's shutters: registration.frames.Frames.field); the rest, and
             the band where the high-pass filter sees the field's edge, is left out of the
-            similarity. None: every pixel.
+            similarity. None: every pixel. With several views, one per view (or None).
         roles: each body's anatomical role (femur, tibia, patella) by name, for bodies whose
             names do not say it (registration.roles.roles_of: bones and components named as
             the pipeline names them need none). The roles set the order bodies are registered
@@ -74,20 +78,38 @@ class Tracker:
 
     def __init__(
         self,
-        view: View,
-        frames: np.ndarray,
+        view: View | Sequence[View],
+        frames: np.ndarray | Sequence[np.ndarray],
         bodies: dict[str, BodyModel],
         settings: Settings | None = None,
         soft_tissue: SoftTissue | None = None,
-        field: np.ndarray | None = None,
+        field: np.ndarray | Sequence[np.ndarray | None] | None = None,
         roles: dict[str, Role] | None = None,
     ) -> None:
         if not bodies:
             raise ValueError("no body to track")
-        self.view = view
         self.settings = settings or Settings()
-        self.scene = Scene(view, frames, bodies, self.settings, soft_tissue, field, roles)
-        """The frames and the bodies, as each body's searches see them."""
+        if isinstance(view, View):
+            self.view = view
+            self.scene: Scene | Views = Scene(
+                view, frames, bodies, self.settings, soft_tissue, field, roles
+            )
+            """The frames and the bodies, as each body's searches see them."""
+        else:
+            views = list(view)
+            stacks = list(frames)
+            fields = list(field) if field is not None else [None] * len(views)
+            if not len(views) == len(stacks) == len(fields):
+                raise ValueError(
+                    f"{len(views)} views, {len(stacks)} frame stacks and {len(fields)} fields: "
+                    "one of each per camera"
+                )
+            self.view = views[0]
+            scenes = [
+                Scene(v, f, bodies, self.settings, soft_tissue, m, roles)
+                for v, f, m in zip(views, stacks, fields, strict=True)
+            ]
+            self.scene = scenes[0] if len(scenes) == 1 else Views(scenes)
         self.order = tracking_order(self.scene.roles)
         """The tracked bodies in the order they are registered in a frame."""
         self._last_ncc: dict[str, float] = {}

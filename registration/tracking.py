@@ -4,7 +4,7 @@ sequence's view (:func:`read_view`: an RTK geometry, a JointTrack or MayaCam cal
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -92,8 +92,8 @@ def read_view(
 
 
 def track(
-    frames: Frames | np.ndarray,
-    view: View,
+    frames: Frames | np.ndarray | Sequence[Frames | np.ndarray],
+    view: View | Sequence[View],
     bodies: dict[str, BodyModel],
     *,
     start: dict[str, np.ndarray] | None = None,
@@ -106,8 +106,9 @@ def track(
 
     Args:
         frames: The frames (:func:`registration.read_frames`), or their line integrals
-            (frames, rows, cols).
-        view: The fluoroscopy view (:func:`read_view`).
+            (frames, rows, cols); with several cameras, one of these per view, paired by index.
+        view: The fluoroscopy view (:func:`read_view`), or one per camera in one world (each
+            body's pose is scored on every view that sees it: registration.views).
         bodies: The tracked bodies' models by name: a static scan's bones
             (registration.bone_models: femur, tibia_fibula, patella) or implant components
             (registration.implant_body: femoral_component, tibial_tray, patellar_component).
@@ -128,8 +129,8 @@ def track(
 
 
 def tracked(
-    frames: Frames | np.ndarray,
-    view: View,
+    frames: Frames | np.ndarray | Sequence[Frames | np.ndarray],
+    view: View | Sequence[View],
     bodies: dict[str, BodyModel],
     start: dict[str, np.ndarray] | None,
     settings: Settings | None,
@@ -150,20 +151,40 @@ def tracked(
         progress: As :func:`track`'s.
         roles: As :func:`track`'s.
     """
-    if isinstance(frames, Frames):
-        data, field, where = frames.data, frames.field, f"{frames.header.source} with the view"
+    views = [view] if isinstance(view, View) else list(view)
+    stacks = [frames] if isinstance(view, View) else list(frames)
+    if len(stacks) != len(views):
+        raise ValueError(f"{len(stacks)} frame stacks for {len(views)} views: one per camera")
+    data, fields, where = [], [], []
+    for k, stack in enumerate(stacks, start=1):
+        camera = f" of camera {k}" if len(views) > 1 else ""
+        if isinstance(stack, Frames):
+            data.append(stack.data)
+            fields.append(stack.field)
+            where.append(f"{stack.header.source} with the view{camera}")
+        else:
+            data.append(np.asarray(stack, dtype=np.float32))
+            fields.append(None)
+            where.append(f"the frames with the view{camera}")
+            if data[-1].ndim != 3:
+                raise ValueError(
+                    f"frames{camera} of shape {data[-1].shape}: give a stack (frames, rows, cols)"
+                )
+    if isinstance(view, View):
+        tracker = Tracker(view, data[0], bodies, settings, soft_tissue, fields[0], roles)
     else:
-        data, field, where = np.asarray(frames, dtype=np.float32), None, "the frames with the view"
-        if data.ndim != 3:
-            raise ValueError(f"frames of shape {data.shape}: give a stack (frames, rows, cols)")
-    tracker = Tracker(view, data, bodies, settings, soft_tissue, field, roles)
+        tracker = Tracker(views, data, bodies, settings, soft_tissue, fields, roles)
     given = dict(start or {})
     for name in (b for b in bodies if b not in given and not isinstance(bodies[b], ImplantModel)):
         given[name] = np.eye(4)  # a bone where the static scan has it
     components = [b for b in bodies if b not in given]
-    if components:
-        given |= _automatic_start(tracker, bodies, components, view, data[0], field, given)
-    _check_in_view(view, bodies, given, where)
+    if components:  # found in the first camera's first frame
+        found = _automatic_start(
+            tracker, bodies, components, views[0], data[0][0], fields[0], given
+        )
+        given |= found
+    for v, w in zip(views, where, strict=True):
+        _check_in_view(v, bodies, given, w)
     return tracker, tracker.track(given, progress=progress)
 
 

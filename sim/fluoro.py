@@ -48,6 +48,7 @@ from typing import Literal
 import numba
 import numpy as np
 from scipy import ndimage
+from scipy.spatial.transform import Rotation
 
 from calibration.dewarp_grid import DewarpGridSpec
 from recon.config import ExposureSpec
@@ -193,6 +194,36 @@ def lateral_view(
         e_v=e_v,
         detector=detector,
     )
+
+
+def biplane_views(
+    spec: KneePhantomSpec,
+    detector: DetectorSpec,
+    angle_deg: float = 90.0,
+    sid_mm: float = 800.0,
+    sdd_mm: float = 1200.0,
+) -> tuple[View, View]:
+    """Two fluoroscopy views of the knee ``angle_deg`` apart: the :func:`lateral_view`, and
+    the same source and panel turned about the vertical line through the tibial plateau
+    centre (toward anterior; 90 degrees: the anterior-posterior view, source in front).
+
+    Args:
+        spec: the phantom (side and joint line).
+        detector: both panels.
+        angle_deg: the angle between the central rays, degrees in [20, 160] (nearly parallel
+            views resolve depth no better than one).
+        sid_mm: source to the plateau centre, mm.
+        sdd_mm: source to panel, mm (> sid_mm).
+    """
+    if not 20.0 <= angle_deg <= 160.0:
+        raise ValueError(f"angle_deg must be in [20, 160] degrees, got {angle_deg!r}")
+    lateral = lateral_view(spec, detector, sid_mm, sdd_mm)
+    target = knee_landmarks(spec)["tibial_plateau_center"]
+    turn = -1.0 if spec.side == "right" else 1.0  # the medial source swings to the front
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("z", turn * angle_deg, degrees=True).as_matrix()
+    T[:3, 3] = target - T[:3, :3] @ target
+    return lateral, move_view(lateral, T)
 
 
 def default_photons_per_pixel(view: View) -> float:
