@@ -33,6 +33,12 @@ The regimes (docs/system.md, issue "4D virtual imaging"; docs/implants.md for th
   tracked and the seconds per frame. With ``--edge-fit``, a third estimate: each component
   fitted to the frame's edges alone, started at the reference pose (:func:`edge_optimum`, a
   fit of JointTrack's kind), and how far it lies from the reference and from ours.
+- ``biplane``: two cameras. The matched regime's bone models and image model (without the
+  panel's distortion) seen by the lateral view and by a second view :data:`BIPLANE_ANGLES_DEG`
+  away (sim.fluoro.biplane_views; the angle cycles over the sequences), every frame tracked
+  from both views at once (registration.views; entry ``biplane``), and the same frames from
+  the lateral camera alone (entry ``biplane_one_camera``), both by ``boneaxis_kpm``: in-plane
+  and depth errors are along the lateral view's axes, the seconds are per time point.
 - ``tka``: a simulated knee replacement with ground truth (sim.tka: the Grand Challenge
   subject's components on its bones, moved by its knee kinematics measured over gait, 5 to
   53 deg of flexion over ``--frames`` frames; lateral frames of the share of the beam stopped,
@@ -111,6 +117,7 @@ from registration.tracker import Tracker  # noqa: E402
 from sim.fluoro import (  # noqa: E402
     DISTORTION_MAX_MM,
     add_fluoro_noise,
+    biplane_views,
     distort,
     lateral_view,
     simulate_dewarp_grid,
@@ -187,7 +194,10 @@ def perturbed(poses: dict[str, np.ndarray], models, rng) -> dict[str, np.ndarray
 
 
 def run(method: str, view, frames, models, soft, motion, start) -> dict:
+    """Track ``frames`` through ``view`` (or lists of each, one per camera: the errors along
+    the first view's axes)."""
     tracker = Tracker(view, frames, models, METHODS[method], soft)
+    view = tracker.view
     started = time.perf_counter()
     results = tracker.track(start)
     log(f"  {method}: {time.perf_counter() - started:.0f} s")
@@ -274,7 +284,9 @@ def drr_ms_256(models, view) -> float:
     return (time.perf_counter() - started) / 20 * 1000.0
 
 
-REGIMES = ("matched", "independent", "cross_renderer", "real_tka", "tka", "tka_bones")
+REGIMES = ("matched", "independent", "cross_renderer", "biplane", "real_tka", "tka", "tka_bones")
+BIPLANE_ANGLES_DEG = (90.0, 60.0)
+"""The biplane regime's angles between the two central rays, cycled over the sequences."""
 GC_DATA = ROOT.parent / "shared" / "data" / "grand-challenge-tka"
 TKA_CENTER_MM = np.array([0.0, 0.0, 490.0])
 """Where the simulated knee replacement's joint centre stands (the phantom knee's height)."""
@@ -542,6 +554,49 @@ def real_tka(
     return entry
 
 
+def biplane(
+    sequences: int, frames: int, flexion: float, detector: DetectorSpec, photons: float
+) -> list[dict]:
+    """The biplane regime's two entries: both cameras, and the lateral one alone."""
+    spec = KneePhantomSpec()
+    volume, labels = phantom_volumes(spec)
+    models, soft = bone_models(volume, labels), SoftTissue.of(volume, labels)
+    runs = {
+        name: {"errors": [], "first": [], "warm": []} for name in ("biplane", "biplane_one_camera")
+    }
+    angles = []
+    for seq in range(sequences):
+        angle = BIPLANE_ANGLES_DEG[seq % len(BIPLANE_ANGLES_DEG)]
+        angles.append(angle)
+        views = biplane_views(spec, detector, angle)
+        motion = squat_motion(spec, frames=frames, max_flexion_deg=flexion, seed=seq)
+        log(f"regime biplane, sequence {seq}: {frames} frames in two views {angle:g} deg apart")
+        stacks = []
+        for k, view in enumerate(views):
+            clean = np.stack(
+                [scene(view, models, truth_of(motion, i), soft) for i in range(frames)]
+            )
+            rng = np.random.default_rng(100 + 10 * seq + k)
+            stacks.append(add_fluoro_noise(clean, photons, rng)[1])
+        start = perturbed(truth_of(motion, 0), models, np.random.default_rng(seq))
+        for name, (view, stack) in (
+            ("biplane", (list(views), stacks)),
+            ("biplane_one_camera", (views[0], stacks[0])),
+        ):
+            out = run("boneaxis_kpm", view, stack, models, soft, motion, start)
+            runs[name]["errors"] += out["errors"]
+            runs[name]["first"].append(out["first"])
+            runs[name]["warm"] += out["warm"]
+    entries = []
+    for name, data in runs.items():
+        entry = {"regime": name, "method": "boneaxis_kpm", "angles_deg": angles}
+        entry |= summarize(data["errors"], data["warm"], float(np.mean(data["first"])))
+        entry |= {"sequences": sequences, "frames": frames}
+        entries.append(entry)
+        log(f"{name}: {json.dumps(entry)}")
+    return entries
+
+
 def static_scan(regime: str) -> tuple[KneePhantomSpec, Volume, Volume]:
     """The regime's knee and the static volume registered (attenuation, labels)."""
     if regime == "matched":
@@ -624,6 +679,9 @@ def main() -> None:
         if regime in ("tka", "tka_bones"):
             entries.append(tka(args.sequences, args.frames, args.panel, regime == "tka_bones"))
             log(f"{regime}: {json.dumps(entries[-1])}")
+            continue
+        if regime == "biplane":
+            entries += biplane(args.sequences, args.frames, args.max_flexion, detector, photons)
             continue
         log(f"regime {regime}: bone models")
         spec, volume, labels = static_scan(regime)
