@@ -216,7 +216,10 @@ def test_registration_tracks_every_bone_within_the_single_plane_physics(demo: Pa
     holds every frame below the threshold (the slow test below). The fluoroscopy is rendered
     from the 0.5 mm phantom: over seeds 0-2 the worst frame's TRE was 1.48, 1.44 and 1.80 mm
     here (RSR 100, 100 and 95.8 %); from the 1 mm phantom the femur's first frame stood 1.8 mm
-    deep and two bodies failed."""
+    deep and two bodies failed. Those spreads predate the patient's sway: with the 1.5 mm sway
+    compensated, seed 2 fails this test (one thread, Zen 3: TRE median 1.10 mm, RSR 66.7 %;
+    standing still 0.62 mm, 100 %), the femur's and the patella's depth 1.4-2.2 mm (the
+    standing patient issue's tracking target)."""
     metrics = json.loads((demo / "registration" / "metrics.json").read_text(encoding="utf-8"))
     measured("tre_median_mm", metrics["tre_mm_median"], below=1.0)
     measured("in_plane_worst_mm", max(r["in_plane_mm"] for r in metrics["per_frame"]), below=0.5)
