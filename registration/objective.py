@@ -170,6 +170,10 @@ class JointObjective:
         return float(np.mean([o.cost(T) for o in self.views]))
 
 
+Searched = Objective | JointObjective
+"""What the searches run on: one view's objective or several views' (registration.search)."""
+
+
 def _unit(values: np.ndarray) -> np.ndarray:
     """``values`` less their mean, scaled to unit norm (float64; zeros when constant)."""
     centred = values.astype(np.float64) - values.mean(dtype=np.float64)

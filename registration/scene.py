@@ -14,7 +14,7 @@ import numpy as np
 from recon.geometry import View
 from registration import search
 from registration.drr import SoftTissue, scene
-from registration.objective import BodyModel, JointObjective, Objective
+from registration.objective import BodyModel, Objective, Searched
 from registration.priors import Prior, depth_prior, joined, patellofemoral_prior
 from registration.resolution import frame_blur, model_blur
 from registration.roles import Role, carriers, roles_of
@@ -45,7 +45,7 @@ class Searches(ABC):
         lone: bool = False,
         reach: tuple[np.ndarray, ...] = (),
         beside: tuple[str, ...] = (),
-    ) -> Objective | JointObjective:
+    ) -> Searched:
         """The objective of body ``name`` on pyramid ``level`` of ``frame``, the others at
         ``poses`` (:meth:`Scene.objective`)."""
 
@@ -74,7 +74,7 @@ class Searches(ABC):
 
     def least_squares(
         self, frame: int, name: str, poses: Poses, levels: tuple[int, ...]
-    ) -> tuple[np.ndarray, int, Objective]:
+    ) -> tuple[np.ndarray, int, Searched]:
         """Levenberg-Marquardt on each of ``levels`` in turn, at most ``ls_max_steps`` steps
         each (coarse, finest). Returns the pose, the evaluations and the last level's
         objective."""

@@ -10,7 +10,7 @@ from collections.abc import Callable
 import numpy as np
 from scipy.optimize import differential_evolution, least_squares, minimize, minimize_scalar
 
-from registration.objective import Objective
+from registration.objective import Searched
 from registration.priors import KPM_LAMBDA
 from registration.settings import Settings
 
@@ -23,7 +23,7 @@ def principal_axes(points_mm: np.ndarray) -> np.ndarray:
 
 
 def global_search(
-    objective: Objective, axes: np.ndarray, settings: Settings, scale: float = 1.0
+    objective: Searched, axes: np.ndarray, settings: Settings, scale: float = 1.0
 ) -> np.ndarray:
     """Differential evolution (seeded, Sobol start, no polish) in a box of ``scale`` times the
     settings' ``de_*`` half-widths, its rotations about ``axes`` (columns: the body's
@@ -55,7 +55,7 @@ def global_search(
     return in_axes(result.x)
 
 
-def powell(objective: Objective, box: tuple[float, float], settings: Settings) -> np.ndarray:
+def powell(objective: Searched, box: tuple[float, float], settings: Settings) -> np.ndarray:
     """Powell from the start, bounded to ``box`` (mm, deg) about it; returns the step x."""
     t_max, r_max = box
     return minimize(
@@ -67,9 +67,7 @@ def powell(objective: Objective, box: tuple[float, float], settings: Settings) -
     ).x
 
 
-def nelder_mead(
-    objective: Objective, x0: np.ndarray, step: float, settings: Settings
-) -> np.ndarray:
+def nelder_mead(objective: Searched, x0: np.ndarray, step: float, settings: Settings) -> np.ndarray:
     """Nelder-Mead from ``x0``, its simplex ``step`` (mm, deg) along each axis; returns x."""
     return minimize(
         objective,
@@ -84,7 +82,7 @@ def nelder_mead(
     ).x
 
 
-def levenberg_marquardt(objective: Objective, settings: Settings, max_steps: int) -> np.ndarray:
+def levenberg_marquardt(objective: Searched, settings: Settings, max_steps: int) -> np.ndarray:
     """Levenberg-Marquardt (scipy's MINPACK) on :meth:`Objective.residuals` from the start,
     at most ``max_steps`` residual evaluations as MINPACK counts them, the Jacobian by central
     differences of the settings' ``ls_step`` (12 renders); returns the step x."""
