@@ -139,8 +139,7 @@ class JointObjective:
 
     ``residuals`` stacks the views' residuals scaled by ``1/sqrt(N)`` (half the squared norm is
     the mean of ``1 - NCC`` plus the priors); ``scores`` are the views' mean NCC and gradient
-    NCC. Raises :class:`OutOfView` only when every view loses the body: a view that does not
-    see it is left out.
+    NCC (registration.views.Views builds it of the views that see the body).
     """
 
     def __init__(self, objectives: list[Objective]) -> None:

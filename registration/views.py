@@ -1,7 +1,8 @@
 """Several views of each time point (biplane or multi-view fluoroscopy): every body has one
 pose per time point, scored on all views at once (registration.objective.JointObjective), each
 view with its own frames, field, pyramid targets and matched blur (one
-registration.scene.Scene per view)."""
+registration.scene.Scene per view). A view whose frame at a time point tells nothing (a
+dropped frame given as NaN, or one value throughout) is left out there, not the time point."""
 
 from __future__ import annotations
 
@@ -43,6 +44,8 @@ class Views(Searches):
         self.settings = first.settings
         self.roles, self.carriers = first.roles, first.carriers
         self.levels = first.levels
+        self.usable = np.array([[_tells(f) for f in scene.frames] for scene in scenes])
+        """Per view and frame: whether the frame holds an image (:func:`_tells`)."""
 
     @property
     def bodies(self) -> dict[str, BodyModel]:
@@ -74,16 +77,17 @@ class Views(Searches):
         reach: tuple[np.ndarray, ...] = (),
         beside: tuple[str, ...] = (),
     ) -> JointObjective:
-        """Body ``name``'s objective over the views that see it (:meth:`Scene.objective` in
-        each); :class:`OutOfView` when none does."""
+        """Body ``name``'s objective over the views that see it in ``frame`` (whose frame holds
+        an image, :meth:`Scene.objective` in each); :class:`OutOfView` when none does."""
         objectives, missed = [], []
-        for scene in self.scenes:
+        for scene in self._seeing(frame):
             try:
                 objectives.append(scene.objective(frame, level, name, poses, lone, reach, beside))
             except OutOfView as err:
                 missed.append(str(err))
         if not objectives:
-            raise OutOfView(f"{name} is in no view: {'; '.join(missed)}")
+            why = "; ".join(missed) or f"no camera's frame {frame} holds an image"
+            raise OutOfView(f"{name} is in no view: {why}")
         return JointObjective(objectives)
 
     def penalty(self, name: str, poses: Poses) -> float:
@@ -93,13 +97,13 @@ class Views(Searches):
     def match_frame_blur(self, frame: int, name: str, poses: Poses) -> None:
         """Each view's frames' blur for body ``name`` (:meth:`Scene.match_frame_blur`), in the
         views that see it."""
-        for scene in self.scenes:
+        for scene in self._seeing(frame):
             with contextlib.suppress(OutOfView):
                 scene.match_frame_blur(frame, name, poses)
 
     def match_model_blur(self, frame: int, name: str, poses: Poses) -> None:
         """A mesh body's render blur in each view that sees it (:meth:`Scene.match_model_blur`)."""
-        for scene in self.scenes:
+        for scene in self._seeing(frame):
             with contextlib.suppress(OutOfView):
                 scene.match_model_blur(frame, name, poses)
 
@@ -107,3 +111,13 @@ class Views(Searches):
         """Each view forgets the targets at blurs no body matched."""
         for scene in self.scenes:
             scene.forget_other_blurs()
+
+    def _seeing(self, frame: int) -> list[Scene]:
+        """The scenes whose ``frame`` holds an image."""
+        return [scene for scene, ok in zip(self.scenes, self.usable[:, frame], strict=True) if ok]
+
+
+def _tells(image: np.ndarray) -> bool:
+    """Whether a frame holds an image: some finite pixel, and not one value throughout."""
+    finite = image[np.isfinite(image)]
+    return finite.size > 0 and bool(finite.max() > finite.min())

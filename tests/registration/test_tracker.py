@@ -15,6 +15,7 @@ from recon.project import forward_project
 from recon.volume import Volume, VolumeGrid
 from registration.drr import SoftTissue, bone_models, scene, soft_tissue_level
 from registration.metrics import pose_error
+from registration.objective import OutOfView
 from registration.priors import patellofemoral_deviation, predict
 from registration.se3 import compose
 from registration.segment import BONE_UNITS
@@ -381,3 +382,24 @@ def test_views_of_other_counts_or_pitches_are_refused(knee_case) -> None:
         registration.track([c.frames[:1]], [c.view, ap], c.models, start=c.truth[0])
     with pytest.raises(ValueError, match="angle_deg must be in"):
         biplane_views(KneePhantomSpec(), DetectorSpec(rows=80, cols=80, pixel_pitch_mm=3.84), 10.0)
+
+
+def test_a_camera_without_a_frame_at_a_time_point_is_left_out_there(knee_case) -> None:
+    """The AP camera's second frame dropped (NaN): the femur's objective there is the lateral
+    view's alone, on the first frame both views'; no frame anywhere: out of view."""
+    c = knee_case
+    ap = biplane_views(KneePhantomSpec(), DetectorSpec(rows=160, cols=160, pixel_pitch_mm=1.92))[1]
+    ap_frames = np.stack([scene(ap, c.models, c.truth[k], c.soft) for k in range(2)])
+    ap_frames[1] = np.nan
+    tracker = Tracker([c.view, ap], [c.frames[:2], ap_frames], c.models, SETTINGS, c.soft)
+    level = tracker.levels[0]
+    for frame, views in ((0, 2), (1, 1)):
+        tracker.scene.start_frame(frame, {})
+        objective = tracker.scene.objective(frame, level, "femur", c.truth[frame])
+        assert len(objective.views) == views
+        assert objective.scores(c.truth[frame]["femur"])[0] > 0.9
+    blank = np.full_like(c.frames[:1], np.nan)
+    lost = Tracker([c.view, ap], [blank, blank], c.models, SETTINGS, c.soft)
+    lost.scene.start_frame(0, {})
+    with pytest.raises(OutOfView, match="no camera's frame 0 holds an image"):
+        lost.scene.objective(0, level, "femur", c.truth[0])
