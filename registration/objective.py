@@ -134,18 +134,24 @@ class Objective:
 
 
 class JointObjective:
-    """One body's objective over several views of a time point: the mean of each view's
-    :class:`Objective` (its -NCC and its prior), at the same pose in the common world.
+    """One body's objective over several views of a time point: the mean of the views'
+    similarity (each an :class:`Objective` without a prior) plus one prior, at the same pose
+    in the common world.
 
-    ``residuals`` stacks the views' residuals scaled by ``1/sqrt(N)`` (half the squared norm is
-    the mean of ``1 - NCC`` plus the priors); ``scores`` are the views' mean NCC and gradient
-    NCC (registration.views.Views builds it of the views that see the body).
+    ``cost`` is the views' mean -NCC plus the prior's squared terms; ``residuals`` stacks the
+    views' residuals scaled by ``1/sqrt(N)`` and the prior's terms times sqrt(2) (half the
+    squared norm is the mean of ``1 - NCC`` plus the prior); ``scores`` are the views' mean NCC
+    and gradient NCC (registration.views.Views builds it of the views that see the body).
     """
 
-    def __init__(self, objectives: list[Objective]) -> None:
+    def __init__(
+        self,
+        objectives: list[Objective],
+        prior: Callable[[np.ndarray], np.ndarray] | None = None,
+    ) -> None:
         if not objectives:
             raise ValueError("no view holds the body")
-        self.views = objectives
+        self.views, self.prior = objectives, prior
         self.body, self.T0 = objectives[0].body, objectives[0].T0
         self.evaluations = 0
 
@@ -154,10 +160,15 @@ class JointObjective:
         return self.cost(compose(np.asarray(x, dtype=np.float64), self.T0, self.body.centroid_mm))
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
-        """The views' residuals (:meth:`Objective.residuals`) stacked, over ``sqrt(N)``."""
+        """The views' residuals (:meth:`Objective.residuals`) stacked over ``sqrt(N)``, then
+        the prior's terms times sqrt(2), at pose ``x``."""
         self.evaluations += 1
         scale = 1.0 / math.sqrt(len(self.views))
-        return np.concatenate([o.residuals(x) for o in self.views]) * scale
+        stacked = np.concatenate([o.residuals(x) for o in self.views]) * scale
+        if self.prior is None:
+            return stacked
+        T = compose(np.asarray(x, dtype=np.float64), self.T0, self.body.centroid_mm)
+        return np.append(stacked, math.sqrt(2.0) * self.prior(T))
 
     def scores(self, T: np.ndarray) -> tuple[float, float]:
         """The views' mean NCC and mean gradient NCC at pose ``T`` (no prior)."""
@@ -165,8 +176,9 @@ class JointObjective:
         return float(pairs[:, 0].mean()), float(pairs[:, 1].mean())
 
     def cost(self, T: np.ndarray) -> float:
-        """The views' mean cost (:meth:`Objective.cost`) at pose ``T``."""
-        return float(np.mean([o.cost(T) for o in self.views]))
+        """The views' mean cost (:meth:`Objective.cost`) plus the prior at pose ``T``."""
+        penalty = 0.0 if self.prior is None else float(np.sum(self.prior(T) ** 2))
+        return float(np.mean([o.cost(T) for o in self.views])) + penalty
 
 
 Searched = Objective | JointObjective

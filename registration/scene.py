@@ -184,10 +184,13 @@ class Scene(Searches):
         lone: bool = False,
         reach: tuple[np.ndarray, ...] = (),
         beside: tuple[str, ...] = (),
+        *,
+        with_prior: bool = True,
     ) -> Objective:
         """The objective of body ``name``, the others at ``poses`` (``lone``: the body alone
         but for those ``beside`` it, no prior, no soft tissue), masked to its silhouettes at
-        ``poses`` and ``reach``."""
+        ``poses`` and ``reach``; ``with_prior`` False leaves the prior out (several views
+        share one: registration.views)."""
         view = self._views[level]
         others = {b: m for b, m in self.bodies.items() if b != name and (not lone or b in beside)}
         stays = carried = None
@@ -211,7 +214,7 @@ class Scene(Searches):
             self._targets.sigma_px(level),
             round(self.settings.mask_dilation_mm / view.pitch_u_mm),
             self._coarse(level, name),
-            None if lone else self.prior(name, poses),
+            None if lone or not with_prior else self.prior(name, poses),
             reach,
             _either(
                 self._truncation(level, name, poses, reach), self._targets.outside_field(level)

@@ -11,6 +11,7 @@ import contextlib
 import numpy as np
 
 from registration.objective import BodyModel, JointObjective, OutOfView
+from registration.priors import Prior
 from registration.scene import Poses, Scene, Searches
 
 
@@ -82,17 +83,28 @@ class Views(Searches):
         objectives, missed = [], []
         for scene in self._seeing(frame):
             try:
-                objectives.append(scene.objective(frame, level, name, poses, lone, reach, beside))
+                objectives.append(
+                    scene.objective(
+                        frame, level, name, poses, lone, reach, beside, with_prior=False
+                    )
+                )
             except OutOfView as err:
                 missed.append(str(err))
         if not objectives:
             why = "; ".join(missed) or f"no camera's frame {frame} holds an image"
             raise OutOfView(f"{name} is in no view: {why}")
-        return JointObjective(objectives)
+        return JointObjective(objectives, None if lone else self.prior(name, poses))
+
+    def prior(self, name: str, poses: Poses) -> Prior | None:
+        """Body ``name``'s priors as the first view has them (:meth:`Scene.prior`): they hold
+        what that view sees worst, its depth (the patella against the femur, a body against
+        the frame before); along another view's ray they would pull against what the first
+        view sees well."""
+        return self.scenes[0].prior(name, poses)
 
     def penalty(self, name: str, poses: Poses) -> float:
-        """The views' mean prior cost of body ``name`` at ``poses``."""
-        return float(np.mean([scene.penalty(name, poses) for scene in self.scenes]))
+        """The prior's cost of body ``name`` at ``poses`` (:meth:`prior`; 0 without one)."""
+        return self.scenes[0].penalty(name, poses)
 
     def match_frame_blur(self, frame: int, name: str, poses: Poses) -> None:
         """Each view's frames' blur for body ``name`` (:meth:`Scene.match_frame_blur`), in the
