@@ -344,7 +344,7 @@ def test_a_second_camera_resolves_the_depth_one_leaves_open(
     view beside it (sim.fluoro.biplane_views, 90 degrees apart), from the same starts 3 mm
     off. Along the lateral ray, the depth single-plane tracking resolves worst, the two views
     put every body within the two-camera issue's 0.2 mm and at least 3x closer than one view
-    does (over seeds 0-2 and 1-2 threads: 0.004-0.011 mm, 1/110 to 1/26 of one view's)."""
+    does (over seeds 0-2 and 1-2 threads: 0.003-0.005 mm, 1/88 to 1/43 of one view's)."""
     c = knee_case
     lateral, ap = biplane_views(
         KneePhantomSpec(), DetectorSpec(rows=160, cols=160, pixel_pitch_mm=1.92)
