@@ -89,27 +89,25 @@ class Tracker:
         if not bodies:
             raise ValueError("no body to track")
         self.settings = settings or Settings()
-        if isinstance(view, View):
-            self.view = view
-            self.scene: Scene | Views = Scene(
-                view, frames, bodies, self.settings, soft_tissue, field, roles
-            )
-            """The frames and the bodies, as each body's searches see them."""
+        one = isinstance(view, View)  # one camera: its frames and field as they are
+        views = [view] if one else list(view)
+        stacks = [frames] if one else list(frames)
+        if one or field is not None:
+            fields = [field] if one else list(field)
         else:
-            views = list(view)
-            stacks = list(frames)
-            fields = list(field) if field is not None else [None] * len(views)
-            if not len(views) == len(stacks) == len(fields):
-                raise ValueError(
-                    f"{len(views)} views, {len(stacks)} frame stacks and {len(fields)} fields: "
-                    "one of each per camera"
-                )
-            self.view = views[0]
-            scenes = [
-                Scene(v, f, bodies, self.settings, soft_tissue, m, roles)
-                for v, f, m in zip(views, stacks, fields, strict=True)
-            ]
-            self.scene = scenes[0] if len(scenes) == 1 else Views(scenes)
+            fields = [None] * len(views)
+        if not len(views) == len(stacks) == len(fields):
+            raise ValueError(
+                f"{len(views)} views, {len(stacks)} frame stacks and {len(fields)} fields: "
+                "one of each per camera"
+            )
+        self.view = views[0]
+        scenes = [
+            Scene(v, f, bodies, self.settings, soft_tissue, m, roles)
+            for v, f, m in zip(views, stacks, fields, strict=True)
+        ]
+        self.scene: Scene | Views = scenes[0] if len(scenes) == 1 else Views(scenes)
+        """The frames and the bodies, as each body's searches see them."""
         self.order = tracking_order(self.scene.roles)
         """The tracked bodies in the order they are registered in a frame."""
         self._last_ncc: dict[str, float] = {}

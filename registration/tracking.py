@@ -170,10 +170,7 @@ def tracked(
                 raise ValueError(
                     f"frames{camera} of shape {data[-1].shape}: give a stack (frames, rows, cols)"
                 )
-    if isinstance(view, View):
-        tracker = Tracker(view, data[0], bodies, settings, soft_tissue, fields[0], roles)
-    else:
-        tracker = Tracker(views, data, bodies, settings, soft_tissue, fields, roles)
+    tracker = Tracker(views, data, bodies, settings, soft_tissue, fields, roles)
     given = dict(start or {})
     for name in (b for b in bodies if b not in given and not isinstance(bodies[b], ImplantModel)):
         given[name] = np.eye(4)  # a bone where the static scan has it
