@@ -113,6 +113,24 @@ QUICK = {
     "max_flexion_deg": 40.0,
     "motion_rounds": 1,
 }
+SMOKE = {
+    "views": 60,
+    "panel": 128,
+    "calibration_panel": 512,
+    "phantom_voxel_mm": 1.0,
+    "recon_voxel_mm": 1.0,
+    "fluoro_panel": 128,
+    "fluoro_voxel_mm": 1.5,
+    "frames": 3,
+    "max_flexion_deg": 20.0,
+    "motion_rounds": 1,
+}
+"""The smallest demo that runs every stage (about a minute on one core): it checks an
+installation, not the accuracy; at its coarse fluoroscopy most registrations fail, and the
+report says so. Smaller breaks a stage: the calibration needs the panel read out at 512 to
+find the steel balls."""
+SIZES = {"full": FULL, "quick": QUICK, "smoke": SMOKE}
+"""The demo's sizes by name (``cbct demo --size``)."""
 TKA = {"fluoro_panel": 512, "recon_voxel_mm": 0.8}
 """What ``--tka`` changes in either size: the knee replacement's fluoroscopy (gait frames on
 the panel read out 512^2, as bench/registration.py's tka regime) and the MAR
@@ -385,7 +403,7 @@ def open_demo(
     out: Path,
     configs: Path,
     *,
-    quick: bool = False,
+    size: str = "full",
     resume: bool = False,
     seed: int = 0,
     tka: bool = False,
@@ -398,7 +416,8 @@ def open_demo(
     Args:
         out: The study folder.
         configs: The configs folder (protocols, phantoms, registration settings).
-        quick: The small demo (:data:`QUICK`) instead of the full one (:data:`FULL`).
+        size: Which demo (:data:`SIZES`): "full" (:data:`FULL`), "quick" (:data:`QUICK`) or
+            "smoke" (:data:`SMOKE`).
         resume: Continue the study at ``out``: redo only its incomplete stages.
         seed: The noise seed of a new demo (:func:`acquire`).
         tka: The knee replacement (:data:`TKA_STAGES`) instead of the native knee.
@@ -409,15 +428,17 @@ def open_demo(
     """
     if not 0.0 <= sway_mm <= MAX_SWAY_MM:
         raise ValueError(f"sway_mm must be in [0, {MAX_SWAY_MM:g}] mm, got {sway_mm!r}")
-    size = {**(QUICK if quick else FULL), "sway_mm": 0.0 if tka else float(sway_mm)}
+    if size not in SIZES:
+        raise ValueError(f"size {size!r}: choose one of {', '.join(SIZES)}")
+    grids = {**SIZES[size], "sway_mm": 0.0 if tka else float(sway_mm)}
     if protocol is not None:
         if tka:
             raise ValueError("--protocol is for the native knee's demo, not --tka")
         load_protocol(protocol)  # refused here, before the study is made
-        size["protocol"] = str(protocol.resolve())
+        grids["protocol"] = str(protocol.resolve())
     if tka:
-        size = {**size, **TKA, "tka": True}
-        size["frames"] = max(size["frames"], TKA_FRAMES_AT_LEAST)
+        grids = {**grids, **TKA, "tka": True}
+        grids["frames"] = max(grids["frames"], TKA_FRAMES_AT_LEAST)
     settings_file = (
         configs / "registration_gait.yaml"
         if tka
@@ -427,14 +448,14 @@ def open_demo(
     if resume:
         study = Study.open(out)
         made = study.manifest["config"].get("demo", {})
-        if made.get("size") != size:
+        if made.get("size") != grids:
             raise StudyError(
-                f"{out} was made with other demo settings (--quick, --tka, --sway-mm or "
+                f"{out} was made with other demo settings (--size, --tka, --sway-mm or "
                 "--protocol differs)"
             )
-        return Demo(study, size, made.get("seed", 0), settings)
-    demo = {"size": size, "varus_deg": VARUS_DEG, "seed": seed}
-    return Demo(Study.create(out, {"demo": demo}), size, seed, settings)
+        return Demo(study, grids, made.get("seed", 0), settings)
+    demo = {"size": grids, "varus_deg": VARUS_DEG, "seed": seed}
+    return Demo(Study.create(out, {"demo": demo}), grids, seed, settings)
 
 
 def run(

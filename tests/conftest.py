@@ -247,10 +247,15 @@ RTK_PEER = (
 process, so ``make test`` hands them to one worker as one unit."""
 
 
+FIRST_UNITS = ("realtime", "itk-rtk", "study/test_demo.py")
+"""The longest units of ``make test`` (about 2 minutes each on one core), given out first so
+that the two workers end together."""
+
+
 def pytest_xdist_make_scheduler(config, log):
-    """``--dist loadfile`` with the files of :data:`REALTIME` as one unit, given out first,
-    and those of :data:`RTK_PEER` as another; None (xdist's own scheduler) for the other
-    modes."""
+    """``--dist loadfile`` with the files of :data:`REALTIME` as one unit and those of
+    :data:`RTK_PEER` as another, :data:`FIRST_UNITS` given out first; None (xdist's own
+    scheduler) for the other modes."""
     if config.getoption("dist") != "loadfile":
         return None
     from xdist.scheduler import LoadFileScheduling
@@ -263,8 +268,9 @@ def pytest_xdist_make_scheduler(config, log):
             return "itk-rtk" if where.startswith(RTK_PEER) else where
 
         def _assign_work_unit(self, node) -> None:
-            if "realtime" in self.workqueue:
-                self.workqueue.move_to_end("realtime", last=False)
+            for unit in reversed(FIRST_UNITS):
+                if unit in self.workqueue:
+                    self.workqueue.move_to_end(unit, last=False)
             super()._assign_work_unit(node)
 
     return Units(config, log)

@@ -30,7 +30,14 @@ def demo(
     out: Annotated[Path, typer.Option(help="output folder; must not exist or be empty")] = Path(
         "demo-output"
     ),
-    quick: Annotated[bool, typer.Option(help="smaller grids, fewer views and frames")] = False,
+    size: Annotated[
+        str,
+        typer.Option(
+            help="full; quick (smaller grids, fewer views and frames); smoke (the smallest run "
+            "of every stage, to check an installation: its figures mean nothing)"
+        ),
+    ] = "full",
+    quick: Annotated[bool, typer.Option(help="the same as --size quick")] = False,
     resume: Annotated[
         bool, typer.Option("--resume", help="continue OUT: redo only the incomplete stages")
     ] = False,
@@ -69,11 +76,15 @@ def demo(
     from study import demo as demo_job
 
     check_range("--sway-mm", sway_mm, 0.0, demo_job.MAX_SWAY_MM, "mm (0: still)")
+    if size not in demo_job.SIZES:
+        fail(f"--size {size}: choose one of {', '.join(demo_job.SIZES)}")
+    if quick and size not in ("full", "quick"):
+        fail(f"--quick is --size quick; it contradicts --size {size}")
     try:
         prepared = demo_job.open_demo(
             out,
             CONFIGS,
-            quick=quick,
+            size="quick" if quick else size,
             resume=resume,
             seed=seed,
             tka=tka,

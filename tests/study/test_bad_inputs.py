@@ -136,6 +136,8 @@ ROWS = [
     ("recon", "--projections {F}/stack.mha --geometry {F}/geometry.xml --out {OUT} "
      "--views-every 2", "v.nii.gz", "--views-every 2 keeps 4 of 8 views: at least 20"),
     ("demo", "--out {OUT} --quick --protocol {F}/missing.yaml", "demo", "missing.yaml"),
+    ("demo", "--out {OUT} --size tiny", "demo", "--size tiny: choose one of full, quick, smoke"),
+    ("demo", "--out {OUT} --quick --size smoke", "demo", "contradicts --size smoke"),
 ]
 # fmt: on
 
