@@ -5,6 +5,7 @@ fluoroscopy sequence), ``assess`` (the knee kinematics report from body poses) a
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated
 
@@ -26,7 +27,8 @@ def register(
         list[str],
         typer.Option(
             help="fluoroscopy: .mha stack, DICOM file or folder, TIFF/PNG images "
-            "(a file, a folder, a quoted glob, or one --frames per image, in order)"
+            "(a file, a folder, a quoted glob, or one --frames per image, in order); with "
+            "several cameras, one --frames per camera in the order of their views"
         ),
     ],
     out: Annotated[Path, typer.Option(help="new output folder")],
@@ -56,15 +58,22 @@ def register(
     ] = None,
     implant_unit: Annotated[str, typer.Option(help="the meshes' unit: mm, cm, m or in")] = "mm",
     geometry: Annotated[
-        Path | None, typer.Option(help="the fluoroscopy view, RTK geometry XML")
+        list[Path] | None,
+        typer.Option(
+            help="the fluoroscopy view, RTK geometry XML; repeat it for each further camera "
+            "(biplane), every view in one world"
+        ),
     ] = None,
     calibration: Annotated[
-        Path | None,
+        list[Path] | None,
         typer.Option(
             "--view-file",
             "--calibration",
             help="the fluoroscopy view as a JointTrack JT_INTCALIB file or an XMALab/Autoscoper "
-            "MayaCam 2.0 file (with --pixel-pitch-mm); --calibration is those programs' word",
+            "MayaCam 2.0 file (without --pixel-pitch-mm its panel is put 1000 mm from the "
+            "focal spot: the pixels project the same); repeat it for each further camera "
+            "(MayaCam files made on one calibration object); --calibration is those programs' "
+            "word",
         ),
     ] = None,
     polarity: Annotated[
@@ -88,7 +97,11 @@ def register(
         float | None, typer.Option(help="panel pitch for frames without one, mm")
     ] = None,
     distortion: Annotated[
-        Path | None, typer.Option(help="the panel's distortion (cbct calibrate-fluoro)")
+        list[Path] | None,
+        typer.Option(
+            help="the panel's distortion (cbct calibrate-fluoro); with several cameras, one "
+            "per camera in order"
+        ),
     ] = None,
     settings: Annotated[
         Path | None,
@@ -118,10 +131,17 @@ def register(
     from recon.distortion import Distortion
     from registration.settings import Settings
     from scanner.outputs import Output, new_outputs
-    from study.jobs import ImplantSpec, RegisterInputs, RegisterOptions, register_files
+    from study.jobs import (
+        CameraFiles,
+        ImplantSpec,
+        RegisterInputs,
+        RegisterOptions,
+        register_files,
+    )
 
     static_unit = checked_unit(unit, effective_energy_kev)
     frame_range = None if frames_range is None else _frame_range(frames_range)
+    views = _camera_views(frames, geometry or [], calibration or [], distortion or [])
     try:
         meshes = _body_files("--implant", implant)
         materials = _body_words("--material", material)
@@ -143,22 +163,25 @@ def register(
 
             settings = registration_settings_file(CONFIGS, bool(implants) and volume is None)
         chosen = load_config(settings, Settings)
-        warp = None if distortion is None else Distortion.read(distortion)
+        warps = [None if path is None else Distortion.read(path) for path in views.distortions]
+        cameras = tuple(
+            CameraFiles(*camera, warp)
+            for camera, warp in zip(views.files[1:], warps[1:], strict=True)
+        )
         with new_outputs(Output(out, "--out")) as (staged,), views_progress() as bar:
             inputs = RegisterInputs(
-                frames,
-                geometry=geometry,
-                calibration=calibration,
+                *views.files[0],
                 volume=volume,
                 labels=labels,
                 implants=implants,
                 truth=_poses_given("--truth", truth),
                 initial=_poses_given("--initial", initial),
+                cameras=cameras,
             )
             options = RegisterOptions(
                 polarity=polarity,
                 pixel_pitch_mm=pixel_pitch_mm,
-                distortion=warp,
+                distortion=warps[0],
                 settings=chosen,
                 unit=static_unit,
                 effective_energy_kev=effective_energy_kev,
@@ -177,10 +200,59 @@ def register(
             f"RSR {metrics['rsr_pct']:.1f} %"
         )
     tell(line)
-    tell(
-        f"  JointTrack poses beside it ({', '.join(sorted(p.name for p in out.glob('*.jts')))}), "
-        f"overlays in {out / 'overlays'}"
-    )
+    if len(views.files) == 1:
+        tell(
+            f"  JointTrack poses beside it ({', '.join(sorted(p.name for p in out.glob('*.jts')))}"
+            f"), Autoscoper .tra per body, overlays in {out / 'overlays'}"
+        )
+    else:
+        tell(
+            f"  per camera K, its JointTrack poses and overlays in {out}/view<K>/ (1 to "
+            f"{len(views.files)}); Autoscoper .tra per body beside poses.csv"
+        )
+
+
+@dataclass(frozen=True)
+class _Views:
+    """The cameras given on the command line: each one's (frames, geometry, calibration)
+    and its distortion file."""
+
+    files: list[tuple[list[str], Path | None, Path | None]]
+    distortions: list[Path | None]
+
+
+def _camera_views(
+    frames: list[str], geometry: list[Path], calibration: list[Path], distortion: list[Path]
+) -> _Views:
+    """The cameras of ``--frames``, ``--geometry`` or ``--calibration`` and ``--distortion``;
+    the console's error for counts that do not pair (one camera: --frames may repeat, one per
+    image)."""
+    if geometry and calibration:
+        fail(
+            "give every camera's view as --geometry or every one as --calibration, not both "
+            "(their order could not be told apart)"
+        )
+    given = geometry or calibration
+    option = "--geometry" if geometry else "--calibration"
+    if not given:
+        fail("give the fluoroscopy view: --geometry (RTK) or --calibration (JointTrack, MayaCam)")
+    if len(distortion) not in (0, len(given)):
+        fail(f"--distortion given {len(distortion)} times for {len(given)} cameras: one each")
+    warps: list[Path | None] = list(distortion) or [None] * len(given)
+    if len(given) == 1:
+        files = [(frames, *((given[0], None) if geometry else (None, given[0])))]
+        return _Views(files, warps)
+    if len(frames) != len(given):
+        fail(
+            f"--frames given {len(frames)} times for {len(given)} cameras ({option} "
+            f"{len(given)} times): with several cameras give one --frames per camera (a "
+            "stack, a folder or a quoted glob), in the order of their views"
+        )
+    files = [
+        ([stack], *((view, None) if geometry else (None, view)))
+        for stack, view in zip(frames, given, strict=True)
+    ]
+    return _Views(files, warps)
 
 
 def _frame_range(text: str) -> tuple[int, int, int]:

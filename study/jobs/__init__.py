@@ -16,12 +16,19 @@ from study.jobs.reconstruct import (
     reconstruct_files,
     write_motion,
 )
-from study.jobs.register import ImplantSpec, RegisterInputs, RegisterOptions, register_files
+from study.jobs.register import (
+    CameraFiles,
+    ImplantSpec,
+    RegisterInputs,
+    RegisterOptions,
+    register_files,
+)
 from study.jobs.segment import segment_files
 from study.jobs.simulate import simulate_to_folder
 
 __all__ = [
     "PLAN_TOLERANCE_MM",
+    "CameraFiles",
     "ImplantSpec",
     "MotionBeyondCompensation",
     "RegisterInputs",

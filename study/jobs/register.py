@@ -12,8 +12,15 @@ one JointTrack ``.jts`` per body, named by its role (its poses in JointTrack's c
 the view: ``femur.jts``, ``tibia.jts``, ``patella.jts``), ``overlays/`` (every frame with each
 body's outline at its registered pose), ``registration.json`` (per body and frame: NCC, gradient
 NCC, seconds, evaluations, failure flag; the settings; the meshes read; the dewarp's fit),
-``distortion.json`` (when dewarped) and, given the true (or reference) poses, ``metrics.json``
-(registration.metrics.summarize and per-frame errors).
+``distortion.json`` (when dewarped), one Autoscoper ``.tra`` per body (its world poses; NaN
+where the registration failed) and, given the true (or reference) poses, ``metrics.json``
+(registration.metrics.summarize and per-frame errors, depth along the first camera's rays).
+
+Several cameras (biplane and more) each give their frames and their view, in one world (RTK
+geometries, or XMALab/Autoscoper MayaCam calibrations made on one object); frames are paired by
+index and every body's pose is scored on all of them (registration.views). Their ``.jts`` files
+and overlays go to ``view<K>/`` per camera K (from 1), each in that camera's JointTrack frame;
+given ``.jts`` files (initial or true poses) are in the first camera's.
 """
 
 from __future__ import annotations
@@ -25,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from assessment.handoff import write_tra
 from recon.attenuation import DEFAULT_EFFECTIVE_ENERGY_KEV
 from recon.distortion import Distortion
 from recon.geometry import View
@@ -36,7 +44,7 @@ from registration.frames import Frames, read_frames
 from registration.implants import implant_model
 from registration.jointtrack import camera_frame, read_calibration, read_jointtrack_poses
 from registration.jointtrack import write_poses as write_jts
-from registration.mayacam import is_mayacam
+from registration.mayacam import is_mayacam, nominal_pitch_mm
 from registration.meshes import ATTACHABLE, MATERIALS, read_mesh, size_range_mm
 from registration.metrics import as_rows, pose_error, summarize
 from registration.overlays import write_overlays
@@ -188,6 +196,18 @@ def frame_numbers(count: int, frame_range: tuple[int, int, int] | None) -> np.nd
 
 
 @dataclass(frozen=True)
+class CameraFiles:
+    """A further camera's files: its frames (the forms of :class:`RegisterInputs`'s), its view
+    in the first camera's world (an RTK geometry, or a MayaCam calibration made on the same
+    object as the first camera's) and its panel's warp (None: not dewarped)."""
+
+    frames: Path | list[str | Path]
+    geometry: Path | None = None
+    calibration: Path | None = None
+    distortion: Distortion | None = None
+
+
+@dataclass(frozen=True)
 class RegisterInputs:
     """The files ``cbct register`` reads.
 
@@ -202,6 +222,8 @@ class RegisterInputs:
             JointTrack .jts), or None.
         initial: Starting poses of the first frame (the same forms), or None: the static
             scan's bones where it has them, components found in the first frame.
+        cameras: Further cameras, in order (none: one camera), their frames paired with the
+            first camera's by index.
     """
 
     frames: Path | list[str | Path]
@@ -212,6 +234,7 @@ class RegisterInputs:
     implants: tuple[ImplantSpec, ...] = ()
     truth: Path | dict[str, Path] | None = None
     initial: Path | dict[str, Path] | None = None
+    cameras: tuple[CameraFiles, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -221,8 +244,8 @@ class RegisterOptions:
     Attributes:
         polarity: How attenuation shows in the frames: "dark" or "bright".
         pixel_pitch_mm: Pixel size (mm) of frames whose files do not give one.
-        distortion: The panel's warp (the frames are dewarped with it first; ValueError if it
-            belongs to a panel of another size), or None.
+        distortion: The first camera's panel's warp (its frames are dewarped with it first;
+            ValueError if it belongs to a panel of another size), or None.
         settings: Registration settings; the defaults when None.
         unit: Unit of the static volume where its file does not say (recon.static_volume).
         effective_energy_kev: Effective energy (keV) converting HU to 1/mm.
@@ -263,7 +286,8 @@ def register_files(
     """
     options = options or RegisterOptions()
     _check(inputs, out)
-    frames, numbers, view = _frames_and_view(inputs, options)
+    frames, numbers, views = _cameras(inputs, options)
+    view = views[0]
     models, soft, source, meshes = _bodies(inputs, options)
     found_roles = roles_of(models)
     roles = {name: found_roles[name] for name in tracking_order(found_roles)}
@@ -272,9 +296,11 @@ def register_files(
     start = None  # implants alone: searched
     if inputs.initial is not None or inputs.volume is not None or not meshes:
         start = _initial(inputs.initial, roles, view, int(numbers[0]))
-    tracker, found = tracked(frames, view, models, start, options.settings, soft, progress)
+        if len(views) > 1:
+            _check_seen(start, models, views, frames)
+    tracker, found = tracked(frames, views, models, start, options.settings, soft, progress)
     results = [replace(r, frame=int(numbers[r.frame])) for r in found]
-    _write(out, results, models, view, tracker, truth, options.distortion, source, frames, meshes)
+    _write(out, results, models, views, tracker, truth, options.distortion, source, frames, meshes)
     return results
 
 
@@ -293,6 +319,8 @@ def _check(inputs: RegisterInputs, out: Path) -> None:
         "labels": inputs.labels,
         "geometry": inputs.geometry,
         "calibration": inputs.calibration,
+        **{f"geometry of camera {k}": c.geometry for k, c in enumerate(inputs.cameras, 2)},
+        **{f"calibration of camera {k}": c.calibration for k, c in enumerate(inputs.cameras, 2)},
         **{f"{spec.body} mesh": spec.mesh for spec in inputs.implants},
         **_named_paths("true poses", inputs.truth),
         **_named_paths("initial poses", inputs.initial),
@@ -302,32 +330,94 @@ def _check(inputs: RegisterInputs, out: Path) -> None:
             raise FileNotFoundError(f"{path}: no such file or folder ({what})")
 
 
-def _frames_and_view(
+def _cameras(
     inputs: RegisterInputs, options: RegisterOptions
-) -> tuple[Frames, np.ndarray, View]:
-    """The frames tracked (those of ``frame_range``, dewarped), their numbers in the
-    sequence, and their view."""
-    calibration, pixel_pitch_mm = inputs.calibration, options.pixel_pitch_mm
-    if calibration is not None and pixel_pitch_mm is None:
+) -> tuple[list[Frames], np.ndarray, list[View]]:
+    """Each camera's frames tracked (those of ``frame_range``, dewarped) and its view, and the
+    frames' numbers in the sequence; ValueError for cameras in no common world or whose frames
+    number differently (unless ``frame_range`` keeps to the frames they share)."""
+    files = [
+        CameraFiles(inputs.frames, inputs.geometry, inputs.calibration, options.distortion),
+        *inputs.cameras,
+    ]
+    if len(files) > 1:
+        _check_one_world(files)
+    pitch = options.pixel_pitch_mm
+    calibration = files[0].calibration
+    if calibration is not None and pitch is None:  # the first camera's, for every camera
         if is_mayacam(calibration):
+            pitch = nominal_pitch_mm(calibration)
+        else:
+            pitch = read_calibration(calibration, 1, 1).pitch_u_mm
+    stacks = [read_frames(camera.frames, pitch, options.polarity) for camera in files]
+    counts = [len(stack.data) for stack in stacks]
+    common = min(counts)
+    if len(set(counts)) > 1 and (options.frame_range is None or options.frame_range[1] >= common):
+        each = ", ".join(f"camera {k}'s {n}" for k, n in enumerate(counts, 1))
+        raise ValueError(
+            f"the cameras' frames number differently ({each}): give --frames-range "
+            f"0:{common - 1} (or a range within it) to track the frames they share"
+        )
+    numbers = frame_numbers(common, options.frame_range)
+    frames, views = [], []
+    for stack, camera in zip(stacks, files, strict=True):
+        views.append(read_view(stack, camera.geometry, camera.calibration))
+        if options.frame_range is not None:
+            stack = replace(stack, data=stack.data[numbers])
+        frames.append(_dewarped(stack, views[-1], camera.distortion))
+    return frames, numbers, views
+
+
+def _check_one_world(files: list[CameraFiles]) -> None:
+    """ValueError unless several cameras' views share one world: all RTK geometries, or all
+    MayaCam calibrations (made on one object); a JointTrack calibration has no camera pose."""
+    kinds = set()
+    for k, camera in enumerate(files, 1):
+        if camera.geometry is not None:
+            kinds.add("RTK geometry")
+        elif is_mayacam(camera.calibration):
+            kinds.add("MayaCam calibration")
+        else:
             raise ValueError(
-                f"{calibration}: a MayaCam calibration does not give the panel's pixel "
-                "pitch: give it (--pixel-pitch-mm)"
+                f"{camera.calibration} (camera {k}): a JointTrack calibration places its camera "
+                f"in a frame of its own; {len(files)} cameras need their poses in one world, "
+                "which is missing: give RTK geometries, or XMALab/Autoscoper (MayaCam 2.0) "
+                "calibrations made on one calibration object"
             )
-        pixel_pitch_mm = read_calibration(calibration, 1, 1).pitch_u_mm
-    frames = read_frames(inputs.frames, pixel_pitch_mm, options.polarity)
-    numbers = frame_numbers(len(frames.data), options.frame_range)
-    view = read_view(frames, inputs.geometry, calibration)
-    if options.frame_range is not None:
-        frames = replace(frames, data=frames.data[numbers])
-    distortion = options.distortion
-    if distortion is not None:
-        field = frames.field
-        if field is not None:  # pixels the dewarped field fully covers
-            field = distortion.undistort(field.astype(np.float32), view.pitch_u_mm) > 0.99
-        data = distortion.undistort(frames.data, view.pitch_u_mm)
-        frames = replace(frames, data=data, field=field)
-    return frames, numbers, view
+    if len(kinds) > 1:
+        raise ValueError(
+            "the cameras' views mix RTK geometries and MayaCam calibrations, whose worlds are "
+            "not known to be one: give every camera's view in one kind of file"
+        )
+
+
+def _dewarped(frames: Frames, view: View, distortion: Distortion | None) -> Frames:
+    """``frames`` dewarped by their panel's ``distortion`` (as they are when None)."""
+    if distortion is None:
+        return frames
+    field = frames.field
+    if field is not None:  # pixels the dewarped field fully covers
+        field = distortion.undistort(field.astype(np.float32), view.pitch_u_mm) > 0.99
+    data = distortion.undistort(frames.data, view.pitch_u_mm)
+    return replace(frames, data=data, field=field)
+
+
+def _check_seen(
+    start: dict[str, np.ndarray], models: dict, views: list[View], frames: list[Frames]
+) -> None:
+    """ValueError naming the camera and the body when a camera sees none of a body's points
+    at its starting pose (the wrong view file, or a camera aimed elsewhere)."""
+    for k, (view, stack) in enumerate(zip(views, frames, strict=True), 1):
+        for name, T in start.items():
+            points = models[name].points_mm @ T[:3, :3].T + T[:3, 3]
+            u, v = view.project(points).T
+            inside = (u >= -0.5) & (u <= view.cols - 0.5) & (v >= -0.5) & (v <= view.rows - 0.5)
+            if not inside.any():
+                raise ValueError(
+                    f"camera {k} ({stack.header.source}) does not see {name}: at its start "
+                    f"every point falls outside the {view.rows} x {view.cols} image; check "
+                    "that camera's view file"
+                )
 
 
 def _bodies(
@@ -367,12 +457,12 @@ def _write(
     out,
     results,
     models,
-    view,
+    views: list[View],
     tracker: Tracker,
     truth,
     distortion,
     source: StaticSource | None,
-    frames: Frames,
+    frames: list[Frames],
     meshes: dict[str, dict],
 ) -> None:
     out.mkdir(parents=True)
@@ -385,11 +475,19 @@ def _write(
         for name, b in r.bodies.items()
     ]
     write_poses(out / "poses.csv", poses, centroids)
-    T_camera_world = np.linalg.inv(camera_frame(view))
-    for name, role in tracker.roles.items():  # JointTrack's, in its camera frame; by role
-        stack = [T_camera_world @ r.bodies[name].T_world_body for r in results]
-        write_jts(out / f"{role}.jts", stack)
-    write_overlays(out / "overlays", frames.data, view, models, results)
+    for name in models:  # Autoscoper's, in the world; its untracked rows where one failed
+        kept = [r for r in results if not r.bodies[name].failed]
+        stack = np.array([r.bodies[name].T_world_body for r in kept]).reshape(-1, 4, 4)
+        write_tra(out / f"{name}.tra", np.array([r.frame for r in kept], int), stack)
+    for k, (view, stack) in enumerate(zip(views, frames, strict=True), 1):
+        folder = out if len(views) == 1 else out / f"view{k}"
+        folder.mkdir(exist_ok=True)
+        T_camera_world = np.linalg.inv(camera_frame(view))
+        for name, role in tracker.roles.items():  # JointTrack's, in its camera frame; by role
+            in_camera = [T_camera_world @ r.bodies[name].T_world_body for r in results]
+            write_jts(folder / f"{role}.jts", in_camera)
+        write_overlays(folder / "overlays", stack.data, view, models, results)
+    view = views[0]
     per_frame = [
         {
             "frame": r.frame,
@@ -406,7 +504,8 @@ def _write(
     report = {
         "static_volume": None if source is None else source.summary(),
         "implants": meshes,
-        "fluoroscopy": {"source": frames.header.source, "values": frames.stand_in},
+        "fluoroscopy": {"source": frames[0].header.source, "values": frames[0].stand_in},
+        "cameras": [{"source": stack.header.source, "values": stack.stand_in} for stack in frames],
         "settings": tracker.settings.model_dump(),
         "frame_blur_mm": tracker.frame_blur_mm,
         "model_blur_mm": {

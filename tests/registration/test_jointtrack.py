@@ -86,6 +86,9 @@ def test_a_mayacam_projects_as_opencvs_k_r_t(tmp_path):
         (K[0, 0] * cam[:, 0] / cam[:, 2] + K[0, 2], K[1, 1] * cam[:, 1] / cam[:, 2] + K[1, 2])
     )
     np.testing.assert_allclose(view.project(points), expected, atol=1e-7)
+    nominal = read_mayacam(path)  # no pitch: the same pixels, the panel 1000 mm away
+    np.testing.assert_allclose(nominal.project(points), expected, atol=1e-7)
+    assert nominal.sdd_mm == pytest.approx(1000.0) and view.sdd_mm == pytest.approx(2900 * 0.3)
     path.write_text(text.replace("rotation", "turn"))
     with pytest.raises(ValueError, match=r"line 9 of 'camera matrix' is not numbers: 'turn'"):
         read_mayacam(path, 0.3)

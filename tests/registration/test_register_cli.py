@@ -19,13 +19,22 @@ from recon.geometry import DetectorSpec, Geometry, View
 from recon.io import write_projections, write_volume
 from recon.rtk_xml import PanelHeader, write_rtk_geometry
 from recon.volume import Volume, VolumeGrid
+from registration.drr import scene
 from registration.frames import read_frames
+from registration.jointtrack import camera_view, read_jointtrack_poses, write_calibration
 from registration.labels import BONE_UNITS
 from registration.poses import BodyPose, read_poses, write_poses
 from registration.se3 import compose
 from registration.settings import Settings
 from registration.tracking import fluoroscopy_view
-from sim.fluoro import DISTORTION_MAX_MM, distort, lateral_view, simulate_dewarp_grid
+from sim.fluoro import (
+    DISTORTION_MAX_MM,
+    add_fluoro_noise,
+    biplane_views,
+    distort,
+    lateral_view,
+    simulate_dewarp_grid,
+)
 from sim.phantoms.knee import KneePhantomSpec
 from study.cli import app
 
@@ -288,3 +297,134 @@ def test_the_panel_distortion_is_fitted_and_removed(inputs, knee_case, seed, mea
     result = runner.invoke(app, [*_args(paths, bad), "--distortion", str(folder / "other.json")])
     assert result.exit_code == 2 and "do not match the distortion's panel" in result.output
     assert not bad.exists()
+
+
+@pytest.fixture(scope="module")
+def second_camera(inputs, knee_case, seed):
+    """The anterior-posterior camera beside the lateral one (sim.fluoro.biplane_views, 90
+    degrees about the plateau's vertical), its frames of the same motion: (frames, geometry)."""
+    c = knee_case
+    folder, _ = inputs
+    ap = biplane_views(SPEC, DetectorSpec(rows=160, cols=160, pixel_pitch_mm=1.92))[1]
+    clean = np.stack([scene(ap, c.models, c.truth[k], c.soft) for k in range(FRAMES)])
+    frames = add_fluoro_noise(clean, 2.0e5, np.random.default_rng(4 + seed))[1]
+    return (
+        write_projections(folder / "ap.mha", frames, ap.pitch_u_mm),
+        write_rtk_geometry(folder / "ap.xml", Geometry([ap] * FRAMES)),
+    )
+
+
+def test_two_cameras_register_every_body_on_both_and_write_each_cameras_files(
+    inputs, second_camera, measured
+) -> None:
+    """--frames and --geometry once per camera: every body's pose scored on both views, its
+    depth along the first (lateral) camera's rays within the two-camera issue's 0.2 mm median
+    (a voxel is 1 mm); per camera its JointTrack poses in its own camera frame and its
+    overlays; an Autoscoper .tra per body in the world."""
+    folder, paths = inputs
+    out = folder / "biplane"
+    args = _args(paths, out, truth=paths["truth"], initial=paths["initial"])
+    args += ["--settings", str(paths["near_start"]), "--frames-range", "0:1"]
+    args += ["--frames", str(second_camera[0]), "--geometry", str(second_camera[1])]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert "view<K>" in result.output
+    metrics = json.loads((out / "metrics.json").read_text())
+    measured("biplane_depth_mm_median", metrics["out_of_plane_mm_median"], below=0.2)
+    assert metrics["rsr_pct"] == 100.0
+    poses = {(p.frame, p.body): p.T_world_body for p in read_poses(out / "poses.csv")}
+    ap = fluoroscopy_view(second_camera[1], read_frames(second_camera[0]))
+    for k, view in ((1, None), (2, ap)):
+        assert sorted(p.name for p in (out / f"view{k}" / "overlays").iterdir()) == [
+            "frame_0000.png",
+            "frame_0001.png",
+        ]
+        if view is not None:
+            in_world = read_jointtrack_poses(out / f"view{k}" / "femur.jts", view)
+            for frame in (0, 1):
+                np.testing.assert_allclose(in_world[frame], poses[frame, "femur"], atol=1e-4)
+    assert sorted(p.name for p in out.glob("*.tra")) == [f"{b}.tra" for b in sorted(BONES)]
+    report = json.loads((out / "registration.json").read_text())
+    assert [c["source"] for c in report["cameras"]][1].endswith("ap.mha")
+
+
+def test_cameras_that_do_not_pair_or_share_no_world_are_refused_before_work(
+    inputs, second_camera, knee_case, tmp_path
+) -> None:
+    _, paths = inputs
+    frames, geometry = second_camera
+    two = write_projections(tmp_path / "two.mha", read_frames(frames).data[:2], 1.92)
+    calibration = write_calibration(tmp_path / "jt.txt", camera_view(1000.0, 0, 0, 1.92, 160, 160))
+    far = knee_case.view.transformed(
+        np.array([[1, 0, 0, 0], [0, 1, 0, 5000.0], [0, 0, 1, 0], [0, 0, 0, 1]])
+    )
+    away = write_rtk_geometry(tmp_path / "away.xml", Geometry([far] * FRAMES))
+    base = ["register", "--volume", str(paths["volume"]), "--labels", str(paths["labels"])]
+    base += ["--frames", str(paths["frames"])]
+    cases = [
+        (
+            [
+                "--geometry",
+                str(paths["geometry"]),
+                "--frames",
+                str(two),
+                "--geometry",
+                str(geometry),
+            ],
+            "camera 1's 3, camera 2's 2): give --frames-range 0:1",
+        ),
+        (
+            [
+                "--calibration",
+                str(calibration),
+                "--frames",
+                str(frames),
+                "--calibration",
+                str(calibration),
+            ],
+            "a JointTrack calibration places its camera in a frame of its own",
+        ),
+        (
+            [
+                "--geometry",
+                str(paths["geometry"]),
+                "--frames",
+                str(frames),
+                "--calibration",
+                str(calibration),
+            ],
+            "not both",
+        ),
+        (
+            [
+                "--geometry",
+                str(paths["geometry"]),
+                "--geometry",
+                str(geometry),
+                "--frames",
+                str(frames),
+                "--frames",
+                str(frames),
+            ],
+            "--frames given 3 times for 2 cameras",
+        ),
+        (
+            [
+                "--geometry",
+                str(paths["geometry"]),
+                "--frames",
+                str(frames),
+                "--geometry",
+                str(away),
+                "--initial",
+                str(paths["initial"]),
+            ],
+            "camera 2 (",
+        ),
+    ]
+    for k, (more, said) in enumerate(cases):
+        out = tmp_path / f"out{k}"
+        result = runner.invoke(app, [*base, *more, "--out", str(out)], terminal_width=400)
+        assert result.exit_code == 2, (more, result.output)
+        assert said in result.output, (more, result.output)
+        assert not out.exists()
