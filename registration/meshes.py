@@ -92,11 +92,38 @@ class MeshReport:
     repairs: tuple[str, ...] = ()
 
 
+def capped_loops(mesh: trimesh.Trimesh) -> tuple[trimesh.Trimesh | None, list[int]]:
+    """The mesh with each hole (a loop of edges that bound one face) capped by a fan of
+    triangles about the loop's mean vertex (flat where the hole is), and each loop's edge
+    count; None where the open edges do not form separate loops or the result is not closed."""
+    boundary = trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1)
+    following: dict[int, int] = {}
+    for a, b in mesh.edges[boundary]:  # each as its face runs it
+        if int(a) in following:
+            return None, []  # two loops touch at a vertex
+        following[int(a)] = int(b)
+    vertices, faces, loops = list(mesh.vertices), list(mesh.faces), []
+    left = set(following)
+    while left:
+        loop = [left.pop()]
+        while following.get(loop[-1]) in left:
+            loop.append(following[loop[-1]])
+            left.discard(loop[-1])
+        if following.get(loop[-1]) != loop[0]:
+            return None, []
+        centre = len(vertices)
+        vertices.append(mesh.vertices[loop].mean(axis=0))
+        faces += [(b, a, centre) for a, b in zip(loop, loop[1:] + loop[:1], strict=True)]
+        loops.append(len(loop))
+    capped = trimesh.Trimesh(np.asarray(vertices), np.asarray(faces), process=True)
+    return (capped, loops) if loops and capped.is_watertight else (None, [])
+
+
 def read_mesh(
     path: str | Path, unit: str = "mm", size_mm: tuple[float, float] = COMPONENT_SIZE_MM
 ) -> tuple[trimesh.Trimesh, MeshReport]:
     """A component's closed mesh in mm, and what was found; raises ValueError naming the file
-    and the problem (unknown unit, an implausible size, holes that cannot be closed).
+    and the problem (unknown unit, an implausible size, open edges that form no holes).
 
     Args:
         path: an STL, OBJ or PLY file.
@@ -136,12 +163,18 @@ def read_mesh(
         holes = len(mesh.faces)
         trimesh.repair.fill_holes(mesh)
         trimesh.repair.fix_normals(mesh)
-        if not mesh.is_watertight:
+        if len(mesh.faces) > holes:
+            repairs.append(f"closed {len(mesh.faces) - holes} missing faces")
+    if not mesh.is_watertight:
+        capped, loops = capped_loops(mesh)
+        if capped is None:
             raise ValueError(
-                f"{path}: the mesh is not closed and its holes could not be filled: export it "
-                "closed (a solid) from the CAD"
+                f"{path}: the mesh is not closed and its open edges form no loops to close: "
+                "export it closed (a solid) from the CAD"
             )
-        repairs.append(f"closed {len(mesh.faces) - holes} missing faces")
+        mesh = capped
+        trimesh.repair.fix_normals(mesh)
+        repairs.append(f"capped {len(loops)} hole(s) of {', '.join(str(n) for n in loops)} edges")
     if mesh.volume < 0:
         mesh.invert()
         repairs.append("turned its faces outwards")

@@ -39,7 +39,8 @@ def test_a_sphere_voxelises_to_its_volume_and_centre():
 
 
 def test_a_mesh_in_another_unit_or_open_beyond_repair_is_refused(tmp_path):
-    """Units checked; one missing face closed, a fin of no volume removed, a round hole
+    """Units checked; one missing face closed, a fin of no volume removed, a flat hole capped
+    to the volume of the closed solid, a round one capped; open edges that are no loops
     refused."""
     box = trimesh.creation.box(extents=(0.06, 0.05, 0.07))  # metres, as OpenSim's meshes
     box.export(tmp_path / "box.stl")
@@ -67,11 +68,22 @@ def test_a_mesh_in_another_unit_or_open_beyond_repair_is_refused(tmp_path):
     mesh, report = read_mesh(tmp_path / "fin.stl")
     assert mesh.is_watertight and report.repairs == ("removed 1 piece(s) of no volume",)
     assert mesh.volume == pytest.approx(60.0 * 50.0 * 70.0)
+    can = trimesh.creation.cylinder(radius=30.0, height=40.0, sections=48)
+    cut = can.copy()
+    cut.update_faces(cut.face_normals[:, 2] < 0.99)  # its top gone, as CAD exports lose one
+    cut.export(tmp_path / "cut.stl")
+    mesh, report = read_mesh(tmp_path / "cut.stl")  # a flat hole of 48 edges: capped flat
+    assert mesh.is_watertight and report.repairs == ("capped 1 hole(s) of 48 edges",)
+    assert mesh.volume == pytest.approx(can.volume, rel=1e-6)  # STL keeps float32 vertices
     dome = trimesh.creation.icosphere(subdivisions=3, radius=30.0)
     dome.update_faces(dome.triangles_center[:, 2] > -5.0)  # a cap cut off: a round hole
     dome.export(tmp_path / "dome.stl")
-    with pytest.raises(ValueError, match="not closed and its holes could not be filled"):
-        read_mesh(tmp_path / "dome.stl")
+    mesh, report = read_mesh(tmp_path / "dome.stl")
+    assert mesh.is_watertight and report.repairs[-1].startswith("capped 1 hole(s) of ")
+    flap = trimesh.Trimesh(fin.vertices, fin.faces[:-1], process=False)  # one-sided: no loop
+    flap.export(tmp_path / "flap.stl")
+    with pytest.raises(ValueError, match="its open edges form no loops to close"):
+        read_mesh(tmp_path / "flap.stl")
 
 
 def test_a_radiolucent_part_is_not_tracked_alone():
