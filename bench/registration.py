@@ -51,6 +51,11 @@ The regimes (docs/system.md, issue "4D virtual imaging"; docs/implants.md for th
 - ``tka_bones``: the same, each component tracked with the true bones it is fixed to as well
   (sim.tka.FIXED_BONES: the femur; the tibia and the fibula): what the tracker does when the
   bones' place on the components is known exactly.
+- ``biplane_tka``: the ``tka`` regime's gait seen by two cameras, the lateral one (its frames
+  seed for seed) and one turned :data:`BIPLANE_ANGLES_DEG` about the vertical through the
+  knee's centre (sim.tka.simulate_tka_fluoro's ``turn_deg``), tracked from both at once (entry
+  ``biplane_tka``) and from the lateral camera alone (``biplane_tka_one_camera``); depth is
+  along the lateral view's rays, the seconds per time point.
 
 In the first two regimes the frames are dewarped first (calibration.dewarp_grid), with the warp
 fitted to one exposure of the dewarp grid through the same image model as the frames
@@ -284,7 +289,16 @@ def drr_ms_256(models, view) -> float:
     return (time.perf_counter() - started) / 20 * 1000.0
 
 
-REGIMES = ("matched", "independent", "cross_renderer", "biplane", "real_tka", "tka", "tka_bones")
+REGIMES = (
+    "matched",
+    "independent",
+    "cross_renderer",
+    "biplane",
+    "real_tka",
+    "tka",
+    "tka_bones",
+    "biplane_tka",
+)
 BIPLANE_ANGLES_DEG = (90.0, 60.0)
 """The biplane regime's angles between the two central rays, cycled over the sequences."""
 GC_DATA = ROOT.parent / "shared" / "data" / "grand-challenge-tka"
@@ -294,12 +308,10 @@ TKA_PHOTONS = 2.0e4
 """Unattenuated photons per 0.6 mm pixel of the simulated TKA frames."""
 
 
-def tka(sequences: int, frames: int, panel: int, bones: bool = False) -> dict:
-    """The ``tka`` regime's entry, or with ``bones`` the ``tka_bones`` one (see the module
-    docstring)."""
-    regime = "tka_bones" if bones else "tka"
-    if not GC_DATA.is_dir():
-        return {"regime": regime, "skipped": f"no data at {GC_DATA}"}
+def tka_scene(frames: int, panel: int, bones: bool = False):
+    """The simulated knee replacement's gait (see the ``tka`` regime): the knee, its motion,
+    the panel, the gait settings, the tracked components' models (with ``bones``, the bones
+    fixed to them too) and their true poses per frame."""
     knee = load_tka(GC_DATA)
     gait = read_gait(GC_DATA / "kinematics" / "fluoroscopic_gait.sto")
     motion = tka_motion(knee, gait, frames, TKA_CENTER_MM)
@@ -318,43 +330,24 @@ def tka(sequences: int, frames: int, panel: int, bones: bool = False) -> dict:
         for body, attached in TKA_TRACKED.items()
     }
     truth = {body: part_poses(knee, motion, body) for body in TKA_TRACKED}
-    errors, first, warm, render_s = [], [], [], []
-    for seq in range(sequences):
-        started = time.perf_counter()
-        view, images = simulate_tka_fluoro(
-            knee, motion, detector, TKA_CENTER_MM, TKA_PHOTONS, seed=300 + seq, supersample=2
+    return knee, motion, detector, settings, models, truth
+
+
+def tka_errors(results, truth, models, view) -> list:
+    """Every registration's error against the true poses (depth along ``view``'s rays)."""
+    return [
+        pose_error(
+            body, res.frame, r.T_world_body, truth[body][res.frame], models[body].points_mm, view
         )
-        render_s.append((time.perf_counter() - started) / frames)
-        start = perturbed({b: truth[b][0] for b in models}, models, np.random.default_rng(seq))
-        log(f"tka sequence {seq}: tracking {frames} frames")
-        results = Tracker(view, images, models, settings).track(start)
-        first.append(sum(r.seconds for r in results[0].bodies.values()))
-        warm += [sum(r.seconds for r in res.bodies.values()) for res in results[1:]]
-        for res in results:
-            for body, r in res.bodies.items():
-                errors.append(
-                    pose_error(
-                        body,
-                        res.frame,
-                        r.T_world_body,
-                        truth[body][res.frame],
-                        models[body].points_mm,
-                        view,
-                    )
-                )
-    entry = {
-        "regime": regime,
-        "sequences": sequences,
-        "frames": frames,
-        "panel": panel,
-        "flexion_deg": [
-            round(float(motion.flexion_deg.min()), 1),
-            round(float(motion.flexion_deg.max()), 1),
-        ],
-        "photons_per_pixel": TKA_PHOTONS,
-        "s_render_per_frame": round(float(np.mean(render_s)), 2),
-        **summarize(errors, warm, float(np.mean(first))),
-    }
+        for res in results
+        for body, r in res.bodies.items()
+    ]
+
+
+def tka_entry(regime: str, errors: list, first: list, warm: list, models) -> dict:
+    """A knee replacement regime's figures: the bone regimes' (summarize), per-axis medians and
+    per component."""
+    entry = {"regime": regime, **summarize(errors, warm, float(np.mean(first)))}
     dof = np.abs(np.array([e.dof for e in errors]))
     entry["per_axis_median_abs"] = {
         axis: round(float(np.median(dof[:, i])), 3)
@@ -370,6 +363,89 @@ def tka(sequences: int, frames: int, panel: int, bones: bool = False) -> dict:
         for body in models
     }
     return entry
+
+
+def tka(sequences: int, frames: int, panel: int, bones: bool = False) -> dict:
+    """The ``tka`` regime's entry, or with ``bones`` the ``tka_bones`` one (see the module
+    docstring)."""
+    regime = "tka_bones" if bones else "tka"
+    if not GC_DATA.is_dir():
+        return {"regime": regime, "skipped": f"no data at {GC_DATA}"}
+    knee, motion, detector, settings, models, truth = tka_scene(frames, panel, bones)
+    errors, first, warm, render_s = [], [], [], []
+    for seq in range(sequences):
+        started = time.perf_counter()
+        view, images = simulate_tka_fluoro(
+            knee, motion, detector, TKA_CENTER_MM, TKA_PHOTONS, seed=300 + seq, supersample=2
+        )
+        render_s.append((time.perf_counter() - started) / frames)
+        start = perturbed({b: truth[b][0] for b in models}, models, np.random.default_rng(seq))
+        log(f"tka sequence {seq}: tracking {frames} frames")
+        results = Tracker(view, images, models, settings).track(start)
+        first.append(sum(r.seconds for r in results[0].bodies.values()))
+        warm += [sum(r.seconds for r in res.bodies.values()) for res in results[1:]]
+        errors += tka_errors(results, truth, models, view)
+    entry = tka_entry(regime, errors, first, warm, models)
+    entry |= {
+        "sequences": sequences,
+        "frames": frames,
+        "panel": panel,
+        "flexion_deg": [
+            round(float(motion.flexion_deg.min()), 1),
+            round(float(motion.flexion_deg.max()), 1),
+        ],
+        "photons_per_pixel": TKA_PHOTONS,
+        "s_render_per_frame": round(float(np.mean(render_s)), 2),
+    }
+    return entry
+
+
+def biplane_tka(sequences: int, frames: int, panel: int) -> list[dict]:
+    """The ``biplane_tka`` regime's two entries: the knee replacement's gait seen by the
+    lateral camera (the ``tka`` regime's frames, seed for seed) and by one turned
+    :data:`BIPLANE_ANGLES_DEG` from it (cycled over the sequences), tracked from both at once
+    (``biplane_tka``) and from the lateral camera alone (``biplane_tka_one_camera``)."""
+    names = ("biplane_tka", "biplane_tka_one_camera")
+    if not GC_DATA.is_dir():
+        return [{"regime": name, "skipped": f"no data at {GC_DATA}"} for name in names]
+    knee, motion, detector, settings, models, truth = tka_scene(frames, panel)
+    runs = {name: {"errors": [], "first": [], "warm": []} for name in names}
+    angles = []
+    for seq in range(sequences):
+        angle = BIPLANE_ANGLES_DEG[seq % len(BIPLANE_ANGLES_DEG)]
+        angles.append(angle)
+        log(f"biplane_tka sequence {seq}: {frames} frames in two views {angle:g} deg apart")
+        views, stacks = [], []
+        for k, turn in enumerate((0.0, angle)):
+            view, images = simulate_tka_fluoro(
+                knee,
+                motion,
+                detector,
+                TKA_CENTER_MM,
+                TKA_PHOTONS,
+                seed=300 + seq + 1000 * k,
+                supersample=2,
+                turn_deg=turn,
+            )
+            views.append(view)
+            stacks.append(images)
+        start = perturbed({b: truth[b][0] for b in models}, models, np.random.default_rng(seq))
+        for name, (view, stack) in zip(
+            names, ((views, stacks), (views[0], stacks[0])), strict=True
+        ):
+            results = Tracker(view, stack, models, settings).track(start)
+            runs[name]["first"].append(sum(r.seconds for r in results[0].bodies.values()))
+            runs[name]["warm"] += [
+                sum(r.seconds for r in res.bodies.values()) for res in results[1:]
+            ]
+            runs[name]["errors"] += tka_errors(results, truth, models, views[0])
+    entries = []
+    for name, data in runs.items():
+        entry = tka_entry(name, data["errors"], data["first"], data["warm"], models)
+        entry |= {"angles_deg": angles, "sequences": sequences, "frames": frames, "panel": panel}
+        entries.append(entry)
+        log(f"{name}: {json.dumps(entry)}")
+    return entries
 
 
 TKA_DATA = ROOT.parent / "shared" / "data" / "tka-fluoro-jtml"
@@ -682,6 +758,9 @@ def main() -> None:
             continue
         if regime == "biplane":
             entries += biplane(args.sequences, args.frames, args.max_flexion, detector, photons)
+            continue
+        if regime == "biplane_tka":
+            entries += biplane_tka(args.sequences, args.frames, args.panel)
             continue
         log(f"regime {regime}: bone models")
         spec, volume, labels = static_scan(regime)

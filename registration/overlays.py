@@ -74,3 +74,23 @@ def write_overlays(
         sitk.WriteImage(sitk.GetImageFromArray(rgb[::-1] if upright else rgb, True), path)
         written.append(path)
     return written
+
+
+def write_side_by_side(folder: Path, views: Sequence[Path], gap: int = 4) -> list[Path]:
+    """One PNG per frame into the new ``folder``: each camera's overlay of the frame (the
+    ``frame_NNNN.png`` of each folder of ``views``, in order) side by side, top-aligned, ``gap``
+    black pixels apart; the frames of the first camera's folder."""
+    folder.mkdir(parents=True)
+    written = []
+    for first in sorted(Path(views[0]).glob("frame_*.png")):
+        images = [sitk.GetArrayFromImage(sitk.ReadImage(str(v / first.name))) for v in views]
+        height = max(image.shape[0] for image in images)
+        parts = []
+        for image in images:
+            padded = np.zeros((height, image.shape[1] + gap, 3), dtype=image.dtype)
+            padded[: image.shape[0], : image.shape[1]] = image
+            parts.append(padded)
+        path = folder / first.name
+        sitk.WriteImage(sitk.GetImageFromArray(np.hstack(parts)[:, :-gap], True), path)
+        written.append(path)
+    return written

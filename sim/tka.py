@@ -41,7 +41,7 @@ from scipy.spatial.transform import Rotation
 from recon.geometry import DetectorSpec, View
 from registration.implants import ray_lengths
 from registration.meshes import ATTACHABLE, Material, read_mesh, size_range_mm
-from sim.fluoro import lateral_view
+from sim.fluoro import lateral_view, move_view
 from sim.phantoms.knee import KneePhantomSpec
 
 OSIM_TO_LPS = np.array([[0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
@@ -335,9 +335,11 @@ def simulate_tka_fluoro(
     seed: int,
     supersample: int = 3,
     blur_mm: float = 0.3,
+    turn_deg: float = 0.0,
 ) -> tuple[View, np.ndarray]:
-    """Lateral fluoroscopy of the knee replacement through ``motion``, as an image
-    intensifier's video shows it: per pixel the share of the beam stopped, ``1 - I / I0``.
+    """Lateral fluoroscopy of the knee replacement through ``motion`` (or a camera turned from
+    the lateral one), as an image intensifier's video shows it: per pixel the share of the beam
+    stopped, ``1 - I / I0``.
 
     Every part (metal, polyethylene, bone) and the leg's soft tissue (:func:`leg_chords`: the
     thigh's and the shank's water, bent at the knee as the bones are) attenuate along each of
@@ -354,18 +356,24 @@ def simulate_tka_fluoro(
         seed: The noise's seed.
         supersample: Rays per pixel along each axis.
         blur_mm: The imaging chain's Gaussian sigma at the panel, mm.
+        turn_deg: The camera (source and panel) turned about the vertical through
+            ``center_mm``, degrees (sim.fluoro.biplane_views's sense: 90 looks from the front);
+            0: the lateral view.
 
     Returns:
         The view, and the frames (F, rows, cols) float32 in [0, 1].
     """
     spec = KneePhantomSpec(side="right")
-    view = lateral_view(spec, detector, target_mm=center_mm)
+    center_mm = np.asarray(center_mm, dtype=np.float64)
+    turn = np.eye(4)  # the right knee's medial source swings to the front
+    turn[:3, :3] = Rotation.from_euler("z", -turn_deg, degrees=True).as_matrix()
+    turn[:3, 3] = center_mm - turn[:3, :3] @ center_mm
+    view = move_view(lateral_view(spec, detector, target_mm=center_mm), turn)
     s = supersample
     fine_panel = DetectorSpec(
         rows=detector.rows * s, cols=detector.cols * s, pixel_pitch_mm=detector.pixel_pitch_mm / s
     )
-    fine = lateral_view(spec, fine_panel, target_mm=center_mm)
-    center_mm = np.asarray(center_mm, dtype=np.float64)
+    fine = move_view(lateral_view(spec, fine_panel, target_mm=center_mm), turn)
     rng = np.random.default_rng(seed)
     frames = np.empty((len(motion.frames), detector.rows, detector.cols), dtype=np.float32)
     for k in range(len(motion.frames)):

@@ -20,7 +20,8 @@ Several cameras (biplane and more) each give their frames and their view, in one
 geometries, or XMALab/Autoscoper MayaCam calibrations made on one object); frames are paired by
 index and every body's pose is scored on all of them (registration.views). Their ``.jts`` files
 and overlays go to ``view<K>/`` per camera K (from 1), each in that camera's JointTrack frame;
-given ``.jts`` files (initial or true poses) are in the first camera's.
+``overlays/`` holds every camera's side by side (what ``cbct assess`` plays); given ``.jts``
+files (initial or true poses) are in the first camera's.
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ from registration.jointtrack import write_poses as write_jts
 from registration.mayacam import is_mayacam, nominal_pitch_mm
 from registration.meshes import ATTACHABLE, MATERIALS, read_mesh, size_range_mm
 from registration.metrics import as_rows, pose_error, summarize
-from registration.overlays import write_overlays
+from registration.overlays import write_overlays, write_side_by_side
 from registration.poses import BodyPose, poses_by_frame, read_poses, write_poses
 from registration.results import FrameResult
 from registration.roles import (
@@ -487,6 +488,10 @@ def _write(
             in_camera = [T_camera_world @ r.bodies[name].T_world_body for r in results]
             write_jts(folder / f"{role}.jts", in_camera)
         write_overlays(folder / "overlays", stack.data, view, models, results)
+    if len(views) > 1:  # every camera's side by side, for the report (cbct assess)
+        write_side_by_side(
+            out / "overlays", [out / f"view{k}" / "overlays" for k in range(1, len(views) + 1)]
+        )
     view = views[0]
     per_frame = [
         {

@@ -344,6 +344,8 @@ def test_two_cameras_register_every_body_on_both_and_write_each_cameras_files(
             for frame in (0, 1):
                 np.testing.assert_allclose(in_world[frame], poses[frame, "femur"], atol=1e-4)
     assert sorted(p.name for p in out.glob("*.tra")) == [f"{b}.tra" for b in sorted(BONES)]
+    both = sitk.GetArrayFromImage(sitk.ReadImage(str(out / "overlays" / "frame_0001.png")))
+    assert both.shape == (160, 2 * 160 + 4, 3)  # the two cameras' side by side, for the report
     report = json.loads((out / "registration.json").read_text())
     assert [c["source"] for c in report["cameras"]][1].endswith("ap.mha")
 

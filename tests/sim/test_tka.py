@@ -71,6 +71,13 @@ def test_a_frame_shows_the_metal_as_the_beam_stopped(knee):
     metal = ray_lengths(view, femoral.vertices, femoral.faces, motion.poses["femur_r"][0]) > 5.0
     assert metal.sum() > 20 and frames[0][metal].min() > 0.98
     assert frames[0][:, :3].mean() < 0.5  # the panel's edge: air, or the leg's skin
+    front, shown = simulate_tka_fluoro(  # a second camera, turned 90 deg: from the front
+        knee, motion, detector, CENTER_MM, 2.0e4, seed=1, supersample=1, blur_mm=0.0, turn_deg=90
+    )
+    assert abs(np.dot(view.normal, front.normal)) < 1e-9  # the panels at 90 deg
+    assert front.source_mm[1] < CENTER_MM[1] - 100.0  # anterior is -y (LPS)
+    metal = ray_lengths(front, femoral.vertices, femoral.faces, motion.poses["femur_r"][0]) > 5.0
+    assert metal.sum() > 20 and shown[0][metal].min() > 0.98
 
 
 def test_the_leg_bends_with_the_knee():
