@@ -27,9 +27,7 @@ NOMINAL_DISTANCE_MM = 1000.0
 def read_mayacam(path: str | Path, pixel_pitch_mm: float | None = None) -> View:
     """The view of a MayaCam 2.0 file for a panel of ``pixel_pitch_mm`` pixels (along the
     columns; None: :func:`nominal_pitch_mm`); ValueError naming the file and the section."""
-    if pixel_pitch_mm is None:
-        pixel_pitch_mm = nominal_pitch_mm(path)
-    if not pixel_pitch_mm > 0:
+    if pixel_pitch_mm is not None and not pixel_pitch_mm > 0:
         raise ValueError(
             f"{path}: a MayaCam view needs a pixel pitch above 0 mm, got {pixel_pitch_mm}"
         )
@@ -48,7 +46,7 @@ def read_mayacam(path: str | Path, pixel_pitch_mm: float | None = None) -> View:
     fx, fy, cx, cy = _intrinsics(path, K)
     rows, cols = int(size[0]), int(size[1])
     source = -R.T @ t
-    pitch_u = float(pixel_pitch_mm)
+    pitch_u = NOMINAL_DISTANCE_MM / fx if pixel_pitch_mm is None else float(pixel_pitch_mm)
     distance = fx * pitch_u
     pitch_v = distance / fy
     origin_camera = np.array([-cx * pitch_u, -cy * pitch_v, distance])
