@@ -27,7 +27,8 @@ from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
 from assessment.results import KneeKinematics
 from assessment.viewer import COLORS as BODY_COLORS
-from assessment.viewer import MotionScene, decimated, view_direction
+from assessment.viewer import MotionScene, view_direction
+from registration.meshes import decimated
 from registration.roles import KNOWN_ROLES
 
 DPI = 100

@@ -21,6 +21,7 @@ import trimesh
 
 from assessment.kinematics import MIRROR
 from assessment.knee import KneeAssessment
+from registration.meshes import decimated
 from registration.overlays import COLOURS as OUTLINE_COLOURS
 from registration.roles import KNOWN_ROLES, playing
 
@@ -67,21 +68,6 @@ class MotionScene:
     side: str
 
 
-def decimated(mesh: trimesh.Trimesh, max_faces: int = MAX_FACES) -> trimesh.Trimesh:
-    """``mesh`` with at most ``max_faces`` faces (quadric decimation; unchanged if smaller).
-
-    Args:
-        mesh: A surface mesh.
-        max_faces: The most faces kept.
-
-    Returns:
-        The decimated mesh (``mesh`` itself when it is small enough).
-    """
-    if len(mesh.faces) <= max_faces:
-        return mesh
-    return mesh.simplify_quadric_decimation(face_count=max_faces)
-
-
 def motion_scene(
     assessment: KneeAssessment,
     frames: np.ndarray,
@@ -124,7 +110,7 @@ def motion_scene(
         condyles[:, j] += tibia_poses[:, :3, 3]
     shown = {}
     for name, mesh in meshes.items():
-        small = decimated(mesh)
+        small = decimated(mesh, MAX_FACES)
         shown[name] = (
             np.asarray(small.vertices, dtype=np.float32),
             np.asarray(small.faces, dtype=np.uint32),

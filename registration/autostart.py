@@ -155,7 +155,7 @@ def candidate_poses(
     image, inside = binned_frame(frame, field, factor)
     background = float(np.median(image))
     for other, T_other in placed:
-        image[other.silhouette(coarse, T_other)] = background
+        image[other.silhouette(coarse, T_other, outline=True)] = background
     matcher = Matcher(image, inside)
     allowed = np.ones_like(image, dtype=bool)
     if near is not None:
@@ -176,7 +176,7 @@ def candidate_poses(
             T = np.eye(4)
             T[:3, :3] = R
             T[:3, 3] = centre - R @ body_centre
-            silhouette = model.silhouette(coarse, T)
+            silhouette = model.silhouette(coarse, T, outline=True)
             if silhouette.sum() < 4:
                 continue
             rows, cols = np.nonzero(silhouette)

@@ -182,6 +182,23 @@ def read_mesh(
     return mesh, report
 
 
+def decimated(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
+    """``mesh`` brought down to ``max_faces`` faces by quadric decimation (``mesh`` itself when
+    it has no more). The decimation may stop above ``max_faces`` where removing more faces
+    would change the surface's topology.
+
+    Args:
+        mesh: A surface mesh.
+        max_faces: The faces aimed at.
+
+    Returns:
+        The decimated mesh.
+    """
+    if len(mesh.faces) <= max_faces:
+        return mesh
+    return mesh.simplify_quadric_decimation(face_count=max_faces)
+
+
 def voxelize(
     mesh: trimesh.Trimesh, voxel_mm: float, supersample: int = 4
 ) -> tuple[np.ndarray, VolumeGrid]:
