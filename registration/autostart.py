@@ -14,6 +14,8 @@ keeps the best (registration.tracker.Tracker.best_start).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.fft import irfft2, next_fast_len, rfft2
 from scipy.spatial.transform import Rotation
@@ -72,12 +74,13 @@ def binned_frame(
 class Matcher:
     """Silhouettes matched to one binned frame at every position: the frame's sums and sums
     of squares under a box from summed-area tables, its correlation with the silhouette and
-    with its unexposed part by FFT (spectra computed once; the frame zero-padded so that no
-    match wraps around)."""
+    with its unexposed part by FFT (spectra computed once; the frame zero-padded by the
+    largest box, ``reach`` pixels, so that no match wraps around)."""
 
-    def __init__(self, image: np.ndarray, inside: np.ndarray) -> None:
+    def __init__(self, image: np.ndarray, inside: np.ndarray, reach: int) -> None:
         self.shape = image.shape
-        self.padded = tuple(next_fast_len(2 * n, real=True) for n in image.shape)
+        self.reach = reach
+        self.padded = tuple(next_fast_len(n + reach, real=True) for n in image.shape)
         low, high = np.percentile(image[inside], [1.0, 99.0])
         self.least_contrast = LEAST_CONTRAST * float(high - low)
         self.tables = [_summed_area(a) for a in (image, image * image)]
@@ -110,6 +113,8 @@ class Matcher:
         silhouette less the mean around it in the box) is below :data:`LEAST_CONTRAST` of the
         field's range: noise alone correlates with a shape now and then, but has no
         contrast."""
+        if max(box.shape) > self.reach:
+            raise ValueError(f"a silhouette of {box.shape} pixels beyond the reach {self.reach}")
         anchor = (box.shape[0] // 2, box.shape[1] // 2)
         n, share = box.size, float(box.mean())
         energy = n * share * (1.0 - share)  # sum of (box - share)^2
@@ -156,7 +161,13 @@ def candidate_poses(
     background = float(np.median(image))
     for other, T_other in placed:
         image[other.silhouette(coarse, T_other, outline=True)] = background
-    matcher = Matcher(image, inside)
+    centre = coarse.source_mm + DEPTH_FRACTION * (coarse.detector_center_mm - coarse.source_mm)
+    depth = float(coarse.depth(centre)[0])  # every grid pose puts the body's centroid there
+    body_centre = model.centroid_mm
+    radius = float(np.linalg.norm(model.vertices_mm - body_centre, axis=1).max())
+    nearest = depth - radius / coarse.sdd_mm  # its nearest point to the source, magnified most
+    pitch = min(coarse.pitch_u_mm, coarse.pitch_v_mm)
+    matcher = Matcher(image, inside, math.ceil(2.0 * radius / (nearest * pitch)) + 2)
     allowed = np.ones_like(image, dtype=bool)
     if near is not None:
         point, radius_mm = near
@@ -164,10 +175,7 @@ def candidate_poses(
         radius_px = radius_mm / (coarse.pitch_u_mm * float(coarse.depth(point)[0]))
         rows, cols = np.indices(image.shape)
         allowed = np.hypot(rows - v, cols - u) <= radius_px
-    centre = coarse.source_mm + DEPTH_FRACTION * (coarse.detector_center_mm - coarse.source_mm)
-    depth = float(coarse.depth(centre)[0])  # every grid pose puts the body's centroid there
     step_u, step_v = depth * coarse.pitch_u_mm * coarse.e_u, depth * coarse.pitch_v_mm * coarse.e_v
-    body_centre = model.centroid_mm
     scored = []
     for direction in _sphere(DIRECTIONS):
         facing = Rotation.align_vectors([[0.0, 0.0, 1.0]], [direction])[0]
