@@ -51,6 +51,10 @@ The regimes (docs/system.md, issue "4D virtual imaging"; docs/implants.md for th
 - ``tka_bones``: the same, each component tracked with the true bones it is fixed to as well
   (sim.tka.FIXED_BONES: the femur; the tibia and the fibula): what the tracker does when the
   bones' place on the components is known exactly.
+- ``tka_sparse``: the ``tka`` regime on every :data:`SPARSE_STEP`-th sample of the gait
+  (11 frames over the cycle, ``--frames`` ignored): as a study sampled every 20th video frame,
+  the tray turns up to tens of degrees between frames, beyond any search about its last pose;
+  a component lost is searched for again over the whole frame (registration.autostart).
 - ``biplane_tka``: the ``tka`` regime's gait seen by two cameras, the lateral one (its frames
   seed for seed) and one turned :data:`BIPLANE_ANGLES_DEG` about the vertical through the
   knee's centre (sim.tka.simulate_tka_fluoro's ``turn_deg``), tracked from both at once (entry
@@ -297,6 +301,7 @@ REGIMES = (
     "real_tka",
     "tka",
     "tka_bones",
+    "tka_sparse",
     "biplane_tka",
 )
 BIPLANE_ANGLES_DEG = (90.0, 60.0)
@@ -306,6 +311,9 @@ TKA_CENTER_MM = np.array([0.0, 0.0, 490.0])
 """Where the simulated knee replacement's joint centre stands (the phantom knee's height)."""
 TKA_PHOTONS = 2.0e4
 """Unattenuated photons per 0.6 mm pixel of the simulated TKA frames."""
+SPARSE_STEP = 10
+"""The ``tka_sparse`` regime takes every so many of the gait file's samples (0 to 100 % of the
+cycle in 1 % steps)."""
 
 
 def tka_scene(frames: int, panel: int, bones: bool = False):
@@ -365,14 +373,20 @@ def tka_entry(regime: str, errors: list, first: list, warm: list, models) -> dic
     return entry
 
 
-def tka(sequences: int, frames: int, panel: int, bones: bool = False) -> dict:
-    """The ``tka`` regime's entry, or with ``bones`` the ``tka_bones`` one (see the module
-    docstring)."""
-    regime = "tka_bones" if bones else "tka"
+def tka(
+    sequences: int, frames: int, panel: int, bones: bool = False, sparse: bool = False
+) -> dict:
+    """The ``tka`` regime's entry, or with ``bones`` the ``tka_bones`` one, or with ``sparse``
+    the ``tka_sparse`` one (every :data:`SPARSE_STEP`-th sample of the gait, ``frames``
+    ignored) (see the module docstring)."""
+    regime = "tka_bones" if bones else "tka_sparse" if sparse else "tka"
     if not GC_DATA.is_dir():
         return {"regime": regime, "skipped": f"no data at {GC_DATA}"}
+    if sparse:
+        samples = len(read_gait(GC_DATA / "kinematics" / "fluoroscopic_gait.sto")["time"])
+        frames = (samples - 1) // SPARSE_STEP + 1
     knee, motion, detector, settings, models, truth = tka_scene(frames, panel, bones)
-    errors, first, warm, render_s = [], [], [], []
+    errors, first, warm, render_s, marked = [], [], [], [], 0
     for seq in range(sequences):
         started = time.perf_counter()
         view, images = simulate_tka_fluoro(
@@ -385,8 +399,11 @@ def tka(sequences: int, frames: int, panel: int, bones: bool = False) -> dict:
         first.append(sum(r.seconds for r in results[0].bodies.values()))
         warm += [sum(r.seconds for r in res.bodies.values()) for res in results[1:]]
         errors += tka_errors(results, truth, models, view)
+        marked += sum(r.failed for res in results for r in res.bodies.values())
     entry = tka_entry(regime, errors, first, warm, models)
     entry |= {
+        "marked_failed": marked,
+        "s_per_frame_max": round(float(np.max(warm)), 2),
         "sequences": sequences,
         "frames": frames,
         "panel": panel,
@@ -752,8 +769,9 @@ def main() -> None:
             entries.append(real_tka(args.seeds, edge_fit=args.edge_fit))
             log(f"real_tka: {json.dumps(entries[-1])}")
             continue
-        if regime in ("tka", "tka_bones"):
-            entries.append(tka(args.sequences, args.frames, args.panel, regime == "tka_bones"))
+        if regime in ("tka", "tka_bones", "tka_sparse"):
+            bones, sparse = regime == "tka_bones", regime == "tka_sparse"
+            entries.append(tka(args.sequences, args.frames, args.panel, bones, sparse))
             log(f"{regime}: {json.dumps(entries[-1])}")
             continue
         if regime == "biplane":
