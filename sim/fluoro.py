@@ -156,6 +156,22 @@ def move_view(view: View, T: np.ndarray) -> View:
     return view.transformed(check_rigid(T, "move_view"))
 
 
+def turned_view(view: View, point_mm: np.ndarray, angle_deg: float) -> View:
+    """``view`` (source and panel) turned by ``angle_deg`` about the vertical (world z) through
+    ``point_mm``, counter-clockwise seen from above.
+
+    Args:
+        view: The view.
+        point_mm: A point of the vertical turned about (3,), world mm.
+        angle_deg: The turn, degrees.
+    """
+    point = np.asarray(point_mm, dtype=np.float64)
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("z", angle_deg, degrees=True).as_matrix()
+    T[:3, 3] = point - T[:3, :3] @ point
+    return move_view(view, T)
+
+
 def lateral_view(
     spec: KneePhantomSpec,
     detector: DetectorSpec,
@@ -220,10 +236,7 @@ def biplane_views(
     lateral = lateral_view(spec, detector, sid_mm, sdd_mm)
     target = knee_landmarks(spec)["tibial_plateau_center"]
     turn = -1.0 if spec.side == "right" else 1.0  # the medial source swings to the front
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_euler("z", turn * angle_deg, degrees=True).as_matrix()
-    T[:3, 3] = target - T[:3, :3] @ target
-    return lateral, move_view(lateral, T)
+    return lateral, turned_view(lateral, target, turn * angle_deg)
 
 
 def default_photons_per_pixel(view: View) -> float:

@@ -41,7 +41,7 @@ from scipy.spatial.transform import Rotation
 from recon.geometry import DetectorSpec, View
 from registration.implants import ray_lengths
 from registration.meshes import ATTACHABLE, Material, read_mesh, size_range_mm
-from sim.fluoro import lateral_view, move_view
+from sim.fluoro import lateral_view, turned_view
 from sim.phantoms.knee import KneePhantomSpec
 
 OSIM_TO_LPS = np.array([[0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
@@ -365,15 +365,13 @@ def simulate_tka_fluoro(
     """
     spec = KneePhantomSpec(side="right")
     center_mm = np.asarray(center_mm, dtype=np.float64)
-    turn = np.eye(4)  # the right knee's medial source swings to the front
-    turn[:3, :3] = Rotation.from_euler("z", -turn_deg, degrees=True).as_matrix()
-    turn[:3, 3] = center_mm - turn[:3, :3] @ center_mm
-    view = move_view(lateral_view(spec, detector, target_mm=center_mm), turn)
+    # the right knee's medial source swings to the front
+    view = turned_view(lateral_view(spec, detector, target_mm=center_mm), center_mm, -turn_deg)
     s = supersample
     fine_panel = DetectorSpec(
         rows=detector.rows * s, cols=detector.cols * s, pixel_pitch_mm=detector.pixel_pitch_mm / s
     )
-    fine = move_view(lateral_view(spec, fine_panel, target_mm=center_mm), turn)
+    fine = turned_view(lateral_view(spec, fine_panel, target_mm=center_mm), center_mm, -turn_deg)
     rng = np.random.default_rng(seed)
     frames = np.empty((len(motion.frames), detector.rows, detector.cols), dtype=np.float32)
     for k in range(len(motion.frames)):
