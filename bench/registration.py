@@ -53,8 +53,8 @@ The regimes (docs/system.md, issue "4D virtual imaging"; docs/implants.md for th
   bones' place on the components is known exactly.
 - ``tka_sparse``: the ``tka`` regime on every :data:`SPARSE_STEP`-th sample of the gait
   (11 frames over the cycle, ``--frames`` ignored): as a study sampled every 20th video frame,
-  the tray turns up to tens of degrees between frames, beyond any search about its last pose;
-  a component lost is searched for again over the whole frame (registration.autostart).
+  the tray moves beyond the search about its last pose in swing; ``marked_failed`` counts the
+  registrations the tracker flagged, beside the RSR against the truth.
 - ``biplane_tka``: the ``tka`` regime's gait seen by two cameras, the lateral one (its frames
   seed for seed) and one turned :data:`BIPLANE_ANGLES_DEG` about the vertical through the
   knee's centre (sim.tka.simulate_tka_fluoro's ``turn_deg``), tracked from both at once (entry
