@@ -139,26 +139,23 @@ def _joseph_kernel(
                 st_k = np.uint64(strides[k])
                 st_a = np.uint64(strides[a])
                 st_b = np.uint64(strides[b])
-                # padded coordinates (>= _PAD - 1 > 0 inside the range, so int() floors),
-                # advanced incrementally one slice at a time along the dominant axis
+                # padded coordinates, advanced incrementally one slice at a time along the
+                # dominant axis: [t_lo, t_hi] keeps them in [_PAD - 1, dims + _PAD] (to the
+                # rounding of the increments), so int() floors and all four taps fall inside
+                # the padded array; taps in the zero layers add exactly 0
                 step_a = d[a] * inv_dk
                 step_b = d[b] * inv_dk
                 fa = s[a] + (i_lo - s[k]) * step_a + _PAD
                 fb = s[b] + (i_lo - s[k]) * step_b + _PAD
-                lo_a, hi_a = _PAD - 1.0, dims[a] + _PAD
-                lo_b, hi_b = _PAD - 1.0, dims[b] + _PAD
                 for i in range(i_lo, i_hi + 1):
-                    if fa > lo_a and fb > lo_b and fa < hi_a and fb < hi_b:
-                        ia = int(fa)
-                        ib = int(fb)
-                        wa = fa - ia
-                        wb = fb - ib
-                        base = (
-                            np.uint64(i + _PAD) * st_k + np.uint64(ia) * st_a + np.uint64(ib) * st_b
-                        )
-                        total += (1.0 - wa) * (
-                            (1.0 - wb) * flat[base] + wb * flat[base + st_b]
-                        ) + wa * ((1.0 - wb) * flat[base + st_a] + wb * flat[base + st_a + st_b])
+                    ia = int(fa)
+                    ib = int(fb)
+                    wa = fa - ia
+                    wb = fb - ib
+                    base = np.uint64(i + _PAD) * st_k + np.uint64(ia) * st_a + np.uint64(ib) * st_b
+                    total += (1.0 - wa) * (
+                        (1.0 - wb) * flat[base] + wb * flat[base + st_b]
+                    ) + wa * ((1.0 - wb) * flat[base + st_a] + wb * flat[base + st_a + st_b])
                     fa += step_a
                     fb += step_b
                 total *= math.sqrt(length2) / abs(d[k])
