@@ -13,17 +13,20 @@ Requests (tuples) and their answers, ``("ok", value)`` or ``("error", where, mes
 - ``("calls", [(interface, method, args), ...])``: call each in order on ``"receive"`` or
   ``"control"``; the list of results (an async-operation status as ``(operation_id,
   running)``).
-- ``("close",)``: drop both interfaces (their destructors disconnect), answer, exit.
+- ``("close",)``: disconnect both interfaces, answer, exit.
 
-End of input (the scanner exited or was killed) drops the interfaces and exits too.
+End of input (the scanner exited or was killed) disconnects them and exits too. ur-rtde's
+``disconnect`` closes an interface's sockets, then waits 0.5 s; both wait at once, and the
+worker exits without running their destructors, which would call ``disconnect`` (and wait)
+again.
 """
 
 from __future__ import annotations
 
 import os
-import sys
+import threading
 from multiprocessing.connection import Connection
-from typing import Any
+from typing import Any, NoReturn
 
 
 def _plain(value: Any) -> Any:
@@ -65,32 +68,43 @@ def _calls(interfaces: dict[str, Any], request: tuple) -> tuple:
     return ("ok", results)
 
 
-def main() -> int:
-    """Serve one arm's ur-rtde calls for the scanner process over the inherited pipes;
-    returns the exit status."""
+def _disconnect(interfaces: dict[str, Any]) -> None:
+    """Disconnect every interface, all at once."""
+    threads = [threading.Thread(target=i.disconnect) for i in interfaces.values()]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+
+
+def main() -> NoReturn:
+    """Serve one arm's ur-rtde calls for the scanner process over the inherited pipes, then
+    disconnect and exit (without the interfaces' destructors: they would disconnect, and
+    wait, again)."""
     answers = Connection(os.dup(1), readable=False)
     os.dup2(2, 1)  # ur-rtde prints to stdout: keep it off the answer channel
     requests = Connection(os.dup(0), writable=False)
     interfaces: dict[str, Any] = {}
-    while True:
+    closing = False
+    while not closing:
         try:
             request = requests.recv()
         except (EOFError, OSError):
             break
         op = request[0]
         if op == "close":
-            interfaces.clear()
-            answers.send(("ok", None))
-            break
-        if op == "open":
+            closing = True
+        elif op == "open":
             answers.send(_open(interfaces, request))
         elif op == "calls":
             answers.send(_calls(interfaces, request))
         else:
             answers.send(("error", op, f"unknown request {op!r}"))
-    interfaces.clear()
-    return 0
+    _disconnect(interfaces)
+    if closing:
+        answers.send(("ok", None))
+    os._exit(0)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    main()
