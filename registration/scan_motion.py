@@ -40,14 +40,14 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
-from recon.fdk import estimate_orbit, fdk_reconstruct, plane_basis
+from recon.fdk import estimate_orbit, fdk_reconstruct
 from recon.geometry import Geometry
 from recon.motion import BodyMotion
-from recon.project import JosephProjector
 from recon.volume import Volume, VolumeGrid
 from registration.labels import LABELS
-from registration.motion_fit import ViewFit, cropped, recentred
-from registration.segment import _soft_tissue_level, segment_bones
+from registration.motion_fit import ViewFit, recentred
+from registration.motion_volume import missed_by, sharpened, tissue_box, trusted_pixels
+from registration.segment import segment_bones
 
 BODY_LABELS: dict[str, tuple[int, ...]] = {
     "thigh": (LABELS["femur"], LABELS["patella"]),
@@ -168,106 +168,6 @@ class MotionEstimate:
         return f"moved up to {peak:.1f} mm (at view {view}; {parts}): compensated"
 
 
-def tissue_box(volume: Volume, margin_mm: float = 10.0) -> VolumeGrid:
-    """The part of ``volume``'s grid holding tissue (above half the soft-tissue level) plus
-    ``margin_mm``, on the same voxels: the estimate leaves the field's air out."""
-    tissue = volume.data > 0.5 * _soft_tissue_level(volume.data)
-    grid = volume.grid
-    pad = np.ceil(margin_mm / np.asarray(grid.spacing_mm[::-1])).astype(int)
-    index = np.argwhere(tissue)
-    low = np.maximum(index.min(axis=0) - pad, 0)
-    high = np.minimum(index.max(axis=0) + pad + 1, grid.shape)
-    origin = np.asarray(grid.origin_mm) + low[::-1] * np.asarray(grid.spacing_mm)
-    return VolumeGrid(tuple(int(n) for n in high - low), grid.spacing_mm, tuple(origin))
-
-
-def trusted_pixels(
-    geometry: Geometry, volume: Volume, mask: np.ndarray, margin_mm: float
-) -> np.ndarray:
-    """Per view, the pixels (bool (N, rows, cols)) whose rays the volume explains.
-
-    Where a long leg leaves the reconstructed field (FDK's ``mask``) along the orbit's axis,
-    the rays go on through tissue the volume does not hold, and FDK's data are incomplete
-    near the field's ends. At each end whose last ``margin_mm`` hold tissue, the tissue is
-    taken to go on beyond as the cylinder about the orbit's axis that holds that end's tissue;
-    a ray is left out if its chord through that cylinder reaches past the end less
-    ``margin_mm``.
-    """
-    axis = estimate_orbit(geometry).axis
-    frame = np.stack((*plane_basis(axis), axis))
-    x, y, z = np.meshgrid(*volume.grid.axes_mm(), indexing="ij")
-    local = (np.stack((x, y, z), axis=-1) @ frame.T).transpose(2, 1, 0, 3)
-    tissue = (volume.data > 0.5 * _soft_tissue_level(volume.data)) & mask
-    heights = local[..., 2][mask]
-    ends = []  # (height of the end, +1 above / -1 below, cylinder centre, radius)
-    for end, beyond in ((heights.min() + margin_mm, -1.0), (heights.max() - margin_mm, 1.0)):
-        slab = tissue & (beyond * (local[..., 2] - end) > 0)
-        if not slab.any():
-            continue  # the object ends inside the field here
-        footprint = local[slab][:, :2]
-        center = 0.5 * (footprint.min(axis=0) + footprint.max(axis=0))
-        radius = float(np.linalg.norm(footprint - center, axis=1).max())
-        ends.append((end, beyond, center, radius + max(volume.grid.spacing_mm)))
-    out = np.ones((len(geometry), geometry.rows, geometry.cols), dtype=bool)
-    if not ends:
-        return out
-    rows, cols = np.mgrid[0 : geometry.rows, 0 : geometry.cols]
-    for i, view in enumerate(geometry):
-        s = frame @ view.source_mm
-        d = view.pixel_to_world(cols.ravel(), rows.ravel()) @ frame.T - s
-        a = d[:, 0] ** 2 + d[:, 1] ** 2
-        for end, beyond, center, radius in ends:
-            sx, sy = s[0] - center[0], s[1] - center[1]
-            b = 2 * (sx * d[:, 0] + sy * d[:, 1])
-            disc = b**2 - 4 * a * (sx**2 + sy**2 - radius**2)
-            root = np.sqrt(np.maximum(disc, 0.0))
-            z1 = s[2] + (-b - root) / (2 * a) * d[:, 2]
-            z2 = s[2] + (-b + root) / (2 * a) * d[:, 2]
-            reach = np.maximum(z1, z2) if beyond > 0 else np.minimum(z1, z2)
-            past = (disc > 0) & (beyond * (reach - end) > 0)
-            out[i] &= ~past.reshape(geometry.rows, geometry.cols)
-    return out
-
-
-def _missed(
-    projections: np.ndarray,
-    geometry: Geometry,
-    grid: VolumeGrid,
-    motion: BodyMotion | None,
-    orbit_geometry: Geometry | None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """FDK through ``motion`` (float32 on ``grid``, voxels FDK masks 0), FDK's mask, and what
-    the volume's reprojection through the motion misses of the projections."""
-    first = fdk_reconstruct(
-        projections, geometry, grid, orbit_geometry=orbit_geometry, motion=motion
-    )
-    volume = first.volume.data * first.mask
-    weights = np.ones((1, *grid.shape), np.float32) if motion is None else motion.on(grid)
-    poses = np.tile(np.eye(4), (len(geometry), 1, 1, 1)) if motion is None else motion.poses
-    parts = [JosephProjector(*cropped(volume * w, grid)) for w in weights]
-    missed = np.array(projections, dtype=np.float32, copy=True)
-    for i, view in enumerate(geometry):
-        for part, T in zip(parts, poses[i], strict=True):
-            missed[i] -= part.project_moved(view, T)
-    return volume, first.mask, missed
-
-
-def _sharpened(
-    projections: np.ndarray,
-    geometry: Geometry,
-    grid: VolumeGrid,
-    motion: BodyMotion | None,
-    orbit_geometry: Geometry | None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """FDK through ``motion`` plus the FDK of what its reprojection misses (one iterative
-    correction), float32 on ``grid`` (voxels FDK masks are 0), and FDK's mask."""
-    volume, mask, missed = _missed(projections, geometry, grid, motion, orbit_geometry)
-    correction = fdk_reconstruct(
-        missed, geometry, grid, orbit_geometry=orbit_geometry, motion=motion
-    )
-    return (volume + correction.volume.data * mask).astype(np.float32), mask
-
-
 def body_weights(labels: Volume, blend_mm: float) -> np.ndarray | None:
     """Thigh and shank shares of each voxel (2, nz, ny, nx), float32: a logistic of the
     difference of the distances to their bones over ``blend_mm``; None unless both bodies
@@ -385,95 +285,150 @@ def estimate_motion(
     Raises:
         ValueError: :func:`check_scan`'s, or a first volume without bone.
     """
-    tell = say or (lambda _m: None)
     check_scan(projections, geometry, times_s)
-    notes = []
+    scan = _Estimation(
+        np.asarray(projections, dtype=np.float32),
+        geometry,
+        orbit_geometry,
+        settings,
+        say or (lambda _m: None),
+        progress,
+    )
     if times_s is None:
-        notes.append("the geometry carries no per-view times: motion is given per view index")
-    proj = np.asarray(projections, dtype=np.float32)
-    n = len(geometry)
-    seconds: dict[str, float] = {}
+        scan.notes.append("the geometry carries no per-view times: motion is given per view index")
+    voxel = max(settings.voxel_mm, max(grid.spacing_mm))  # no finer than the field asked for
+    motion, coarse, bone = scan.one_body(grid, voxel)
+    fine = estimation_grid(coarse, voxel)
+    motion, surfaces = scan.two_bodies(motion, fine, {LEG: _surface(bone, coarse)})
+    motion, misses = scan.kept_if_consistent(motion, fine)
+    displacement = motion.displacement_mm(surfaces)
+    times = None if times_s is None else np.asarray(times_s, dtype=np.float64)
+    return MotionEstimate(
+        motion, times, displacement, surfaces, tuple(scan.notes), scan.seconds, misses
+    )
 
-    def fitted(stage: str, fit: ViewFit, start: np.ndarray | None, iterations: int) -> np.ndarray:
+
+@dataclass
+class _Estimation:
+    """A scan's projections and views, and the stages of :func:`estimate_motion` run on them
+    (each timed into ``seconds``; what they find out, in ``notes``)."""
+
+    proj: np.ndarray
+    geometry: Geometry
+    orbit_geometry: Geometry | None
+    settings: MotionSettings
+    tell: Callable[[str], None]
+    progress: Callable[[str, int, int], None] | None
+    notes: list[str] = field(default_factory=list)
+    seconds: dict[str, float] = field(default_factory=dict)
+
+    def fitted(self, stage: str, fit: ViewFit, start: np.ndarray | None, iterations: int):
+        """Every view's poses of ``fit``'s bodies from ``start``, re-centred, (N, bodies, 4, 4)."""
+        progress = self.progress
         report = None if progress is None else lambda d, t: progress(stage, d, t)
         return recentred(fit.all_views(start, iterations, report), fit.centers)
 
-    # one body, at half the resolution: the motion the two bodies share, to start from
-    voxel = max(settings.voxel_mm, max(grid.spacing_mm))  # no finer than the field asked for
-    coarse = estimation_grid(grid, max(voxel, min(2.0 * voxel, _COARSEST_MM)))
-    factor = _binning(geometry, coarse)
-    small, views = _binned(proj, geometry, factor)
-    small_orbit = None if orbit_geometry is None else _binned(proj[:1], orbit_geometry, factor)[1]
-    with _timed(seconds, "one body"):
-        field = fdk_reconstruct(small, views, coarse, orbit_geometry=small_orbit)
-        coarse = tissue_box(Volume(field.volume.data, coarse, "1/mm"))
-        tell(f"one body: {coarse.size_xyz} voxels of {coarse.spacing_mm[0]:g} mm, {n} views")
-        volume, mask = _sharpened(small, views, coarse, None, small_orbit)
-        try:
-            labels = segment_bones(Volume(volume, coarse, "1/mm"))
-            bone = np.isin(labels.data, [v for vals in BODY_LABELS.values() for v in vals])
-        except ValueError as err:
-            if "without bone" in str(err):
-                raise ValueError(
-                    f"no bone to register in the first volume ({err}): motion is estimated "
-                    "from the bones"
-                ) from None
-            bone = volume > 0.5 * np.percentile(volume, 99)
-        center = coarse.index_to_world(np.argwhere(bone).mean(axis=0)[::-1])
-        leg = np.ones((1, *coarse.shape), np.float32)
-        trusted = trusted_pixels(views, Volume(volume, coarse, "1/mm"), mask, settings.margin_mm)
-        fit = ViewFit(volume, coarse, leg, center[None], small, views, trusted)
-        poses = fitted("one body", fit, None, 2)
-    motion = BodyMotion((LEG,), poses)
-    surfaces = {LEG: _surface(bone, coarse)}
-    fine = estimation_grid(coarse, voxel)
-    for round_ in range(settings.two_body_rounds):
-        stage = f"two bodies, round {round_ + 1}"
-        with _timed(seconds, stage):
-            volume, mask = _sharpened(proj, geometry, fine, motion, orbit_geometry)
-            if round_ == 0:
-                trusted = trusted_pixels(
-                    geometry, Volume(volume, fine, "1/mm"), mask, settings.margin_mm
+    def one_body(self, grid: VolumeGrid, voxel: float) -> tuple[BodyMotion, VolumeGrid, np.ndarray]:
+        """The whole leg's motion at half the resolution (the motion the two bodies share, to
+        start from); the tissue's box it was fitted on, and the bone there (bool)."""
+        coarse = estimation_grid(grid, max(voxel, min(2.0 * voxel, _COARSEST_MM)))
+        factor = _binning(self.geometry, coarse)
+        small, views = _binned(self.proj, self.geometry, factor)
+        orbit = self.orbit_geometry
+        small_orbit = None if orbit is None else _binned(self.proj[:1], orbit, factor)[1]
+        with _timed(self.seconds, "one body"):
+            first = fdk_reconstruct(small, views, coarse, orbit_geometry=small_orbit)
+            coarse = tissue_box(Volume(first.volume.data, coarse, "1/mm"))
+            self.tell(
+                f"one body: {coarse.size_xyz} voxels of {coarse.spacing_mm[0]:g} mm, "
+                f"{len(self.geometry)} views"
+            )
+            volume, mask = sharpened(small, views, coarse, None, small_orbit)
+            try:
+                labels = segment_bones(Volume(volume, coarse, "1/mm"))
+                bone = np.isin(labels.data, [v for vals in BODY_LABELS.values() for v in vals])
+            except ValueError as err:
+                if "without bone" in str(err):
+                    raise ValueError(
+                        f"no bone to register in the first volume ({err}): motion is estimated "
+                        "from the bones"
+                    ) from None
+                bone = volume > 0.5 * np.percentile(volume, 99)
+            center = coarse.index_to_world(np.argwhere(bone).mean(axis=0)[::-1])
+            leg = np.ones((1, *coarse.shape), np.float32)
+            margin = self.settings.margin_mm
+            trusted = trusted_pixels(views, Volume(volume, coarse, "1/mm"), mask, margin)
+            fit = ViewFit(volume, coarse, leg, center[None], small, views, trusted)
+            poses = self.fitted("one body", fit, None, 2)
+        return BodyMotion((LEG,), poses), coarse, bone
+
+    def two_bodies(
+        self, motion: BodyMotion, fine: VolumeGrid, surfaces: dict[str, np.ndarray]
+    ) -> tuple[BodyMotion, dict[str, np.ndarray]]:
+        """The thigh's and the shank's motion on ``fine``, from the leg's, over
+        ``settings.two_body_rounds`` rounds; the leg's (and a note) where the segmentation does
+        not separate them. Each body's surface points, mm."""
+        proj, geometry, margin = self.proj, self.geometry, self.settings.margin_mm
+        for round_ in range(self.settings.two_body_rounds):
+            stage = f"two bodies, round {round_ + 1}"
+            with _timed(self.seconds, stage):
+                volume, mask = sharpened(proj, geometry, fine, motion, self.orbit_geometry)
+                if round_ == 0:
+                    trusted = trusted_pixels(geometry, Volume(volume, fine, "1/mm"), mask, margin)
+                    try:
+                        labels = segment_bones(Volume(volume, fine, "1/mm"))
+                        weights = body_weights(labels, self.settings.blend_mm)
+                    except ValueError as err:
+                        self.notes.append(
+                            f"the leg is one body: its bones were not separated ({err})"
+                        )
+                        break
+                    if weights is None:
+                        self.notes.append(
+                            "the leg is one body: the femur or the tibia was not found"
+                        )
+                        break
+                    masks = [np.isin(labels.data, v) for v in BODY_LABELS.values()]
+                    centers = np.array(
+                        [fine.index_to_world(np.argwhere(m).mean(axis=0)[::-1]) for m in masks]
+                    )
+                    surfaces = {
+                        b: _surface(m, fine) for b, m in zip(BODY_LABELS, masks, strict=True)
+                    }
+                    start = np.repeat(motion.poses, 2, axis=1)
+                else:
+                    start = motion.poses
+                self.tell(
+                    f"{stage}: the thigh and the shank registered to each of {len(geometry)} views"
                 )
-                try:
-                    labels = segment_bones(Volume(volume, fine, "1/mm"))
-                    weights = body_weights(labels, settings.blend_mm)
-                except ValueError as err:
-                    notes.append(f"the leg is one body: its bones were not separated ({err})")
-                    break
-                if weights is None:
-                    notes.append("the leg is one body: the femur or the tibia was not found")
-                    break
-                masks = [np.isin(labels.data, v) for v in BODY_LABELS.values()]
-                centers = np.array(
-                    [fine.index_to_world(np.argwhere(m).mean(axis=0)[::-1]) for m in masks]
-                )
-                surfaces = {b: _surface(m, fine) for b, m in zip(BODY_LABELS, masks, strict=True)}
-                start = np.repeat(motion.poses, 2, axis=1)
-            else:
-                start = motion.poses
-            tell(f"{stage}: the thigh and the shank registered to each of {n} views")
-            fit = ViewFit(volume, fine, weights, centers, proj, geometry, trusted)
-            motion = BodyMotion(tuple(BODY_LABELS), fitted(stage, fit, start, 1), weights, fine)
-    with _timed(seconds, "consistency"):
-        # motion is kept only where the projections agree with a volume made through it
-        # better than with the still one's: noise in a still scan's fit is not motion
-        volume, mask, missed = _missed(proj, geometry, fine, None, orbit_geometry)
-        seen = trusted_pixels(geometry, Volume(volume, fine, "1/mm"), mask, settings.margin_mm)
-        misses = {"still": float(np.sqrt(np.mean(missed[seen] ** 2)))}
-        missed = _missed(proj, geometry, fine, motion, orbit_geometry)[2]
-        misses["moving"] = float(np.sqrt(np.mean(missed[seen] ** 2)))
-    if misses["moving"] >= misses["still"] * (1.0 - _BETTER):
-        notes.append(
-            "no motion found: the projections agree as well with the still patient "
-            f"(reprojection RMS {misses['still']:.4g}) as with the motion fitted "
-            f"({misses['moving']:.4g})"
-        )
-        still = np.tile(np.eye(4), (n, len(motion.bodies), 1, 1))
-        motion = BodyMotion(motion.bodies, still, motion.weights, motion.grid)
-    displacement = motion.displacement_mm(surfaces)
-    times = None if times_s is None else np.asarray(times_s, dtype=np.float64)
-    return MotionEstimate(motion, times, displacement, surfaces, tuple(notes), seconds, misses)
+                fit = ViewFit(volume, fine, weights, centers, proj, geometry, trusted)
+                poses = self.fitted(stage, fit, start, 1)
+                motion = BodyMotion(tuple(BODY_LABELS), poses, weights, fine)
+        return motion, surfaces
+
+    def kept_if_consistent(
+        self, motion: BodyMotion, fine: VolumeGrid
+    ) -> tuple[BodyMotion, dict[str, float]]:
+        """``motion``, or the still patient (and a note) unless the projections agree with a
+        volume made through it better than with the still one's (noise in a still scan's fit
+        is not motion); the reprojection RMS of both."""
+        proj, geometry, orbit = self.proj, self.geometry, self.orbit_geometry
+        with _timed(self.seconds, "consistency"):
+            volume, mask, missed = missed_by(proj, geometry, fine, None, orbit)
+            margin = self.settings.margin_mm
+            seen = trusted_pixels(geometry, Volume(volume, fine, "1/mm"), mask, margin)
+            misses = {"still": float(np.sqrt(np.mean(missed[seen] ** 2)))}
+            missed = missed_by(proj, geometry, fine, motion, orbit)[2]
+            misses["moving"] = float(np.sqrt(np.mean(missed[seen] ** 2)))
+        if misses["moving"] >= misses["still"] * (1.0 - _BETTER):
+            self.notes.append(
+                "no motion found: the projections agree as well with the still patient "
+                f"(reprojection RMS {misses['still']:.4g}) as with the motion fitted "
+                f"({misses['moving']:.4g})"
+            )
+            still = np.tile(np.eye(4), (len(geometry), len(motion.bodies), 1, 1))
+            motion = BodyMotion(motion.bodies, still, motion.weights, motion.grid)
+        return motion, misses
 
 
 def _binning(geometry: Geometry, grid: VolumeGrid) -> int:
