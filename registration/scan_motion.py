@@ -322,7 +322,9 @@ class _Estimation:
     notes: list[str] = field(default_factory=list)
     seconds: dict[str, float] = field(default_factory=dict)
 
-    def fitted(self, stage: str, fit: ViewFit, start: np.ndarray | None, iterations: int):
+    def fitted(
+        self, stage: str, fit: ViewFit, start: np.ndarray | None, iterations: int
+    ) -> np.ndarray:
         """Every view's poses of ``fit``'s bodies from ``start``, re-centred, (N, bodies, 4, 4)."""
         progress = self.progress
         report = None if progress is None else lambda d, t: progress(stage, d, t)
