@@ -34,6 +34,8 @@ class Searches(ABC):
     settings: Settings
     bodies: dict[str, BodyModel]
     levels: tuple[int, ...]
+    views: int = 1
+    """How many views each objective scores a pose on (at most)."""
 
     @abstractmethod
     def objective(
@@ -76,12 +78,15 @@ class Searches(ABC):
         self, frame: int, name: str, poses: Poses, levels: tuple[int, ...]
     ) -> tuple[np.ndarray, int, Searched]:
         """Levenberg-Marquardt on each of ``levels`` in turn, at most ``ls_max_steps`` steps
-        each (coarse, finest). Returns the pose, the evaluations and the last level's
-        objective."""
+        each (coarse, finest; ``ls_max_steps_views`` on several views). Returns the pose, the
+        evaluations and the last level's objective."""
         evaluations = 0
         for level in levels:
             objective = self.objective(frame, level, name, poses)
-            max_steps = self.settings.ls_max_steps[int(level == self.levels[-1])]
+            steps = (
+                self.settings.ls_max_steps_views if self.views > 1 else self.settings.ls_max_steps
+            )
+            max_steps = steps[int(level == self.levels[-1])]
             x = search.levenberg_marquardt(objective, self.settings, max_steps)
             poses = {**poses, name: compose(x, poses[name], self.bodies[name].centroid_mm)}
             evaluations += objective.evaluations

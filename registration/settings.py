@@ -66,6 +66,12 @@ class Settings(BaseModel):
         description="least squares: residual evaluations as MINPACK counts them (each step "
         "also takes a Jacobian: 12 renders) on the coarse levels and on the finest",
     )
+    ls_max_steps_views: tuple[PositiveInt, PositiveInt] = Field(
+        (2, 2),
+        description="the same on two or more views at once (registration.views): each "
+        "render is every view's, and the depth that one view leaves loose the others fix, so "
+        "fewer steps converge",
+    )
     passes: PositiveInt = Field(
         2,
         description="passes over the bones per frame; later passes refine each against the "

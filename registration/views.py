@@ -41,7 +41,7 @@ class Views(Searches):
                 )
             if set(other.bodies) != set(first.bodies):
                 raise ValueError(f"view {k} tracks other bodies than view 1")
-        self.scenes = scenes
+        self.scenes, self.views = scenes, len(scenes)
         self.settings = first.settings
         self.roles, self.carriers = first.roles, first.carriers
         self.levels = first.levels
