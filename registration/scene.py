@@ -81,11 +81,9 @@ class Searches(ABC):
         each (coarse, finest; ``ls_max_steps_views`` on several views). Returns the pose, the
         evaluations and the last level's objective."""
         evaluations = 0
+        steps = self.settings.ls_max_steps_views if self.views > 1 else self.settings.ls_max_steps
         for level in levels:
             objective = self.objective(frame, level, name, poses)
-            steps = (
-                self.settings.ls_max_steps_views if self.views > 1 else self.settings.ls_max_steps
-            )
             max_steps = steps[int(level == self.levels[-1])]
             x = search.levenberg_marquardt(objective, self.settings, max_steps)
             poses = {**poses, name: compose(x, poses[name], self.bodies[name].centroid_mm)}
