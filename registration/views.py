@@ -41,12 +41,17 @@ class Views(Searches):
                 )
             if set(other.bodies) != set(first.bodies):
                 raise ValueError(f"view {k} tracks other bodies than view 1")
-        self.scenes, self.views = scenes, len(scenes)
+        self.scenes = scenes
         self.settings = first.settings
         self.roles, self.carriers = first.roles, first.carriers
         self.levels = first.levels
         self.usable = np.array([[_tells(f) for f in scene.frames] for scene in scenes])
         """Per view and frame: whether the frame holds an image (:func:`_tells`)."""
+
+    @property
+    def views(self) -> int:
+        """How many views each objective scores a pose on (at most): one per scene."""
+        return len(self.scenes)
 
     @property
     def bodies(self) -> dict[str, BodyModel]:
