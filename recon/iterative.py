@@ -46,6 +46,7 @@ from recon.project import (
     JosephProjector,
     adjoint_scale,
     backproject_weighted,
+    centre_chords,
     check_in_front,
 )
 from recon.volume import Volume, VolumeGrid
@@ -221,7 +222,7 @@ def _normalisations(
     """SART's normalisations: each ray's inverse length through ``grid`` (0 where shorter
     than :data:`MIN_RAY_VOXELS`), which rays count, the views' adjoint factors and each
     voxel's step (``relaxation`` over every view's counted rays backprojected; 0 unseen)."""
-    inverse_length = JosephProjector(np.ones(grid.shape, np.float32), grid).project(geometry)
+    inverse_length = centre_chords(geometry, grid)
     usable = inverse_length >= MIN_RAY_VOXELS * min(grid.spacing_mm)
     np.divide(1.0, inverse_length, out=inverse_length, where=usable)
     inverse_length[~usable] = 0.0

@@ -260,6 +260,28 @@ def forward_project(volume: np.ndarray, grid: VolumeGrid, geometry: Geometry) ->
     return JosephProjector(volume, grid).project(geometry)
 
 
+def centre_chords(geometry: Geometry, grid: VolumeGrid) -> np.ndarray:
+    """Length (mm) of every pixel centre's ray inside the box spanned by ``grid``'s outer voxel
+    centres, float32 (views, rows, cols); 0 for rays that miss it.
+
+    The forward projector's row sum (:func:`forward_project` of ones) reaches half a voxel
+    further at each end (voxels are cubes); this is RTK's ray-box length
+    (rtk::RayBoxIntersectionImageFilter with the box from the outer voxel centres).
+    """
+    lo = np.asarray(grid.origin_mm, dtype=np.float64)
+    hi = lo + (np.asarray(grid.shape[::-1]) - 1) * np.asarray(grid.spacing_mm)
+    v, u = np.mgrid[0 : geometry.rows, 0 : geometry.cols]
+    out = np.empty((len(geometry), geometry.rows, geometry.cols), dtype=np.float32)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for k, view in enumerate(geometry):
+            ray = view.pixel_to_world(u, v) - view.source_mm
+            to_lo, to_hi = (lo - view.source_mm) / ray, (hi - view.source_mm) / ray
+            enter = np.nanmax(np.minimum(to_lo, to_hi), axis=-1).clip(min=0.0)
+            leave = np.nanmin(np.maximum(to_lo, to_hi), axis=-1)
+            out[k] = (leave - enter).clip(min=0.0) * np.linalg.norm(ray, axis=-1)
+    return out
+
+
 FDK_WEIGHT, ADJOINT_WEIGHT, COUNT_WEIGHT = 0, 1, 2
 """Per voxel-view weights of :func:`backproject_weighted`: ``1/w^2`` (FDK),
 ``|x - s| / w^3`` (the forward projector's adjoint, up to per-view constants) and
