@@ -162,6 +162,50 @@ def camera_frame(view: View) -> np.ndarray:
     return T
 
 
+ROTATION_TOLERANCE = 1e-4
+"""Largest deviation of a camera pose's rotation from orthonormal (``|R^T R - I|``, any
+entry) read as a rotation written to a few decimals."""
+
+
+def read_camera_pose(path: str | Path) -> np.ndarray:
+    """``T_world_camera`` (4, 4; mm) of a JointTrack camera frame in a world shared with other
+    cameras, from a text file of the matrix: its four rows of four numbers (or the first three
+    rows), separated by spaces or commas, ``#`` starting a comment. The rotation is made exactly
+    orthonormal (the nearest rotation); ValueError for one further off than
+    :data:`ROTATION_TOLERANCE`, a reflection or a last row other than 0 0 0 1."""
+    path = Path(path)
+    rows = []
+    for line in path.read_text(encoding="utf-8").splitlines():
+        words = line.split("#")[0].replace(",", " ").split()
+        if words:
+            try:
+                rows.append([float(w) for w in words])
+            except ValueError:
+                raise ValueError(f"{path}: camera pose row {words} is not numbers") from None
+    if len(rows) not in (3, 4) or any(len(r) != 4 for r in rows):
+        shape = " x ".join(str(n) for n in (len(rows), *{len(r) for r in rows}))
+        raise ValueError(
+            f"{path}: a camera pose is the 4 x 4 matrix T_world_camera (or its first 3 rows), "
+            f"got {shape} numbers"
+        )
+    T = np.eye(4)
+    T[: len(rows)] = rows
+    if not np.all(np.isfinite(T)):
+        raise ValueError(f"{path}: the camera pose holds a value that is not finite")
+    if not np.allclose(T[3], (0, 0, 0, 1), rtol=0, atol=1e-9):
+        raise ValueError(f"{path}: the camera pose's last row is {T[3].tolist()}, not 0 0 0 1")
+    R = T[:3, :3]
+    off = float(np.abs(R.T @ R - np.eye(3)).max())
+    if off > ROTATION_TOLERANCE or np.linalg.det(R) <= 0:
+        raise ValueError(
+            f"{path}: the camera pose's rotation is not one (|R^T R - I| up to {off:.2g}, limit "
+            f"{ROTATION_TOLERANCE:g}; determinant {np.linalg.det(R):.4g}, must be +1)"
+        )
+    u, _, vt = np.linalg.svd(R)
+    T[:3, :3] = u @ vt
+    return T
+
+
 def read_jointtrack_poses(path: str | Path, view: View) -> np.ndarray:
     """A JointTrack ``.jts`` file's poses in the world, ``T_world_body`` (F, 4, 4), mm.
 

@@ -76,6 +76,14 @@ def register(
             "word",
         ),
     ] = None,
+    camera_pose: Annotated[
+        list[Path] | None,
+        typer.Option(
+            help="a JointTrack camera's pose in the cameras' common world: a text file of the "
+            "4 x 4 T_world_camera (mm; rows of numbers), one per --calibration in order; "
+            "needed for several JointTrack cameras"
+        ),
+    ] = None,
     polarity: Annotated[
         str, typer.Option(help="images: attenuation dark (fluoroscopy's display) or bright")
     ] = "dark",
@@ -141,7 +149,9 @@ def register(
 
     static_unit = checked_unit(unit, effective_energy_kev)
     frame_range = None if frames_range is None else _frame_range(frames_range)
-    views = _camera_views(frames, geometry or [], calibration or [], distortion or [])
+    views = _camera_views(
+        frames, geometry or [], calibration or [], distortion or [], camera_pose or []
+    )
     try:
         meshes = _body_files("--implant", implant)
         materials = _body_words("--material", material)
@@ -165,8 +175,8 @@ def register(
         chosen = load_config(settings, Settings)
         warps = [None if path is None else Distortion.read(path) for path in views.distortions]
         cameras = tuple(
-            CameraFiles(*camera, warp)
-            for camera, warp in zip(views.files[1:], warps[1:], strict=True)
+            CameraFiles(*camera, warp, pose)
+            for camera, warp, pose in zip(views.files[1:], warps[1:], views.poses[1:], strict=True)
         )
         with new_outputs(Output(out, "--out")) as (staged,), views_progress() as bar:
             inputs = RegisterInputs(
@@ -177,6 +187,7 @@ def register(
                 truth=_poses_given("--truth", truth),
                 initial=_poses_given("--initial", initial),
                 cameras=cameras,
+                camera_pose=views.poses[0],
             )
             options = RegisterOptions(
                 polarity=polarity,
@@ -214,19 +225,24 @@ def register(
 
 @dataclass(frozen=True)
 class _Views:
-    """The cameras given on the command line: each one's (frames, geometry, calibration)
-    and its distortion file."""
+    """The cameras given on the command line: each one's (frames, geometry, calibration),
+    its distortion file and its camera pose file."""
 
     files: list[tuple[list[str], Path | None, Path | None]]
     distortions: list[Path | None]
+    poses: list[Path | None]
 
 
 def _camera_views(
-    frames: list[str], geometry: list[Path], calibration: list[Path], distortion: list[Path]
+    frames: list[str],
+    geometry: list[Path],
+    calibration: list[Path],
+    distortion: list[Path],
+    camera_pose: list[Path],
 ) -> _Views:
-    """The cameras of ``--frames``, ``--geometry`` or ``--calibration`` and ``--distortion``;
-    the console's error for counts that do not pair (one camera: --frames may repeat, one per
-    image)."""
+    """The cameras of ``--frames``, ``--geometry`` or ``--calibration``, ``--distortion`` and
+    ``--camera-pose``; the console's error for counts that do not pair (one camera: --frames
+    may repeat, one per image)."""
     if geometry and calibration:
         fail(
             "give every camera's view as --geometry or every one as --calibration, not both "
@@ -239,9 +255,17 @@ def _camera_views(
     if len(distortion) not in (0, len(given)):
         fail(f"--distortion given {len(distortion)} times for {len(given)} cameras: one each")
     warps: list[Path | None] = list(distortion) or [None] * len(given)
+    if camera_pose and geometry:
+        fail(
+            "--camera-pose places a JointTrack calibration's camera; an RTK geometry carries "
+            "its own world"
+        )
+    if len(camera_pose) not in (0, len(given)):
+        fail(f"--camera-pose given {len(camera_pose)} times for {len(given)} cameras: one each")
+    poses: list[Path | None] = list(camera_pose) or [None] * len(given)
     if len(given) == 1:
         files = [(frames, *((given[0], None) if geometry else (None, given[0])))]
-        return _Views(files, warps)
+        return _Views(files, warps, poses)
     if len(frames) != len(given):
         fail(
             f"--frames given {len(frames)} times for {len(given)} cameras ({option} "
@@ -252,7 +276,7 @@ def _camera_views(
         ([stack], *((view, None) if geometry else (None, view)))
         for stack, view in zip(frames, given, strict=True)
     ]
-    return _Views(files, warps)
+    return _Views(files, warps, poses)
 
 
 def _frame_range(text: str) -> tuple[int, int, int]:

@@ -17,7 +17,8 @@ where the registration failed) and, given the true (or reference) poses, ``metri
 (registration.metrics.summarize and per-frame errors, depth along the first camera's rays).
 
 Several cameras (biplane and more) each give their frames and their view, in one world (RTK
-geometries, or XMALab/Autoscoper MayaCam calibrations made on one object); frames are paired by
+geometries, XMALab/Autoscoper MayaCam calibrations made on one object, or JointTrack
+calibrations each with its camera's pose in that world); frames are paired by
 index and every body's pose is scored on all of them (registration.views). Their ``.jts`` files
 and overlays go to ``view<K>/`` per camera K (from 1), each in that camera's JointTrack frame;
 ``overlays/`` holds every camera's side by side (what ``cbct assess`` plays); given ``.jts``
@@ -43,7 +44,12 @@ from recon.volume import Volume
 from registration.drr import SoftTissue, bone_models
 from registration.frames import Frames, read_frames
 from registration.implants import implant_model
-from registration.jointtrack import camera_frame, read_calibration, read_jointtrack_poses
+from registration.jointtrack import (
+    camera_frame,
+    read_calibration,
+    read_camera_pose,
+    read_jointtrack_poses,
+)
 from registration.jointtrack import write_poses as write_jts
 from registration.mayacam import is_mayacam, nominal_pitch_mm
 from registration.meshes import ATTACHABLE, MATERIALS, read_mesh, size_range_mm
@@ -199,13 +205,16 @@ def frame_numbers(count: int, frame_range: tuple[int, int, int] | None) -> np.nd
 @dataclass(frozen=True)
 class CameraFiles:
     """A further camera's files: its frames (the forms of :class:`RegisterInputs`'s), its view
-    in the first camera's world (an RTK geometry, or a MayaCam calibration made on the same
-    object as the first camera's) and its panel's warp (None: not dewarped)."""
+    in the first camera's world (an RTK geometry, a MayaCam calibration made on the same
+    object as the first camera's, or a JointTrack calibration with its camera pose), its
+    panel's warp (None: not dewarped) and its JointTrack camera's pose in that world (a file
+    for registration.jointtrack.read_camera_pose; None for other views)."""
 
     frames: Path | list[str | Path]
     geometry: Path | None = None
     calibration: Path | None = None
     distortion: Distortion | None = None
+    camera_pose: Path | None = None
 
 
 @dataclass(frozen=True)
@@ -225,6 +234,9 @@ class RegisterInputs:
             scan's bones where it has them, components found in the first frame.
         cameras: Further cameras, in order (none: one camera), their frames paired with the
             first camera's by index.
+        camera_pose: The pose of the first camera's JointTrack frame in the cameras' common
+            world (registration.jointtrack.read_camera_pose), or None: its own frame is the
+            world (one JointTrack camera; other views carry their world).
     """
 
     frames: Path | list[str | Path]
@@ -236,6 +248,7 @@ class RegisterInputs:
     truth: Path | dict[str, Path] | None = None
     initial: Path | dict[str, Path] | None = None
     cameras: tuple[CameraFiles, ...] = ()
+    camera_pose: Path | None = None
 
 
 @dataclass(frozen=True)
@@ -338,11 +351,16 @@ def _cameras(
     frames' numbers in the sequence; ValueError for cameras in no common world or whose frames
     number differently (unless ``frame_range`` keeps to the frames they share)."""
     files = [
-        CameraFiles(inputs.frames, inputs.geometry, inputs.calibration, options.distortion),
+        CameraFiles(
+            inputs.frames,
+            inputs.geometry,
+            inputs.calibration,
+            options.distortion,
+            inputs.camera_pose,
+        ),
         *inputs.cameras,
     ]
-    if len(files) > 1:
-        _check_one_world(files)
+    poses = _camera_poses(files)
     pitch = options.pixel_pitch_mm
     calibration = files[0].calibration
     if calibration is not None and pitch is None:  # the first camera's, for every camera
@@ -361,35 +379,49 @@ def _cameras(
         )
     numbers = frame_numbers(common, options.frame_range)
     frames, views = [], []
-    for stack, camera in zip(stacks, files, strict=True):
-        views.append(read_view(stack, camera.geometry, camera.calibration))
+    for stack, camera, pose in zip(stacks, files, poses, strict=True):
+        view = read_view(stack, camera.geometry, camera.calibration)
+        views.append(view if pose is None else view.transformed(pose))
         if options.frame_range is not None:
             stack = replace(stack, data=stack.data[numbers])
         frames.append(_dewarped(stack, views[-1], camera.distortion))
     return frames, numbers, views
 
 
-def _check_one_world(files: list[CameraFiles]) -> None:
-    """ValueError unless several cameras' views share one world: all RTK geometries, or all
-    MayaCam calibrations (made on one object); a JointTrack calibration has no camera pose."""
-    kinds = set()
+def _camera_poses(files: list[CameraFiles]) -> list[np.ndarray | None]:
+    """Each camera's JointTrack frame's pose in the common world (None: not moved); ValueError
+    unless several cameras' views share one world: all RTK geometries, all MayaCam
+    calibrations (made on one object), or all JointTrack calibrations each with its pose."""
+    kinds, poses = set(), []
     for k, camera in enumerate(files, 1):
+        jointtrack = camera.calibration is not None and not is_mayacam(camera.calibration)
+        if camera.camera_pose is not None and not jointtrack:
+            raise ValueError(
+                f"--camera-pose {camera.camera_pose} (camera {k}): a camera pose places a "
+                "JointTrack calibration's camera; this camera's view "
+                f"({camera.geometry or camera.calibration}) carries its own world"
+            )
         if camera.geometry is not None:
             kinds.add("RTK geometry")
-        elif is_mayacam(camera.calibration):
+        elif not jointtrack:
             kinds.add("MayaCam calibration")
-        else:
+        elif camera.camera_pose is not None:
+            kinds.add("JointTrack calibration with its camera pose")
+        elif len(files) > 1:
             raise ValueError(
                 f"{camera.calibration} (camera {k}): a JointTrack calibration places its camera "
                 f"in a frame of its own; {len(files)} cameras need their poses in one world, "
-                "which is missing: give RTK geometries, or XMALab/Autoscoper (MayaCam 2.0) "
+                "which is missing: give each JointTrack camera's pose (--camera-pose, the 4 x 4 "
+                "T_world_camera), or RTK geometries, or XMALab/Autoscoper (MayaCam 2.0) "
                 "calibrations made on one calibration object"
             )
+        poses.append(None if camera.camera_pose is None else read_camera_pose(camera.camera_pose))
     if len(kinds) > 1:
         raise ValueError(
-            "the cameras' views mix RTK geometries and MayaCam calibrations, whose worlds are "
-            "not known to be one: give every camera's view in one kind of file"
+            f"the cameras' views mix {' and '.join(sorted(kinds))}, whose worlds are not known "
+            "to be one: give every camera's view in one kind of file"
         )
+    return poses
 
 
 def _dewarped(frames: Frames, view: View, distortion: Distortion | None) -> Frames:

@@ -7,8 +7,10 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from registration.jointtrack import (
+    ROTATION_TOLERANCE,
     camera_view,
     read_calibration,
+    read_camera_pose,
     read_poses,
     write_calibration,
     write_poses,
@@ -62,6 +64,36 @@ def test_bad_files_are_refused_with_the_line_named(tmp_path):
             .binned(2)
             .transformed(np.diag([1.0, -1.0, -1.0, 1.0])),
         )
+
+
+def test_a_camera_pose_reads_as_a_rigid_transform_in_either_form(tmp_path):
+    """Four rows or three, spaces or commas, comments; a rotation written to six decimals is
+    made the nearest rotation; a matrix further from one than the tolerance is refused."""
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("zyx", [90, 10, -5], degrees=True).as_matrix()
+    T[:3, 3] = (-850.0, 12.5, 40.0)
+    rows = [", ".join(f"{v:.6f}" for v in row) for row in T[:3]]
+    three = tmp_path / "three.txt"
+    three.write_text("# camera 2 in camera 1's frame\n" + "\n".join(rows) + "\n")
+    read = read_camera_pose(three)
+    np.testing.assert_allclose(read, T, atol=1e-6)
+    np.testing.assert_allclose(read[:3, :3].T @ read[:3, :3], np.eye(3), atol=1e-14)
+    four = tmp_path / "four.txt"
+    np.savetxt(four, T)
+    np.testing.assert_allclose(read_camera_pose(four), T, atol=1e-12)
+    off = T.copy()
+    off[0, 0] += 10 * ROTATION_TOLERANCE
+    for matrix, said in (
+        (off, "rotation is not one"),
+        (np.diag([1.0, 1.0, -1.0, 1.0]), "determinant -1"),
+        (np.vstack([T[:3], [0, 0, 1, 1]]), "last row"),
+    ):
+        np.savetxt(four, matrix)
+        with pytest.raises(ValueError, match=said):
+            read_camera_pose(four)
+    four.write_text("1 0 0\n0 1 0\n0 0 1\n")
+    with pytest.raises(ValueError, match="got 3 x 3 numbers"):
+        read_camera_pose(four)
 
 
 def test_a_mayacam_projects_as_opencvs_k_r_t(tmp_path):

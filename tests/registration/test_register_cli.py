@@ -4,6 +4,7 @@ initial poses (and the case's motion and noise) follow the ``seed`` option."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +22,13 @@ from recon.rtk_xml import PanelHeader, write_rtk_geometry
 from recon.volume import Volume, VolumeGrid
 from registration.drr import scene
 from registration.frames import read_frames
-from registration.jointtrack import camera_view, read_jointtrack_poses, write_calibration
+from registration.jointtrack import (
+    camera_frame,
+    camera_view,
+    read_calibration,
+    read_jointtrack_poses,
+    write_calibration,
+)
 from registration.labels import BONE_UNITS
 from registration.poses import BodyPose, read_poses, write_poses
 from registration.se3 import compose
@@ -350,6 +357,59 @@ def test_two_cameras_register_every_body_on_both_and_write_each_cameras_files(
     assert [c["source"] for c in report["cameras"]][1].endswith("ap.mha")
 
 
+def _as_jointtrack(view: View, frames: Path, folder: Path, name: str) -> tuple[Path, ...]:
+    """``view`` and its ``frames`` as a JointTrack camera (mirrored left to right where the
+    view's panel faces the other way: JointTrack's images look down -z): its frames, its
+    calibration in its camera frame and that frame's pose in the world (``T_world_camera``,
+    a text file)."""
+    images = read_frames(frames)
+    T = camera_frame(view)
+    if (view.transformed(np.linalg.inv(T)).detector_origin_mm[2]) > 0:
+        far_column = view.detector_origin_mm + (view.cols - 1) * view.pitch_u_mm * view.e_u
+        view = replace(view, detector_origin_mm=far_column, e_u=-view.e_u)
+        images = replace(images, data=images.data[:, :, ::-1])
+        T = camera_frame(view)
+    pitch = view.pitch_u_mm
+    stack = write_projections(folder / f"{name}.mha", np.ascontiguousarray(images.data), pitch)
+    calibration = write_calibration(folder / f"{name}.txt", view.transformed(np.linalg.inv(T)))
+    np.savetxt(folder / f"{name}_pose.txt", T)
+    return stack, calibration, folder / f"{name}_pose.txt"
+
+
+def test_jointtrack_cameras_placed_by_their_poses_track_in_one_world(
+    inputs, second_camera, knee_case, tmp_path, measured
+) -> None:
+    """Two JointTrack calibrations, each with its camera's pose (--camera-pose), are the two
+    views in one world: the first frame's depth along the lateral camera's rays within the
+    two-camera issue's 0.2 mm median, and each camera's .jts in its own camera frame."""
+    _, paths = inputs
+    ap = fluoroscopy_view(second_camera[1], read_frames(second_camera[0]))
+    lateral = _as_jointtrack(knee_case.view, paths["frames"], tmp_path, "lateral")
+    front = _as_jointtrack(ap, second_camera[0], tmp_path, "ap")
+    out = tmp_path / "jointtrack"
+    args = ["register", "--out", str(out), "--volume", str(paths["volume"])]
+    # near the start and the frames' blur given, one short pass: a misplaced camera costs mm
+    settings = tmp_path / "settings.yaml"
+    fields = ["global_init: false", "frame_blur_mm: [0.4, 0.4]", "nelder_mead_maxfev: 30"]
+    settings.write_text("\n".join([*fields, "powell_xtol: 0.2"]) + "\n", encoding="utf-8")
+    args += ["--labels", str(paths["labels"]), "--settings", str(settings)]
+    args += ["--truth", str(paths["truth"]), "--initial", str(paths["initial"])]
+    args += ["--frames-range", "0:0"]
+    for frames, calibration, pose in (lateral, front):
+        args += ["--frames", str(frames), "--calibration", str(calibration)]
+        args += ["--camera-pose", str(pose)]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    metrics = json.loads((out / "metrics.json").read_text())
+    measured("jointtrack_biplane_depth_mm_median", metrics["out_of_plane_mm_median"], below=0.2)
+    assert metrics["rsr_pct"] == 100.0
+    poses = {p.body: p.T_world_body for p in read_poses(out / "poses.csv")}
+    _, calibration, pose = front
+    placed = read_calibration(calibration, ap.rows, ap.cols).transformed(np.loadtxt(pose))
+    in_world = read_jointtrack_poses(out / "view2" / "femur.jts", placed)
+    np.testing.assert_allclose(in_world[0], poses["femur"], atol=1e-4)
+
+
 def test_cameras_that_do_not_pair_or_share_no_world_are_refused_before_work(
     inputs, second_camera, knee_case, tmp_path
 ) -> None:
@@ -422,6 +482,30 @@ def test_cameras_that_do_not_pair_or_share_no_world_are_refused_before_work(
                 str(paths["initial"]),
             ],
             "camera 2 (",
+        ),
+    ]
+    pose = tmp_path / "pose.txt"
+    np.savetxt(pose, np.eye(4))
+    sheared = tmp_path / "sheared.txt"
+    np.savetxt(sheared, np.diag([1.0, 1.01, 1.0, 1.0]))
+    jointtrack = ["--frames", str(frames), "--calibration", str(calibration)]
+    cases += [
+        (
+            ["--calibration", str(calibration), *jointtrack, "--camera-pose", str(pose)],
+            "--camera-pose given 1 times for 2 cameras",
+        ),
+        (["--geometry", str(paths["geometry"]), "--camera-pose", str(pose)], "carries its own"),
+        (
+            [
+                "--calibration",
+                str(calibration),
+                "--camera-pose",
+                str(pose),
+                *jointtrack,
+                "--camera-pose",
+                str(sheared),
+            ],
+            "rotation is not one",
         ),
     ]
     for k, (more, said) in enumerate(cases):
