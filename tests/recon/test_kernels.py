@@ -29,17 +29,19 @@ PARALLEL = {
     "row filter's weighting": ramp._pack_kernel,
     "normalisation": fdk_module._normalise_kernel,
     "motion field's backprojection": motion._field_kernel,
+    "rays' lengths through the grid": project._chords_kernel,
 }
-"""The FDK's and the projector's parallel kernels, by what they do."""
+"""The FDK's, the projector's and SART's parallel kernels, by what they do."""
 
 
 @pytest.fixture(scope="module")
 def ran() -> None:
-    """A small FDK (plain and through a motion field) and a forward projection: every kernel
-    of :data:`PARALLEL` compiled."""
+    """A small FDK (plain and through a motion field), a forward projection and the rays'
+    lengths: every kernel of :data:`PARALLEL` compiled."""
     views = circular_orbit(24, 600.0, 1000.0, DetectorSpec(rows=32, cols=32, pixel_pitch_mm=2.0))
     grid = VolumeGrid.centered((16, 16, 16), 2.0, (0.0, 0.0, 0.0))
     sino = project.forward_project(np.ones(grid.shape, np.float32), grid, views)
+    project.centre_chords(views, grid)
     fdk_reconstruct(sino, views, grid)
     poses = np.tile(np.eye(4), (len(views), 2, 1, 1))
     weights = np.full((2, *grid.shape), 0.5, np.float32)
