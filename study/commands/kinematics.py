@@ -255,11 +255,6 @@ def _camera_views(
     if len(distortion) not in (0, len(given)):
         fail(f"--distortion given {len(distortion)} times for {len(given)} cameras: one each")
     warps: list[Path | None] = list(distortion) or [None] * len(given)
-    if camera_pose and geometry:
-        fail(
-            "--camera-pose places a JointTrack calibration's camera; an RTK geometry carries "
-            "its own world"
-        )
     if len(camera_pose) not in (0, len(given)):
         fail(f"--camera-pose given {len(camera_pose)} times for {len(given)} cameras: one each")
     poses: list[Path | None] = list(camera_pose) or [None] * len(given)
