@@ -373,9 +373,7 @@ def tka_entry(regime: str, errors: list, first: list, warm: list, models) -> dic
     return entry
 
 
-def tka(
-    sequences: int, frames: int, panel: int, bones: bool = False, sparse: bool = False
-) -> dict:
+def tka(sequences: int, frames: int, panel: int, bones: bool = False, sparse: bool = False) -> dict:
     """The ``tka`` regime's entry, or with ``bones`` the ``tka_bones`` one, or with ``sparse``
     the ``tka_sparse`` one (every :data:`SPARSE_STEP`-th sample of the gait, ``frames``
     ignored) (see the module docstring)."""

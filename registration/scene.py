@@ -77,9 +77,9 @@ class Searches(ABC):
     def least_squares(
         self, frame: int, name: str, poses: Poses, levels: tuple[int, ...]
     ) -> tuple[np.ndarray, int, Searched]:
-        """Levenberg-Marquardt on each of ``levels`` in turn, at most ``ls_max_steps`` steps
-        each (coarse, finest; ``ls_max_steps_views`` on several views). Returns the pose, the
-        evaluations and the last level's objective."""
+        """Levenberg-Marquardt (registration.search) on each of ``levels`` in turn,
+        ``ls_max_steps`` each (coarse, finest; ``ls_max_steps_views`` on several views).
+        Returns the pose, the evaluations and the last level's objective."""
         evaluations = 0
         steps = self.settings.ls_max_steps_views if self.views > 1 else self.settings.ls_max_steps
         for level in levels:

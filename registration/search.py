@@ -14,6 +14,10 @@ from registration.objective import Searched
 from registration.priors import KPM_LAMBDA
 from registration.settings import Settings
 
+STEP_TOLERANCE = 1e-3
+"""Least squares with Broyden's update stops once a step is this small in every coordinate,
+in units of ``ls_step`` (2.5e-4 mm and deg at 0.25)."""
+
 
 def principal_axes(points_mm: np.ndarray) -> np.ndarray:
     """Columns: the body's principal axes (PCA of its points, (N, 3) mm), the longest first."""
@@ -82,30 +86,79 @@ def nelder_mead(objective: Searched, x0: np.ndarray, step: float, settings: Sett
     ).x
 
 
+def _central_jacobian(objective: Searched, scale: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """d residuals / d x at ``x`` by central differences of ``scale`` (mm, deg): 12 renders."""
+    return np.column_stack(
+        [
+            (objective.residuals(x + d) - objective.residuals(x - d)) / (2 * h)
+            for d, h in zip(np.diag(scale), scale, strict=True)
+        ]
+    )
+
+
+def _damped_step(
+    J: np.ndarray, r: np.ndarray, damping: float | None
+) -> tuple[np.ndarray, float, float]:
+    """Marquardt's step from residuals ``r`` on the Jacobian ``J`` (scaled step units):
+    ``(J'J + damping diag(J'J)) dz = -J'r``; the damping starts at 1e-3 of the largest
+    diagonal term. Returns dz, the decrease of half the squared norm it predicts, and the
+    damping."""
+    A, g = J.T @ J, J.T @ r
+    diagonal = np.maximum(np.diag(A), 1e-12 * max(float(np.max(np.diag(A))), 1e-300))
+    if damping is None:
+        damping = 1e-3 * float(np.max(diagonal))
+    dz = np.linalg.solve(A + damping * np.diag(diagonal), -g)
+    return dz, float(-(g @ dz) - 0.5 * dz @ A @ dz), damping
+
+
 def levenberg_marquardt(objective: Searched, settings: Settings, max_steps: int) -> np.ndarray:
-    """Levenberg-Marquardt (scipy's MINPACK) on :meth:`Objective.residuals` from the start,
-    at most ``max_steps`` residual evaluations as MINPACK counts them, the Jacobian by central
-    differences of the settings' ``ls_step`` (12 renders); returns the step x."""
-    steps = np.repeat(np.asarray(settings.ls_step, dtype=np.float64), 3)
+    """Levenberg-Marquardt on :meth:`Objective.residuals` from the start; returns the step x.
 
-    def jacobian(x: np.ndarray) -> np.ndarray:
-        return np.column_stack(
-            [
-                (objective.residuals(x + d) - objective.residuals(x - d)) / (2 * h)
-                for d, h in zip(np.diag(steps), steps, strict=True)
-            ]
-        )
-
-    return least_squares(
-        objective.residuals,
-        np.zeros(6),
-        jac=jacobian,
-        method="lm",
-        x_scale=steps,
-        xtol=1e-4,
-        ftol=1e-8,
-        max_nfev=max_steps,
-    ).x
+    The Jacobian by central differences of the settings' ``ls_step`` (12 renders) at every step
+    (scipy's MINPACK, ``max_steps`` residual evaluations as it counts them), or, with
+    ``ls_broyden``, at the start only: each of at most ``max_steps`` trial steps (one render)
+    updates it by Broyden's rank-one formula, and a last central-difference Jacobian at the
+    end takes one more step if that lowers the cost (Nielsen's damping; scipy's least squares
+    recomputes the Jacobian at every step and offers no such update).
+    """
+    scale = np.repeat(np.asarray(settings.ls_step, dtype=np.float64), 3)
+    if not settings.ls_broyden:
+        return least_squares(
+            objective.residuals,
+            np.zeros(6),
+            jac=lambda x: _central_jacobian(objective, scale, x),
+            method="lm",
+            x_scale=scale,
+            xtol=1e-4,
+            ftol=1e-8,
+            max_nfev=max_steps,
+        ).x
+    x = np.zeros(6)
+    r = objective.residuals(x)
+    J = _central_jacobian(objective, scale, x) * scale  # per step unit, ls_step
+    damping, grow = None, 2.0
+    for _ in range(max_steps):
+        dz, predicted, damping = _damped_step(J, r, damping)
+        if predicted <= 0.0 or np.max(np.abs(dz)) < STEP_TOLERANCE:
+            break
+        trial = x + dz * scale
+        r_trial = objective.residuals(trial)
+        J += np.outer(r_trial - r - J @ dz, dz) / (dz @ dz)
+        gain = 0.5 * (r @ r - r_trial @ r_trial) / predicted
+        if gain > 0.0:
+            x, r = trial, r_trial
+            damping *= max(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3)
+            grow = 2.0
+        else:
+            damping *= grow
+            grow *= 2.0
+    dz, predicted, _ = _damped_step(_central_jacobian(objective, scale, x) * scale, r, damping)
+    if predicted > 0.0:
+        trial = x + dz * scale
+        r_trial = objective.residuals(trial)
+        if r_trial @ r_trial < r @ r:
+            x = trial
+    return x
 
 
 def kinematic_line_search(
