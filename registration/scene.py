@@ -84,8 +84,9 @@ class Searches(ABC):
         steps = self.settings.ls_max_steps_views if self.views > 1 else self.settings.ls_max_steps
         for level in levels:
             objective = self.objective(frame, level, name, poses)
-            max_steps = steps[int(level == self.levels[-1])]
-            x = search.levenberg_marquardt(objective, self.settings, max_steps)
+            finest = int(level == self.levels[-1])
+            broyden = self.settings.ls_broyden[finest]
+            x = search.levenberg_marquardt(objective, self.settings, steps[finest], broyden)
             poses = {**poses, name: compose(x, poses[name], self.bodies[name].centroid_mm)}
             evaluations += objective.evaluations
         return poses[name], evaluations, objective

@@ -111,18 +111,20 @@ def _damped_step(
     return dz, float(-(g @ dz) - 0.5 * dz @ A @ dz), damping
 
 
-def levenberg_marquardt(objective: Searched, settings: Settings, max_steps: int) -> np.ndarray:
+def levenberg_marquardt(
+    objective: Searched, settings: Settings, max_steps: int, broyden: bool
+) -> np.ndarray:
     """Levenberg-Marquardt on :meth:`Objective.residuals` from the start; returns the step x.
 
     The Jacobian by central differences of the settings' ``ls_step`` (12 renders) at every step
     (scipy's MINPACK, ``max_steps`` residual evaluations as it counts them), or, with
-    ``ls_broyden``, at the start only: each of at most ``max_steps`` trial steps (one render)
+    ``broyden``, at the start only: each of at most ``max_steps`` trial steps (one render)
     updates it by Broyden's rank-one formula, and a last central-difference Jacobian at the
     end takes one more step if that lowers the cost (Nielsen's damping; scipy's least squares
     recomputes the Jacobian at every step and offers no such update).
     """
     scale = np.repeat(np.asarray(settings.ls_step, dtype=np.float64), 3)
-    if not settings.ls_broyden:
+    if not broyden:
         return least_squares(
             objective.residuals,
             np.zeros(6),

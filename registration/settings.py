@@ -61,16 +61,17 @@ class Settings(BaseModel):
     ls_step: tuple[PositiveFloat, PositiveFloat] = Field(
         (0.25, 0.25), description="least squares: central-difference steps, (mm, deg)"
     )
-    ls_broyden: bool = Field(
-        True,
-        description="least squares: the Jacobian by central differences at the start of each "
-        "level only, then kept current by Broyden's rank-one update after each step (one "
-        "render a step), and a last central-difference Jacobian and step at the end (bones: "
-        "the same accuracy in a quarter less time a warm frame); false: by central "
-        "differences at every step (scipy's MINPACK)",
+    ls_broyden: tuple[bool, bool] = Field(
+        (True, False),
+        description="least squares on the coarse levels and on the finest: the Jacobian by "
+        "central differences at the start of the level only, then kept current by Broyden's "
+        "rank-one update after each step (one render a step), and a last central-difference "
+        "Jacobian and step at the end; false: by central differences at every step (scipy's "
+        "MINPACK). Bones: the coarse level's start for the finest in a fifth less time a warm "
+        "frame; the finest with it lost accuracy on fast motion",
     )
     ls_max_steps: tuple[PositiveInt, PositiveInt] = Field(
-        (10, 10),
+        (10, 5),
         description="least squares on the coarse levels and on the finest: trial steps with "
         "ls_broyden (one render each, after a Jacobian of 12 renders and before the last "
         "one's 13), otherwise residual evaluations as MINPACK counts them (each step also "

@@ -46,7 +46,7 @@ def test_broyden_reaches_the_optimum_in_its_render_budget(seed) -> None:
     mm/deg; seeds 0-7: 1e-5 at most), in at most 1 + 12 + 10 + 13 evaluations. Without the
     update (the start's Jacobian throughout) two of the six seeds stop short, up to 6e-4 mm."""
     objective = Curved(seed)
-    x = levenberg_marquardt(objective, Settings(), 10)
+    x = levenberg_marquardt(objective, Settings(), 10, broyden=True)
     assert objective.evaluations <= 1 + 12 + 10 + 13
     np.testing.assert_allclose(x, objective.optimum(), atol=2.5e-5)
 
@@ -55,6 +55,6 @@ def test_minpack_stays_for_the_implant_settings() -> None:
     """Without Broyden's update every step takes a central-difference Jacobian: 5 residual
     evaluations as MINPACK counts them cost at least 12 renders each but the last."""
     objective = Curved(0)
-    x = levenberg_marquardt(objective, Settings(ls_broyden=False), 5)
+    x = levenberg_marquardt(objective, Settings(), 5, broyden=False)
     assert objective.evaluations >= 5 + 12 * 4
     np.testing.assert_allclose(x, objective.optimum(), atol=2.5e-3)
