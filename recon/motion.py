@@ -65,6 +65,10 @@ class BodyMotion:
     def __len__(self) -> int:
         return len(self.poses)
 
+    def of_views(self, index: np.ndarray) -> BodyMotion:
+        """The same bodies and blend, on the views ``index`` alone."""
+        return BodyMotion(self.bodies, self.poses[index], self.weights, self.grid)
+
     def on(self, grid: VolumeGrid) -> np.ndarray:
         """The weights resampled onto ``grid`` (trilinear, held at the edges), (K, *shape)."""
         if self.weights is None:

@@ -20,6 +20,10 @@ to fine, and the reconstruction is made again through the motion found:
    :attr:`MotionSettings.blend_mm`: soft tissue follows the nearest bone, no seam); every
    view's two poses (12 parameters) are fitted as in step 2 from the one-body poses. Where the
    segmentation finds no femur and tibia the leg stays one body, and the estimate says so.
+   Each round fits the even views to a volume made from the odd ones and the odd views to one
+   made from the even ones (each through the round before's motion): a volume holding a
+   view's own data reprojects that view's pose error back to it, so fitted to such a volume
+   the errors are kept from round to round (docs/algorithms/motion.md).
 4. The caller reconstructs through the motion (recon.fdk with ``motion=``): each voxel
    projects through the blend of the bodies' moved matrices.
 
@@ -323,12 +327,27 @@ class _Estimation:
     seconds: dict[str, float] = field(default_factory=dict)
 
     def fitted(
-        self, stage: str, fit: ViewFit, start: np.ndarray | None, iterations: int
+        self,
+        stage: str,
+        fits: list[tuple[np.ndarray, ViewFit]],
+        start: np.ndarray | None,
+        iterations: int,
     ) -> np.ndarray:
-        """Every view's poses of ``fit``'s bodies from ``start``, re-centred, (N, bodies, 4, 4)."""
+        """Every view's poses, re-centred, (N, bodies, 4, 4): each ``(views, fit)`` of ``fits``
+        fits its views (indices into the scan) from ``start``'s."""
+        n, done = len(self.geometry), 0
+        poses = np.empty((n, len(fits[0][1].parts), 4, 4))
+        for views, fit in fits:
+            report = None if self.progress is None else self._reporter(stage, done, n)
+            first = None if start is None else start[views]
+            poses[views] = fit.all_views(first, iterations, report)
+            done += len(views)
+        return recentred(poses, fits[0][1].centers)
+
+    def _reporter(self, stage: str, done: int, total: int) -> Callable[[int, int], None]:
+        """A fit's ``progress(views_done, views)`` as the stage's, ``done`` views ahead."""
         progress = self.progress
-        report = None if progress is None else lambda d, t: progress(stage, d, t)
-        return recentred(fit.all_views(start, iterations, report), fit.centers)
+        return lambda d, _t: progress(stage, done + d, total)
 
     def one_body(self, grid: VolumeGrid, voxel: float) -> tuple[BodyMotion, VolumeGrid, np.ndarray]:
         """The whole leg's motion at half the resolution (the motion the two bodies share, to
@@ -361,7 +380,7 @@ class _Estimation:
             margin = self.settings.margin_mm
             trusted = trusted_pixels(views, Volume(volume, coarse, "1/mm"), mask, margin)
             fit = ViewFit(volume, coarse, leg, center[None], small, views, trusted)
-            poses = self.fitted("one body", fit, None, 2)
+            poses = self.fitted("one body", [(np.arange(len(views)), fit)], None, 2)
         return BodyMotion((LEG,), poses), coarse, bone
 
     def two_bodies(
@@ -369,16 +388,23 @@ class _Estimation:
     ) -> tuple[BodyMotion, dict[str, np.ndarray]]:
         """The thigh's and the shank's motion on ``fine``, from the leg's, over
         ``settings.two_body_rounds`` rounds; the leg's (and a note) where the segmentation does
-        not separate them. Each body's surface points, mm."""
+        not separate them. Each body's surface points, mm.
+
+        Each round reconstructs the even and the odd views apart, through the motion of the
+        round before, and fits each view to the volume of the other half: a volume holding a
+        view's own data reprojects that view's pose error back to it, and the rounds would
+        keep it (module docstring)."""
         proj, geometry, margin = self.proj, self.geometry, self.settings.margin_mm
+        halves = (np.arange(0, len(geometry), 2), np.arange(1, len(geometry), 2))
         for round_ in range(self.settings.two_body_rounds):
             stage = f"two bodies, round {round_ + 1}"
             with _timed(self.seconds, stage):
-                volume, mask = sharpened(proj, geometry, fine, motion, self.orbit_geometry)
+                made = [self._half_volume(views, motion, fine) for views in halves]
                 if round_ == 0:
-                    trusted = trusted_pixels(geometry, Volume(volume, fine, "1/mm"), mask, margin)
+                    volume = Volume(0.5 * (made[0][0] + made[1][0]), fine, "1/mm")
+                    trusted = trusted_pixels(geometry, volume, made[0][1] & made[1][1], margin)
                     try:
-                        labels = segment_bones(Volume(volume, fine, "1/mm"))
+                        labels = segment_bones(volume)
                         weights = body_weights(labels, self.settings.blend_mm)
                     except ValueError as err:
                         self.notes.append(
@@ -401,12 +427,28 @@ class _Estimation:
                 else:
                     start = motion.poses
                 self.tell(
-                    f"{stage}: the thigh and the shank registered to each of {len(geometry)} views"
+                    f"{stage}: the thigh and the shank registered to each of {len(geometry)} "
+                    "views, each to the other half's volume"
                 )
-                fit = ViewFit(volume, fine, weights, centers, proj, geometry, trusted)
-                poses = self.fitted(stage, fit, start, 1)
+                fits = []
+                for views, (other, _mask) in zip(halves, made[::-1], strict=True):
+                    part = ViewFit(
+                        other, fine, weights, centers, proj[views], geometry[views], trusted[views]
+                    )
+                    fits.append((views, part))
+                poses = self.fitted(stage, fits, start, 1)
                 motion = BodyMotion(tuple(BODY_LABELS), poses, weights, fine)
         return motion, surfaces
+
+    def _half_volume(
+        self, views: np.ndarray, motion: BodyMotion, grid: VolumeGrid
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The sharpened volume of ``views`` alone through ``motion`` on ``grid``, and its
+        FDK mask."""
+        orbit = None if self.orbit_geometry is None else self.orbit_geometry[views]
+        return sharpened(
+            self.proj[views], self.geometry[views], grid, motion.of_views(views), orbit
+        )
 
     def kept_if_consistent(
         self, motion: BodyMotion, fine: VolumeGrid
