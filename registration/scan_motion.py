@@ -46,6 +46,7 @@ from scipy import ndimage
 
 from recon.fdk import estimate_orbit, fdk_reconstruct
 from recon.geometry import Geometry
+from recon.iterative import subsets
 from recon.motion import BodyMotion
 from recon.volume import Volume, VolumeGrid
 from registration.labels import LABELS
@@ -395,7 +396,7 @@ class _Estimation:
         view's own data reprojects that view's pose error back to it, and the rounds would
         keep it (module docstring)."""
         proj, geometry, margin = self.proj, self.geometry, self.settings.margin_mm
-        halves = (np.arange(0, len(geometry), 2), np.arange(1, len(geometry), 2))
+        halves = subsets(len(geometry), 2)  # the even views, the odd views: each spans the orbit
         for round_ in range(self.settings.two_body_rounds):
             stage = f"two bodies, round {round_ + 1}"
             with _timed(self.seconds, stage):
