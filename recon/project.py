@@ -461,6 +461,127 @@ def _backproject_kernel(
                 out[z, y, x] += acc[y - y0, x]
 
 
+UPRIGHT_Z_ROWS, UPRIGHT_Y_ROWS = 16, 4
+"""Voxel rows per job of :func:`_upright_kernel`: the z rows that share each (y, view)'s
+detector columns and weights, by the y rows taken view by view together (16 x 4: 3.2 against
+the general kernel's 3.7 s per 360 views of 512^2 onto 256^3 on 2 cores; 8 x 4 3.5 s, 32 x 2
+3.6 s)."""
+
+
+@numba.njit(
+    parallel=True, fastmath=True, cache=True, error_model="numpy", boundscheck=False, nogil=True
+)
+def _upright_kernel(quads, scale, mats, origin, spacing, out):  # pragma: no cover
+    """:func:`_backproject_kernel` in ``FDK_WEIGHT`` mode for views whose u and w do not
+    change along the grid's z (an orbit about z with upright panels): each (y, view) computes
+    its detector columns, weights and the rows' start and step in z once, for
+    :data:`UPRIGHT_Z_ROWS` rows of z, which then only step ``v``."""
+    n_images, rows, cols = quads.shape
+    n_views = len(mats)
+    nz, ny, nx = out.shape
+    umax = np.float32(cols - 1.0)
+    vmax = np.float32(rows - 1.0)
+    zero = np.float32(0.0)
+    flat = quads.reshape(n_images, rows * cols)
+    zb, yb = UPRIGHT_Z_ROWS, UPRIGHT_Y_ROWS
+    y_blocks = (ny + yb - 1) // yb
+    for job in numba.prange(((nz + zb - 1) // zb) * y_blocks):
+        z0 = (job // y_blocks) * zb
+        y0 = (job % y_blocks) * yb
+        z1 = min(nz, z0 + zb)
+        y1 = min(ny, y0 + yb)
+        wz = origin[2] + z0 * spacing[2]
+        acc = np.zeros((zb, yb, nx), dtype=np.float32)
+        col = np.zeros(nx, dtype=np.uint32)
+        fu = np.empty(nx, dtype=np.float32)
+        wt = np.empty(nx, dtype=np.float32)
+        v0 = np.empty(nx, dtype=np.float32)
+        dv = np.empty(nx, dtype=np.float32)
+        idx = np.zeros(nx + 1, dtype=np.uint32)  # any entry is a valid pixel index
+        fv = np.empty(nx, dtype=np.float32)
+        taps = np.empty(nx + 1, dtype=np.complex128)
+        for view in range(n_views):
+            m = mats[view]
+            s0 = np.float32(m[0, 0] * spacing[0])
+            s1 = np.float32(m[1, 0] * spacing[0])
+            s2 = np.float32(m[2, 0] * spacing[0])
+            cz = np.float32(m[1, 2] * spacing[2])
+            image = flat[min(view, n_images - 1)]
+            sc = scale[view]
+            for y in range(y0, y1):
+                wy = origin[1] + y * spacing[1]
+                h0 = np.float32(m[0, 0] * origin[0] + m[0, 1] * wy + m[0, 2] * wz + m[0, 3])
+                h1 = np.float32(m[1, 0] * origin[0] + m[1, 1] * wy + m[1, 2] * wz + m[1, 3])
+                h2 = np.float32(m[2, 0] * origin[0] + m[2, 1] * wy + m[2, 2] * wz + m[2, 3])
+                # 0 <= u <= umax along x (w > 0): as in _backproject_kernel, for u only
+                lo, hi = 0.0, nx - 1.0
+                for a, b in ((s0, h0), (umax * s2 - s0, umax * h2 - h0)):
+                    if a > 0:
+                        lo = max(lo, -b / a)
+                    elif a < 0:
+                        hi = min(hi, -b / a)
+                    elif b < 0:
+                        hi = -1.0
+                xa = max(0, math.ceil(lo))
+                xb = min(nx - 1, math.floor(hi))
+                if xb < xa:
+                    continue
+                xf = np.float32(xa)
+                for k in range(xa, xb + 1):
+                    w = h2 + xf * s2
+                    inv = np.float32(1.0) / w
+                    u = min(max((h0 + xf * s0) * inv, zero), umax)
+                    iu = min(np.int32(u), np.int32(cols - 2))
+                    col[k] = np.uint32(iu)
+                    fu[k] = u - np.float32(iu)
+                    wt[k] = inv * inv * sc
+                    v0[k] = (h1 + xf * s1) * inv
+                    dv[k] = cz * inv
+                    xf += np.float32(1.0)
+                for z in range(z0, z1):
+                    zf = np.float32(z - z0)
+                    hz = h1 + zf * cz
+                    lo2, hi2 = float(xa), float(xb)
+                    for a, b in ((s1, hz), (vmax * s2 - s1, vmax * h2 - hz)):
+                        if a > 0:
+                            lo2 = max(lo2, -b / a)
+                        elif a < 0:
+                            hi2 = min(hi2, -b / a)
+                        elif b < 0:
+                            hi2 = -1.0
+                    x0 = max(xa, math.ceil(lo2))
+                    n = min(xb, math.floor(hi2)) - x0 + 1
+                    if n <= 0:
+                        continue
+                    for k in range(n):
+                        v = min(max(v0[x0 + k] + zf * dv[x0 + k], zero), vmax)
+                        iv = min(np.int32(v), np.int32(rows - 2))
+                        fv[k] = v - np.float32(iv)
+                        idx[k] = np.uint32(iv * np.int32(cols)) + col[x0 + k]
+                    row_gather(n, image, idx, fu[x0:], fv, wt[x0:], taps, acc[z - z0, y - y0, x0:])
+        for z in range(z0, z1):
+            for y in range(y0, y1):
+                for x in range(nx):
+                    out[z, y, x] += acc[z - z0, y - y0, x]
+
+
+UPRIGHT_TOLERANCE_PX = 1e-3
+"""How far a voxel's detector column and depth may move over the grid's z extent (in pixels)
+for :func:`upright` to hold them still."""
+
+
+def upright(geometry: Geometry, grid: VolumeGrid) -> bool:
+    """Whether every view's u and w stay put along the grid's z axis: over the grid's z
+    extent, u moves and v's scale changes by less than :data:`UPRIGHT_TOLERANCE_PX` pixels
+    (so :func:`_upright_kernel` applies: orbits about z with upright panels)."""
+    m = np.asarray(geometry.matrices)
+    corners = np.hstack((grid.corners_mm(), np.ones((8, 1))))
+    w_min = float(np.min(np.einsum("vk,ck->vc", m[:, 2], corners)))
+    extent = grid.shape[0] * grid.spacing_mm[2]
+    drift = (np.abs(m[:, 0, 2]) + max(geometry.rows, geometry.cols) * np.abs(m[:, 2, 2])) * extent
+    return w_min > 0 and float(drift.max()) / w_min < UPRIGHT_TOLERANCE_PX
+
+
 @numba.njit(fastmath=True, error_model="numpy", inline="always")
 def _quad_row(quad, below, a, b):  # pragma: no cover
     """Taps (2 below, 2 below + 1) of a row of pixel quads (cols, 4): ``a * b`` (two rows of
@@ -543,9 +664,17 @@ def backproject_weighted(
             f"images of shape {quads.shape} for {len(geometry)} views of {geometry.rows} x "
             f"{geometry.cols} pixels"
         )
+    quads = quads.view(np.complex128)[..., 0]
+    scale = np.ones(len(geometry), np.float32) if scale is None else np.asarray(scale, np.float32)
+    if mode == FDK_WEIGHT and upright(geometry, grid):
+        matrices = np.asarray(geometry.matrices)
+        _upright_kernel(
+            quads, scale, matrices, np.array(grid.origin_mm), np.array(grid.spacing_mm), out
+        )
+        return
     _backproject_kernel(
-        quads.view(np.complex128)[..., 0],
-        np.ones(len(geometry), np.float32) if scale is None else np.asarray(scale, np.float32),
+        quads,
+        scale,
         np.asarray(geometry.matrices),
         np.asarray(geometry.sources_mm),
         np.zeros(3) if axis is None else np.ascontiguousarray(axis, dtype=np.float64),

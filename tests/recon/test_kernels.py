@@ -24,6 +24,7 @@ from recon.volume import VolumeGrid
 
 PARALLEL = {
     "backprojection": project._backproject_kernel,
+    "upright backprojection": project._upright_kernel,
     "forward projection": project._joseph_kernel,
     "pixel quads": project.quads_kernel,
     "row filter's weighting": ramp._pack_kernel,

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
+from recon import project
 from recon.geometry import DetectorSpec, Geometry, circular_orbit, helical_orbit
 from recon.project import (
     FDK_WEIGHT,
@@ -257,3 +258,60 @@ def test_rotated_ellipsoid_projections_match_its_analytic_line_integrals(measure
     for i, view in enumerate(geometry):
         u, v = view.project(shape.center_mm)[0]
         assert exact[i, round(v), round(u)] > 0.6 * exact[i].max()
+
+
+@pytest.mark.parametrize("orbit", ["circular", "helix"])
+def test_the_upright_backprojector_is_the_general_one_to_float_rounding(orbit, seed, measured):
+    """Orbits about z with upright panels take :func:`recon.project._upright_kernel` (u and w
+    computed once per voxel column, v stepped along z); it sums what the general kernel sums.
+
+    The two place a sample's v by different float32 roundings of the same quotient (a few ulp
+    of v <= 64 px: ~2e-5 px), so each sample differs by at most 1e-4 px times the image's
+    largest step between neighbouring pixels times its weight; the bound adds that over the
+    views. Images vanish near the panel's edge so that no voxel sits within rounding of it.
+    """
+    if orbit == "circular":
+        geometry = circular_orbit(20, 600, 1000, PANEL, isocenter_mm=ISO)
+    else:
+        geometry = helical_orbit(
+            20, 600, 1000, PANEL, arc_deg=360, z_start_mm=-20, z_end_mm=20, isocenter_mm=ISO
+        )
+    assert project.upright(geometry, GRID)
+    images = 1 + smooth_random((20, 64, 80), (0, 2, 2), seed=5 + seed)
+    images[:, :3] = images[:, -3:] = images[:, :, :3] = images[:, :, -3:] = 0.0
+    upright = np.zeros(GRID.shape, np.float32)
+    backproject_weighted(images, geometry, GRID, FDK_WEIGHT, upright)
+    general = np.zeros(GRID.shape, np.float32)
+    project._backproject_kernel(
+        project.pixel_quads(images).view(np.complex128)[..., 0],
+        np.ones(20, np.float32),
+        np.asarray(geometry.matrices),
+        np.asarray(geometry.sources_mm),
+        np.zeros(3),
+        FDK_WEIGHT,
+        np.array(GRID.origin_mm),
+        np.array(GRID.spacing_mm),
+        general,
+    )
+    step = max(np.abs(np.diff(images, axis=a)).max() for a in (1, 2))
+    depth = np.einsum("vk,ck->vc", np.asarray(geometry.matrices)[:, 2], _corners(GRID))
+    bound = 1e-4 * step * float(np.sum(1.0 / depth.min(axis=1) ** 2))
+    assert general.max() > 100 * bound  # the volumes hold something
+    measured("upright_max_diff_over_bound", np.abs(upright - general).max() / bound, below=1.0)
+
+
+def test_a_tilted_orbit_is_not_upright():
+    """An orbit whose axis leans 2 degrees from z moves u and w along z by far more than the
+    tolerance: the general kernel takes it."""
+    from scipy.spatial.transform import Rotation
+
+    geometry = circular_orbit(8, 600, 1000, PANEL, isocenter_mm=ISO)
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("x", 2, degrees=True).as_matrix()
+    T[:3, 3] = np.asarray(ISO) - T[:3, :3] @ np.asarray(ISO)
+    tilted = Geometry([v.transformed(T) for v in geometry])
+    assert project.upright(geometry, GRID) and not project.upright(tilted, GRID)
+
+
+def _corners(grid: VolumeGrid) -> np.ndarray:
+    return np.hstack((grid.corners_mm(), np.ones((8, 1))))
