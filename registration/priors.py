@@ -29,6 +29,37 @@ KPM_LAMBDA = np.arange(-1.5, 2.51, 0.25)
 it one and a half times to repeating it two and a half times (then Brent about the best)."""
 
 
+JOINT_SCAN_DEG = np.arange(-45.0, 45.1, 3.0)
+"""The search for a lost body along its motion relative to its partner in the joint: turns
+about the screw of that motion (deg), from the last frame's relative pose."""
+MIN_JOINT_TURN_DEG = 2.0
+"""A relative motion that turned less than this (deg) sets no screw (its axis is noise)."""
+
+
+def joint_screw(relative: list[np.ndarray]) -> np.ndarray | None:
+    """The screw a body moves along relative to its partner in the joint, from its poses in
+    the partner's frame (oldest first, 4x4 mm): the twist from the one that turned most from
+    the last to the last, scaled to a turn of 1 rad (exponential coordinates, rad and mm a
+    rad; ``relative[-1] @ twist_exp(theta * screw)`` turns on by ``theta``); None when none
+    turned :data:`MIN_JOINT_TURN_DEG`.
+
+    Examples:
+        Flexion about a fixed axis 40 mm from the body's origin, in three steps:
+
+        >>> axis = np.array([[1.0, 0, 0, 0], [0, 1, 0, 40], [0, 0, 1, 0], [0, 0, 0, 1]])
+        >>> bent = [axis @ twist_exp(np.array([a, 0, 0, 0, 0, 0])) @ np.linalg.inv(axis)
+        ...         for a in (0.0, 0.1, 0.3)]
+        >>> np.round(joint_screw(bent), 6).tolist()
+        [1.0, 0.0, 0.0, 0.0, 0.0, -40.0]
+    """
+    last = relative[-1]
+    turns = [Rotation.from_matrix((np.linalg.inv(T) @ last)[:3, :3]).magnitude() for T in relative]
+    k = int(np.argmax(turns))
+    if math.degrees(turns[k]) < MIN_JOINT_TURN_DEG:
+        return None
+    return twist_of(relative[k], last) / turns[k]
+
+
 def carried_pose(name: str, carrier: str | None, poses: dict[str, np.ndarray]) -> np.ndarray:
     """The pose of body ``name`` in its ``carrier``'s frame (registration.roles.carriers: the
     patella's is the femur's) when ``poses`` holds it, else in the world, 4x4 (mm)."""

@@ -25,6 +25,10 @@ CARRIED_BY: dict[Role, Role] = {"patella": "femur"}
 """A role whose motion is predicted relative to another's: the patella rides in the femur's
 trochlea, so it is carried by the femur's new pose and extrapolated in the femur's frame."""
 
+JOINED_TO: dict[Role, Role] = {"femur": "tibia", "tibia": "femur", "patella": "femur"}
+"""The role whose body each role's body articulates with: a body lost between frames is
+searched along its motion relative to that one (registration.priors.joint_screw)."""
+
 KNOWN_ROLES: dict[str, Role] = {
     "femur": "femur",
     "tibia_fibula": "tibia",
@@ -121,6 +125,21 @@ def carriers(roles: Mapping[str, Role]) -> dict[str, str]:
         carrier = body_playing(CARRIED_BY[role], roles) if role in CARRIED_BY else None
         if carrier is not None:
             out[name] = carrier
+    return out
+
+
+def partners(roles: Mapping[str, Role]) -> dict[str, str]:
+    """Each body's partner in the joint, by name (:data:`JOINED_TO`), when both are tracked.
+
+    Examples:
+        >>> partners({"femoral_component": "femur", "tibial_tray": "tibia"})
+        {'femoral_component': 'tibial_tray', 'tibial_tray': 'femoral_component'}
+    """
+    out = {}
+    for name, role in roles.items():
+        partner = body_playing(JOINED_TO[role], roles)
+        if partner is not None:
+            out[name] = partner
     return out
 
 

@@ -33,15 +33,17 @@ from registration.drr import SoftTissue
 from registration.implants import ImplantModel
 from registration.objective import BodyModel, OutOfView
 from registration.priors import (
+    JOINT_SCAN_DEG,
     KPM_LAMBDA,
     carried_pose,
     carrier_pose,
     held_depth,
+    joint_screw,
     kinematic_direction,
     predict,
 )
 from registration.results import BodyResult, FrameResult
-from registration.roles import LONE_ROLES, Role, tracking_order
+from registration.roles import LONE_ROLES, Role, partners, tracking_order
 from registration.scene import Poses, Scene
 from registration.se3 import twist_exp
 from registration.search import kinematic_line_search
@@ -110,6 +112,8 @@ class Tracker:
         """The frames and the bodies, as each body's searches see them."""
         self.order = tracking_order(self.scene.roles)
         """The tracked bodies in the order they are registered in a frame."""
+        self.partners = partners(self.scene.roles)
+        """Each body's partner in the joint (registration.roles.partners), by name."""
         self._last_ncc: dict[str, float] = {}
 
     @property
@@ -296,7 +300,8 @@ class Tracker:
 
             poses, score, grad, m = self._widened(frame, name, poses, history, score, grad, refined)
             evaluations += m
-        self._last_ncc[name] = score
+        if score >= s.fail_ncc:  # a failed frame's score is not the body's own
+            self._last_ncc[name] = score
         body = BodyResult(poses[name], score, grad, 0.0, evaluations, False)
         return body.scored(score, grad, s.fail_ncc)
 
@@ -320,7 +325,8 @@ class Tracker:
 
         poses = {**poses, name: pose}
         poses, score, grad, m = self._widened(frame, name, poses, history, score, grad, refined)
-        self._last_ncc[name] = score
+        if score >= self.settings.fail_ncc:  # a failed frame's score is not the body's own
+            self._last_ncc[name] = score
         body = replace(body, T_world_body=poses[name]).scored(score, grad, self.settings.fail_ncc)
         return body.spent(time.perf_counter() - start, n + m)
 
@@ -334,21 +340,65 @@ class Tracker:
         grad: float,
         refined: Refined,
     ) -> tuple[Poses, float, float, int]:
-        """When body ``name``'s ``score`` fails or drops (``fail_ncc``, ``drop_ncc``): search
-        about its last frame's pose, carried by its carrier's new pose (differential
-        evolution in half the first frame's box, then ``refined``), and keep the better of the
-        two by score less prior. Returns the poses, the score, the gradient score and the
+        """When body ``name``'s ``score`` fails or drops (``fail_ncc``, ``drop_ncc``, against
+        its last score that did not fail): search about its last frame's pose carried by its
+        carrier's new pose (differential evolution in half the first frame's box), and when
+        that too fails or drops, along its motion relative to its partner in the joint
+        (:meth:`_along_joint`, a line scan); each start is ``refined``, and the best by score
+        less prior is kept. Returns the poses, the score, the gradient score and the
         evaluations spent."""
         s = self.settings
         previous = self._last_ncc.get(name, score)
-        if not (score < s.fail_ncc or score < previous - s.drop_ncc):
-            return poses, score, grad, 0
-        wide = {**poses, name: self._carried_forward(name, poses, history[-1])}
-        wide[name], n = self.scene.global_search(frame, name, wide, scale=0.5)
-        wide[name], m, wide_score, wide_grad = refined(wide)
-        if wide_score - self.scene.penalty(name, wide) > score - self.scene.penalty(name, poses):
-            return wide, wide_score, wide_grad, n + m
-        return poses, score, grad, n + m
+
+        def lost(value: float) -> bool:
+            return value < s.fail_ncc or value < previous - s.drop_ncc
+
+        def about_last() -> tuple[Poses, int]:
+            wide = {**poses, name: self._carried_forward(name, poses, history[-1])}
+            wide[name], n = self.scene.global_search(frame, name, wide, scale=0.5)
+            return wide, n
+
+        def along_joint() -> tuple[Poses | None, int]:
+            joint = self._along_joint(frame, name, poses, history)
+            return (None, 0) if joint is None else ({**poses, name: joint[0]}, joint[1])
+
+        best, spent = (poses, score, grad), 0
+        for search in (about_last, along_joint):
+            if not lost(best[1]):
+                break
+            trial, n = search()
+            spent += n
+            if trial is None:
+                continue
+            trial[name], m, trial_score, trial_grad = refined(trial)
+            spent += m
+            before = best[1] - self.scene.penalty(name, best[0])
+            if trial_score - self.scene.penalty(name, trial) > before:
+                best = (trial, trial_score, trial_grad)
+        return *best, spent
+
+    def _along_joint(
+        self, frame: int, name: str, poses: Poses, history: list[Poses]
+    ) -> tuple[np.ndarray, int] | None:
+        """Body ``name``'s best start along its motion relative to its partner in the joint
+        (registration.priors.joint_screw over the frames tracked so far): the partner's pose
+        in this frame times the last relative pose, turned by each of
+        :data:`JOINT_SCAN_DEG` about that screw, scored on the coarsest level; with the
+        evaluations it took. None without a partner or a screw."""
+        partner = self.partners.get(name)
+        if partner is None or partner not in poses or len(history) < 2:
+            return None
+        relative = [np.linalg.inv(h[partner]) @ h[name] for h in history if partner in h]
+        screw = joint_screw(relative) if len(relative) >= 2 else None
+        if screw is None:
+            return None
+        start = poses[partner] @ relative[-1]
+        line = start @ twist_exp(np.radians(JOINT_SCAN_DEG)[:, None] * screw)
+        objective = self.scene.objective(
+            frame, self.scene.levels[0], name, poses, reach=tuple(line[::5])
+        )
+        costs = [objective.cost(T) for T in line]
+        return line[int(np.argmin(costs))], len(costs)
 
     def _another_pass(
         self, frame: int, name: str, poses: Poses, body: BodyResult, polish: bool
