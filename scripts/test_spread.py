@@ -142,6 +142,12 @@ def main() -> None:
                     outcome = run(seed, n, cpu, args.select, args.marker, figures)
                     runs.append(outcome)
                     print(json.dumps(outcome), file=sys.stderr, flush=True)
+        if not figures.exists():
+            raise SystemExit(
+                f"no test recorded a figure (pytest -m {args.marker!r}"
+                + (f" -k {args.select!r}" if args.select else "")
+                + f": {runs[-1]['summary']}): only tests that use `measured` record figures"
+            )
         rows = [json.loads(line) for line in figures.read_text(encoding="utf-8").splitlines()]
     entries = spread(rows)
     print(table(entries))
