@@ -463,9 +463,8 @@ def _backproject_kernel(
 
 UPRIGHT_Z_ROWS, UPRIGHT_Y_ROWS = 16, 4
 """Voxel rows per job of :func:`_upright_kernel`: the z rows that share each (y, view)'s
-detector columns and weights, by the y rows taken view by view together (16 x 4: 3.2 against
-the general kernel's 3.7 s per 360 views of 512^2 onto 256^3 on 2 cores; 8 x 4 3.5 s, 32 x 2
-3.6 s)."""
+detector columns and weights, by the y rows taken view by view together (the shapes measured:
+docs/algorithms/fdk.md)."""
 
 
 @numba.njit(
