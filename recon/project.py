@@ -43,11 +43,16 @@ def _check_volume(volume: np.ndarray, grid: VolumeGrid) -> np.ndarray:
     return vol
 
 
+def corner_depths(geometry: Geometry, grid: VolumeGrid) -> np.ndarray:
+    """Each view's depth ``w`` (P's third row) at the grid's eight outer corners, (views, 8);
+    positive in front of the source."""
+    corners = np.hstack((grid.corners_mm(), np.ones((8, 1))))
+    return np.einsum("vk,ck->vc", geometry.matrices[:, 2, :], corners)
+
+
 def check_in_front(geometry: Geometry, grid: VolumeGrid) -> None:
     """Raise ValueError unless the whole grid lies between each source and its detector."""
-    corners = np.hstack((grid.corners_mm(), np.ones((8, 1))))
-    w = np.einsum("vk,ck->vc", geometry.matrices[:, 2, :], corners)
-    bad = np.flatnonzero(w.min(axis=1) <= 1e-3)
+    bad = np.flatnonzero(corner_depths(geometry, grid).min(axis=1) <= 1e-3)
     if bad.size:
         raise ValueError(
             f"the volume grid reaches behind the source of view {bad[0]} "
@@ -315,6 +320,18 @@ FDK_WEIGHT, ADJOINT_WEIGHT, COUNT_WEIGHT = 0, 1, 2
 ``w / L_perp^2`` (FDK's view-count Jacobian, ``L_perp`` the source distance across ``axis``)."""
 
 
+@numba.njit(fastmath=True, error_model="numpy", inline="always")
+def _clip(lo, hi, a, b):  # pragma: no cover
+    """The x range ``lo <= x <= hi`` cut to where ``a x + b >= 0`` (empty: ``hi = -1``)."""
+    if a > 0:
+        lo = max(lo, -b / a)
+    elif a < 0:
+        hi = min(hi, -b / a)
+    elif b < 0:
+        hi = -1.0
+    return lo, hi
+
+
 @numba.njit(fastmath=True, error_model="numpy", boundscheck=False, inline="always")
 def _row_samples(
     n, x0, h, s, umax, vmax, cols, mode, scale, d0, dd, axis, idx, fu, fv, wt
@@ -436,12 +453,7 @@ def _backproject_kernel(
                     (umax * s2 - s0, umax * h2 - h0),
                     (vmax * s2 - s1, vmax * h2 - h1),
                 ):
-                    if a > 0:
-                        lo = max(lo, -b / a)
-                    elif a < 0:
-                        hi = min(hi, -b / a)
-                    elif b < 0:
-                        hi = -1.0
+                    lo, hi = _clip(lo, hi, a, b)
                 x0 = max(0, math.ceil(lo))
                 n = min(nx - 1, math.floor(hi)) - x0 + 1
                 if n <= 0:
@@ -515,12 +527,7 @@ def _upright_kernel(quads, scale, mats, origin, spacing, out):  # pragma: no cov
                 # 0 <= u <= umax along x (w > 0): as in _backproject_kernel, for u only
                 lo, hi = 0.0, nx - 1.0
                 for a, b in ((s0, h0), (umax * s2 - s0, umax * h2 - h0)):
-                    if a > 0:
-                        lo = max(lo, -b / a)
-                    elif a < 0:
-                        hi = min(hi, -b / a)
-                    elif b < 0:
-                        hi = -1.0
+                    lo, hi = _clip(lo, hi, a, b)
                 xa = max(0, math.ceil(lo))
                 xb = min(nx - 1, math.floor(hi))
                 if xb < xa:
@@ -540,16 +547,11 @@ def _upright_kernel(quads, scale, mats, origin, spacing, out):  # pragma: no cov
                 for z in range(z0, z1):
                     zf = np.float32(z - z0)
                     hz = h1 + zf * cz
-                    lo2, hi2 = float(xa), float(xb)
+                    lo, hi = float(xa), float(xb)
                     for a, b in ((s1, hz), (vmax * s2 - s1, vmax * h2 - hz)):
-                        if a > 0:
-                            lo2 = max(lo2, -b / a)
-                        elif a < 0:
-                            hi2 = min(hi2, -b / a)
-                        elif b < 0:
-                            hi2 = -1.0
-                    x0 = max(xa, math.ceil(lo2))
-                    n = min(xb, math.floor(hi2)) - x0 + 1
+                        lo, hi = _clip(lo, hi, a, b)
+                    x0 = max(xa, math.ceil(lo))
+                    n = min(xb, math.floor(hi)) - x0 + 1
                     if n <= 0:
                         continue
                     for k in range(n):
@@ -574,8 +576,7 @@ def upright(geometry: Geometry, grid: VolumeGrid) -> bool:
     extent, u moves and v's scale changes by less than :data:`UPRIGHT_TOLERANCE_PX` pixels
     (so :func:`_upright_kernel` applies: orbits about z with upright panels)."""
     m = np.asarray(geometry.matrices)
-    corners = np.hstack((grid.corners_mm(), np.ones((8, 1))))
-    w_min = float(np.min(np.einsum("vk,ck->vc", m[:, 2], corners)))
+    w_min = float(corner_depths(geometry, grid).min())
     extent = grid.shape[0] * grid.spacing_mm[2]
     drift = (np.abs(m[:, 0, 2]) + max(geometry.rows, geometry.cols) * np.abs(m[:, 2, 2])) * extent
     return w_min > 0 and float(drift.max()) / w_min < UPRIGHT_TOLERANCE_PX
