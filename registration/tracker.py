@@ -300,8 +300,7 @@ class Tracker:
 
             poses, score, grad, m = self._widened(frame, name, poses, history, score, grad, refined)
             evaluations += m
-        if score >= s.fail_ncc:  # a failed frame's score is not the body's own
-            self._last_ncc[name] = score
+        self._remember(name, score)
         body = BodyResult(poses[name], score, grad, 0.0, evaluations, False)
         return body.scored(score, grad, s.fail_ncc)
 
@@ -325,10 +324,15 @@ class Tracker:
 
         poses = {**poses, name: pose}
         poses, score, grad, m = self._widened(frame, name, poses, history, score, grad, refined)
-        if score >= self.settings.fail_ncc:  # a failed frame's score is not the body's own
-            self._last_ncc[name] = score
+        self._remember(name, score)
         body = replace(body, T_world_body=poses[name]).scored(score, grad, self.settings.fail_ncc)
         return body.spent(time.perf_counter() - start, n + m)
+
+    def _remember(self, name: str, score: float) -> None:
+        """Body ``name``'s NCC in this frame as the bar :meth:`_widened` measures the next
+        frame's drop against, unless it failed (a failed frame's score is not the body's own)."""
+        if score >= self.settings.fail_ncc:
+            self._last_ncc[name] = score
 
     def _widened(
         self,
@@ -386,10 +390,10 @@ class Tracker:
         :data:`JOINT_SCAN_DEG` about that screw, scored on the coarsest level; with the
         evaluations it took. None without a partner or a screw."""
         partner = self.partners.get(name)
-        if partner is None or partner not in poses or len(history) < 2:
+        if partner is None or len(history) < 2:
             return None
-        relative = [np.linalg.inv(h[partner]) @ h[name] for h in history if partner in h]
-        screw = joint_screw(relative) if len(relative) >= 2 else None
+        relative = [np.linalg.inv(h[partner]) @ h[name] for h in history]
+        screw = joint_screw(relative)
         if screw is None:
             return None
         start = poses[partner] @ relative[-1]
