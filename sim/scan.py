@@ -23,7 +23,7 @@ from recon.geometry import DetectorSpec, Geometry
 from recon.project import JosephProjector
 from recon.volume import Volume, VolumeGrid
 from sim.phantoms.knee import KneePhantomSpec, knee_grid, rasterize_knee
-from sim.sway import Sway, SwayingKnee, SwaySpec
+from sim.sway import Sway, SwayingKnee, SwayPivots, SwaySpec
 
 SCAN_S = 18.0
 """A scan's length when nothing else says, s (the robot's 360-degree knee scan)."""
@@ -158,7 +158,7 @@ def simulate_knee_scan(
     true_poses = None
     if sway is not None and sway.peak_mm > 0:
         say(f"the patient sways by up to {sway.peak_mm:g} mm at the knee")
-        moving = Sway(sway, phantom, scan_s)
+        moving = Sway(sway, SwayPivots.of_knee(phantom), scan_s)
         knee = SwayingKnee(Volume(mu, grid, "1/mm"), Volume(labels, grid, "label"), phantom, moving)
         for i, (view, t) in enumerate(zip(geometry, times, strict=True)):
             line_integrals[i] = knee(view, float(t))

@@ -90,17 +90,48 @@ def _rotation_about(rotvec_rad: np.ndarray, point_mm: np.ndarray) -> np.ndarray:
 
 
 @dataclass(frozen=True)
+class SwayPivots:
+    """Where a leg sways about, and the points that size the sway (world mm, reference pose).
+
+    Attributes:
+        ankle_mm: the ankle's centre, the shank's tilts' pivot.
+        knee_mm: the knee's centre, the thigh's wobble's pivot.
+        tea: the transepicondylar axis (unit), the flexion wobble's axis.
+        patella_mm: the patella's centre.
+        plateau_mm: the tibial plateau's centre.
+    """
+
+    ankle_mm: np.ndarray
+    knee_mm: np.ndarray
+    tea: np.ndarray
+    patella_mm: np.ndarray
+    plateau_mm: np.ndarray
+
+    @classmethod
+    def of_knee(cls, phantom: KneePhantomSpec) -> SwayPivots:
+        """The knee phantom's landmarks."""
+        marks = knee_landmarks(phantom)
+        return cls(
+            marks["ankle_center"],
+            marks["knee_center"],
+            knee_bone_poses(phantom)["femur"][:3, 0],
+            marks["patella_center"],
+            marks["tibial_plateau_center"],
+        )
+
+
+@dataclass(frozen=True)
 class Sway:
     """The sway of one scan of ``duration_s`` seconds: :meth:`poses` at any time in it.
 
     Args:
         spec: size and pattern.
-        phantom: the knee (its ankle, knee centre and axes).
+        pivots: the leg's ankle, knee centre and axes.
         duration_s: the scan's length, s (the angles have zero mean over it).
     """
 
     spec: SwaySpec
-    phantom: KneePhantomSpec
+    pivots: SwayPivots
     duration_s: float
 
     def __post_init__(self) -> None:
@@ -142,9 +173,7 @@ class Sway:
         """``T_world_body`` (N, 4, 4) of "thigh" and "shank" at times ``t_s`` (N,), s."""
         t = np.atleast_1d(np.asarray(t_s, dtype=np.float64))
         a = {k: np.radians(v) for k, v in self.angles_deg(t).items()}
-        marks = knee_landmarks(self.phantom)
-        ankle, knee = marks["ankle_center"], marks["knee_center"]
-        tea = knee_bone_poses(self.phantom)["femur"][:3, 0]
+        ankle, knee, tea = self.pivots.ankle_mm, self.pivots.knee_mm, self.pivots.tea
         zero = np.zeros_like(t)
         tilt = _rotation_about(np.column_stack((a["ap"], a["ml"], zero)), ankle)
         twist = _rotation_about(np.column_stack((zero, zero, a["twist"])), ankle)
@@ -156,11 +185,10 @@ class Sway:
 
     def size_points(self) -> dict[str, np.ndarray]:
         """The points (world mm, reference pose) whose displacement sizes the sway, per body."""
-        marks = knee_landmarks(self.phantom)
-        knee, plateau = marks["knee_center"], marks["tibial_plateau_center"]
+        knee, plateau = self.pivots.knee_mm, self.pivots.plateau_mm
         up = np.array([0.0, 0.0, SHAFT_MM])
         return {
-            "thigh": np.stack((knee, marks["patella_center"], plateau + up)),
+            "thigh": np.stack((knee, self.pivots.patella_mm, plateau + up)),
             "shank": np.stack((plateau, knee, plateau - up)),
         }
 
@@ -195,17 +223,14 @@ def body_volumes(mu: Volume, labels: Volume, joint_line_z_mm: float) -> dict[str
     return {"thigh": data * thigh, "shank": data * (1.0 - thigh)}
 
 
-class SwayingKnee:
-    """The knee phantom as the simulated panel sees it while the patient sways: each body
-    projected at its pose at the pulse's time, summed (line integrals add).
+class SwayingSubject:
+    """What the simulated panel sees of a swaying patient: the bodies' poses at any clock time.
 
     Times are the clock's; the sway starts at the first pulse rendered (the scan's start).
     """
 
-    def __init__(self, mu: Volume, labels: Volume, phantom: KneePhantomSpec, sway: Sway) -> None:
-        parts = body_volumes(mu, labels, phantom.joint_line_height_mm)
+    def __init__(self, sway: Sway) -> None:
         self.sway = sway
-        self._projectors = {b: JosephProjector(parts[b], mu.grid) for b in BODIES}
         self.start_s: float | None = None
 
     def poses_at(self, t_s: float) -> dict[str, np.ndarray]:
@@ -214,6 +239,16 @@ class SwayingKnee:
             self.start_s = t_s
         poses = self.sway.poses(np.array([t_s - self.start_s]))
         return {b: poses[b][0] for b in BODIES}
+
+
+class SwayingKnee(SwayingSubject):
+    """The knee phantom while the patient sways: each body projected at its pose at the
+    pulse's time, summed (line integrals add)."""
+
+    def __init__(self, mu: Volume, labels: Volume, phantom: KneePhantomSpec, sway: Sway) -> None:
+        super().__init__(sway)
+        parts = body_volumes(mu, labels, phantom.joint_line_height_mm)
+        self._projectors = {b: JosephProjector(parts[b], mu.grid) for b in BODIES}
 
     def __call__(self, view: View, t_s: float = 0.0) -> np.ndarray:
         poses = self.poses_at(t_s)

@@ -16,7 +16,7 @@ averaged over the spectrum behind the leg).
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -32,8 +32,19 @@ from registration.labels import INSERT_LABEL, LABELS
 from registration.meshes import inside_fraction
 from sim.phantoms.tka import TkaPhantomSpec
 from sim.spectrum import COMPOSITIONS, Spectrum, tube_spectrum
+from sim.sway import BODY_BONES, Sway, SwayingSubject, SwayPivots
 from sim.tka import cylinder_chords, load_tka, part_poses, read_gait, tka_motion
 
+BODY_OF_PART = {
+    **{bone: body for body, bones in BODY_BONES.items() for bone in bones},
+    "femoral_component": "thigh",
+    "patellar_button": "thigh",
+    "tibial_tray": "shank",
+    "tibial_insert": "shank",
+}
+"""The swaying body (sim.sway) each part of the knee replacement moves with."""
+ANKLE_SLAB_MM = 20.0
+"""The ankle's centre: that of the tibia's lowest vertices within this of its lowest, mm."""
 METAL_LABEL = 7
 """Label of a metal component in :func:`tka_truth`'s labels."""
 PART_LABELS = {
@@ -94,24 +105,49 @@ class TkaScene:
     layers: tuple[Layer, ...]
     poses: dict[str, np.ndarray]
 
-    def line_integrals(self, view: View, spectrum: Spectrum) -> np.ndarray:
+    def line_integrals(
+        self, view: View, spectrum: Spectrum, poses: Mapping[str, np.ndarray] | None = None
+    ) -> np.ndarray:
         """``-ln`` of the signal's transmitted share per pixel (rows, cols), float64: the
-        polychromatic beam along every ray of the pixel, averaged over them."""
+        polychromatic beam along every ray of the pixel, averaged over them.
+
+        Args:
+            view: the view.
+            spectrum: the tube's.
+            poses: ``T_world_body`` (4x4, mm) of the swaying patient's bodies (sim.sway's
+                ``thigh`` and ``shank``: each part goes with :data:`BODY_OF_PART`'s, the leg's
+                soft tissue with the thigh above the joint's height and with the shank below);
+                None: the patient stands at the reference pose.
+        """
         s = self.spec.supersample
         fine = _finer(view, s)
         lengths: dict[str, np.ndarray] = {}
         inside = np.zeros((fine.rows, fine.cols))
         for layer in self.layers:
-            length = ray_lengths(fine, layer.vertices_mm, layer.faces, np.eye(4)).astype(float)
+            pose = np.eye(4) if poses is None else poses[BODY_OF_PART[layer.part]]
+            length = ray_lengths(fine, layer.vertices_mm, layer.faces, pose).astype(float)
             for material, amount in layer.materials.items():
                 lengths[material] = lengths.get(material, 0.0) + amount * length
             inside += layer.displaces * length
-        leg = cylinder_chords(fine, self.spec.center_mm, self.spec.leg_radius_mm)
+        leg = self._leg_chords(fine, poses)
         lengths["water"] = lengths.get("water", 0.0) + np.maximum(leg - inside, 0.0)
         mu = np.stack([COMPOSITIONS[n].mu_per_mm(spectrum.energies_kev) for n in lengths])
         shown = spectrum.transmission(mu, np.maximum(np.stack(list(lengths.values())), 0.0))
         shown = shown.reshape(view.rows, s, view.cols, s).mean(axis=(1, 3))
         return -np.log(np.maximum(shown, 1e-300))
+
+    def _leg_chords(self, view: View, poses: Mapping[str, np.ndarray] | None) -> np.ndarray:
+        """Each pixel's ray length through the leg's water cylinder, mm: whole, or in two
+        halves cut at the joint's height, the upper moved with the thigh, the lower with the
+        shank."""
+        centre, radius = self.spec.center_mm, self.spec.leg_radius_mm
+        if poses is None:
+            return cylinder_chords(view, centre, radius)
+        up = np.array([0.0, 0.0, 1.0])
+        return sum(
+            cylinder_chords(view.transformed(np.linalg.inv(poses[body])), centre, radius, side=side)
+            for body, side in (("thigh", up), ("shank", -up))
+        )
 
 
 def _finer(view: View, s: int) -> View:
@@ -176,11 +212,50 @@ def tka_scene(spec: TkaPhantomSpec) -> TkaScene:
     return TkaScene(spec, tuple(layers), poses)
 
 
-def tka_subject(scene: TkaScene, kvp: float) -> Callable[[View, float], np.ndarray]:
+def tka_subject(
+    scene: TkaScene, kvp: float, sway: Sway | None = None
+) -> Callable[[View, float], np.ndarray]:
     """The scene as the simulated panel sees it at ``kvp``: polychromatic line integrals per
-    view (the panel draws the photons' noise); the patient stands still at any time."""
+    view (the panel draws the photons' noise); the patient stands still at any time, or sways
+    as ``sway`` says (a :class:`SwayingTka`)."""
+    if sway is not None and sway.spec.peak_mm > 0:
+        return SwayingTka(scene, kvp, sway)
     spectrum = tube_spectrum(kvp)
     return lambda view, t_s=0.0: scene.line_integrals(view, spectrum)
+
+
+class SwayingTka(SwayingSubject):
+    """The knee replacement while the patient sways: every part at its body's pose at the
+    pulse's time."""
+
+    def __init__(self, scene: TkaScene, kvp: float, sway: Sway) -> None:
+        super().__init__(sway)
+        self.scene, self._spectrum = scene, tube_spectrum(kvp)
+
+    def __call__(self, view: View, t_s: float = 0.0) -> np.ndarray:
+        return self.scene.line_integrals(view, self._spectrum, self.poses_at(t_s))
+
+
+def tka_pivots(scene: TkaScene) -> SwayPivots:
+    """Where the knee replacement's leg sways about: the ankle at the tibia's lower end, the
+    knee at the femoral component's centre, the transepicondylar axis horizontal and across
+    the line from the knee to the patella, the patella's and the insert's centres."""
+
+    def outer(part: str) -> np.ndarray:
+        return next(layer.vertices_mm for layer in scene.layers if layer.part == part)
+
+    knee, patella = outer("femoral_component").mean(axis=0), outer("patella").mean(axis=0)
+    forward = np.array([*(patella - knee)[:2], 0.0])
+    tea = np.cross(forward, [0.0, 0.0, 1.0])
+    tibia = outer("tibia")
+    low = tibia[tibia[:, 2] <= tibia[:, 2].min() + ANKLE_SLAB_MM]
+    return SwayPivots(
+        ankle_mm=low.mean(axis=0),
+        knee_mm=knee,
+        tea=tea / np.linalg.norm(tea),
+        patella_mm=patella,
+        plateau_mm=outer("tibial_insert").mean(axis=0),
+    )
 
 
 def beam_behind_leg(kvp: float) -> Spectrum:

@@ -58,7 +58,7 @@ from sim.detector import FrameTimeout, SimDetector
 from sim.phantoms.bb import project_bb
 from sim.phantoms.knee import KneePhantomSpec, knee_grid, rasterize_knee
 from sim.phantoms.tka import TkaPhantomSpec
-from sim.sway import Sway, SwayingKnee
+from sim.sway import Sway, SwayingKnee, SwayingSubject, SwayPivots
 
 SIM_GIGE_WINDOW_MS = 100.0
 """The simulated panel's integration window over GigE Vision, ms: the pulse comes well within
@@ -89,7 +89,7 @@ class SimTruth:
         return self.simulated.detector.true_views[-1].matrix
 
     def body_poses(self) -> dict[str, np.ndarray] | None:
-        if not isinstance(self.subject, SwayingKnee):
+        if not isinstance(self.subject, SwayingSubject):
             return None
         return self.subject.poses_at(self.simulated.detector.true_times_s[-1])
 
@@ -295,7 +295,7 @@ def knee_subject(inputs: SessionInputs, say: Callable[[str], None], scan_s: floa
         Volume(mu, grid, "1/mm"),
         Volume(labels, grid, "label"),
         phantom,
-        Sway(sway, phantom, scan_s),
+        Sway(sway, SwayPivots.of_knee(phantom), scan_s),
     )
 
 
@@ -306,11 +306,18 @@ def bb_subject(inputs: SessionInputs, say: Callable[[str], None], scan_s: float)
 
 def tka_subject(inputs: SessionInputs, say: Callable[[str], None], scan_s: float) -> Subject:
     """The knee replacement's meshes, projected polychromatically at the protocol's tube
-    voltage."""
+    voltage; its patient swaying as the ``sim`` backend's ``sway`` says over a scan of
+    ``scan_s`` seconds (still on any other backend)."""
     from sim import tka_ct  # its meshes and spectrum: only here
 
     say(f"loading the knee replacement from {inputs.phantom.data}")
-    return tka_ct.tka_subject(tka_ct.tka_scene(inputs.phantom), inputs.protocol.exposure.tube_kv)
+    scene = tka_ct.tka_scene(inputs.phantom)
+    spec = inputs.backend.sway if isinstance(inputs.backend, SimBackendSpec) else None
+    sway = None
+    if spec is not None and spec.peak_mm > 0:
+        say(f"the patient sways by up to {spec.peak_mm:g} mm at the knee during the scan")
+        sway = Sway(spec, tka_ct.tka_pivots(scene), scan_s)
+    return tka_ct.tka_subject(scene, inputs.protocol.exposure.tube_kv, sway)
 
 
 register_backend(

@@ -9,16 +9,17 @@ from scipy.spatial.transform import Rotation
 
 from recon.volume import Volume
 from sim.phantoms.knee import KneePhantomSpec, knee_grid, rasterize_knee
-from sim.sway import DRIFT_HZ, TREMOR_HZ, Sway, SwaySpec, body_volumes
+from sim.sway import DRIFT_HZ, TREMOR_HZ, Sway, SwayPivots, SwaySpec, body_volumes
 
 SPEC = KneePhantomSpec()
+PIVOTS = SwayPivots.of_knee(SPEC)
 T = np.linspace(0.0, 18.0, 721)
 
 
 @pytest.mark.parametrize("peak", [1.0, 2.0, 4.0])
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_the_sway_peaks_at_its_size_at_the_knee(peak, seed):
-    sway = Sway(SwaySpec(peak_mm=peak, seed=seed), SPEC, 18.0)
+    sway = Sway(SwaySpec(peak_mm=peak, seed=seed), PIVOTS, 18.0)
     assert sway.peak_displacement_mm() == pytest.approx(peak, rel=1e-3)
     # the views' sampling of the same motion reaches within 5 % of the peak
     moved = max(d.max() for d in sway.displacement_mm(T).values())
@@ -26,13 +27,13 @@ def test_the_sway_peaks_at_its_size_at_the_knee(peak, seed):
 
 
 def test_a_still_patient_stays_at_the_reference_pose():
-    poses = Sway(SwaySpec(peak_mm=0.0), SPEC, 18.0).poses(T)
+    poses = Sway(SwaySpec(peak_mm=0.0), PIVOTS, 18.0).poses(T)
     for body in ("thigh", "shank"):
         np.testing.assert_array_equal(poses[body], np.broadcast_to(np.eye(4), (len(T), 4, 4)))
 
 
 def test_the_angles_have_zero_mean_and_thigh_and_shank_move_apart():
-    sway = Sway(SwaySpec(peak_mm=3.0, seed=4), SPEC, 18.0)
+    sway = Sway(SwaySpec(peak_mm=3.0, seed=4), PIVOTS, 18.0)
     fine = np.linspace(0.0, 18.0, 2001)
     for name, angle in sway.angles_deg(fine).items():
         assert abs(angle.mean()) < 1e-9 * max(1.0, np.abs(angle).max()), name
@@ -46,7 +47,7 @@ def test_the_angles_have_zero_mean_and_thigh_and_shank_move_apart():
 def test_drift_and_tremor_lie_in_their_bands():
     """The shank's AP tilt: its spectrum's strongest line is a drift (0.05-0.3 Hz); with a
     tremor share of 0.3 the 1-4 Hz band holds the next strongest."""
-    sway = Sway(SwaySpec(peak_mm=2.0, seed=7, tremor_share=0.3), SPEC, 200.0)
+    sway = Sway(SwaySpec(peak_mm=2.0, seed=7, tremor_share=0.3), PIVOTS, 200.0)
     t = np.arange(0.0, 200.0, 0.02)
     ap = sway.angles_deg(t)["ap"]
     power = np.abs(np.fft.rfft(ap * np.hanning(len(ap)))) ** 2
@@ -70,4 +71,4 @@ def test_bad_sway_sizes_are_refused():
     with pytest.raises(ValueError, match="peak_mm"):
         SwaySpec(peak_mm=-1.0)
     with pytest.raises(ValueError, match="duration_s"):
-        Sway(SwaySpec(peak_mm=1.0), SPEC, 0.0)
+        Sway(SwaySpec(peak_mm=1.0), PIVOTS, 0.0)

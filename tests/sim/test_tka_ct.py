@@ -8,14 +8,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial.transform import Rotation
 
 from recon.geometry import DetectorSpec, circular_orbit
 from recon.volume import VolumeGrid
 from registration.implants import ray_lengths
 from sim.phantoms.tka import TkaPhantomSpec
 from sim.spectrum import COMPOSITIONS, tube_spectrum
-from sim.tka_ct import METAL_LABEL, tka_scene, tka_truth
+from sim.tka import cylinder_chords
+from sim.tka_ct import BODY_OF_PART, METAL_LABEL, tka_scene, tka_truth
 
+UP = np.array([0.0, 0.0, 1.0])
 DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "grand-challenge-tka"
 
 
@@ -56,3 +59,35 @@ def test_the_scene_projects_its_metal_and_its_truth_holds_the_parts() -> None:
     assert np.all(with_metal[shadow] > without[shadow])
     scores = truth.near_metal_scores(labels)
     assert scores["bone"] == 1.0 and scores["femur"] == 1.0
+
+
+@pytest.mark.skipif(not DATA.is_dir(), reason=f"no grand-challenge data at {DATA}")
+def test_the_swaying_scene_moves_each_part_with_its_body() -> None:
+    """At the reference pose the swaying scene is the still one; moved whole it is the still
+    scene seen through the view carried the other way; the thigh moved alone changes only the
+    rays through the thigh's parts and the leg's upper half."""
+    spec = TkaPhantomSpec(data=str(DATA), supersample=1)
+    scene, beam = tka_scene(spec), tube_spectrum(110.0)
+    panel = DetectorSpec(rows=64, cols=64, pixel_pitch_mm=4.0)
+    view = circular_orbit(1, 600.0, 1000.0, panel, isocenter_mm=spec.center_mm)[0]
+    still = scene.line_integrals(view, beam)
+    eye = {"thigh": np.eye(4), "shank": np.eye(4)}
+    np.testing.assert_allclose(scene.line_integrals(view, beam, eye), still, rtol=0, atol=1e-9)
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(np.radians([0.5, -0.8, 1.5])).as_matrix()
+    T[:3, 3] = [2.0, -1.5, 3.0]
+    whole = scene.line_integrals(view, beam, {"thigh": T, "shank": T})
+    carried = scene.line_integrals(view.transformed(np.linalg.inv(T)), beam)
+    np.testing.assert_allclose(whole, carried, rtol=0, atol=1e-6)
+    assert np.abs(whole - still).max() > 1.0  # the metal's edges moved by millimetres
+    thigh_only = scene.line_integrals(view, beam, {"thigh": T, "shank": np.eye(4)})
+    thigh_parts = [layer for layer in scene.layers if BODY_OF_PART[layer.part] == "thigh"]
+    touched = np.zeros((64, 64), bool)
+    for pose in (np.eye(4), T):
+        moved = view.transformed(np.linalg.inv(pose))
+        for layer in thigh_parts:
+            touched |= ray_lengths(view, layer.vertices_mm, layer.faces, pose) > 0
+        touched |= cylinder_chords(moved, spec.center_mm, spec.leg_radius_mm, side=UP) > 0
+    assert 0.2 < touched.mean() < 0.8
+    np.testing.assert_allclose(thigh_only[~touched], still[~touched], rtol=0, atol=1e-9)
+    assert np.abs(thigh_only - still)[touched].max() > 1.0
