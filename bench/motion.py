@@ -180,14 +180,20 @@ def run_case(phantom: Phantom, size: dict, sway_mm: float, seed: int, still_cach
     projections, geometry, times, true_poses = phantom.scan(sway_mm, seed)
     moving = fdk_reconstruct(projections, geometry, grid)
     started = time.perf_counter()
-    estimate = estimate_motion(
-        projections,
-        geometry,
-        grid,
-        times_s=times,
-        settings=MotionSettings(voxel_mm=size["voxel_mm"]),
-    )
-    compensated = fdk_reconstruct(projections, geometry, grid, motion=estimate.motion)
+    try:
+        estimate = estimate_motion(
+            projections,
+            geometry,
+            grid,
+            times_s=times,
+            settings=MotionSettings(voxel_mm=size["voxel_mm"]),
+        )
+    except ValueError as err:  # refused (metal in the field): the volume stays plain FDK's
+        estimate, refused = None, str(err)
+    compensated = moving
+    if estimate is not None:
+        refused = None
+        compensated = fdk_reconstruct(projections, geometry, grid, motion=estimate.motion)
     seconds = time.perf_counter() - started
 
     def rmse(volume: np.ndarray) -> float:
@@ -197,11 +203,19 @@ def run_case(phantom: Phantom, size: dict, sway_mm: float, seed: int, still_cach
         cap = phantom.cap
         return round(ssim(np.minimum(volume, cap), np.minimum(mu, cap), mask), 4)
 
+    def median(values) -> float | None:
+        return None if values is None else round(float(np.median(values)), 3)
+
+    def p95(values) -> float | None:
+        return None if values is None else round(float(np.percentile(values, 95)), 3)
+
     r_still, r_moving, r_comp = (rmse(v.volume.data) for v in (plain, moving, compensated))
-    truth = true_poses or {b: np.tile(np.eye(4), (len(geometry), 1, 1)) for b in SURFACE_LABELS}
-    sources = np.asarray(geometry.sources_mm)
-    points = {b: surface(labels, grid, SURFACE_LABELS[b]) for b in truth}
-    full, across = surface_errors_mm(estimate.motion, points, truth, sources)
+    full = across = None
+    if estimate is not None:
+        truth = true_poses or {b: np.tile(np.eye(4), (len(geometry), 1, 1)) for b in SURFACE_LABELS}
+        sources = np.asarray(geometry.sources_mm)
+        points = {b: surface(labels, grid, SURFACE_LABELS[b]) for b in truth}
+        full, across = surface_errors_mm(estimate.motion, points, truth, sources)
     return {
         "phantom": phantom.name,
         "sway_mm": sway_mm,
@@ -213,18 +227,20 @@ def run_case(phantom: Phantom, size: dict, sway_mm: float, seed: int, still_cach
         "ssim_still": similarity(plain.volume.data),
         "ssim_moving": similarity(moving.volume.data),
         "ssim_compensated": similarity(compensated.volume.data),
-        "motion_error_mm_median": round(float(np.median(full)), 3),
-        "motion_error_mm_p95": round(float(np.percentile(full, 95)), 3),
-        "motion_error_inplane_mm_median": round(float(np.median(across)), 3),
-        "motion_error_inplane_mm_p95": round(float(np.percentile(across, 95)), 3),
-        "estimated_peak_mm": {b: round(v, 2) for b, v in estimate.peak_mm.items()},
-        "bodies": list(estimate.motion.bodies),
-        "notes": list(estimate.notes),
+        "motion_error_mm_median": median(full),
+        "motion_error_mm_p95": p95(full),
+        "motion_error_inplane_mm_median": median(across),
+        "motion_error_inplane_mm_p95": p95(across),
+        "refused": refused,
+        "estimated_peak_mm": estimate and {b: round(v, 2) for b, v in estimate.peak_mm.items()},
+        "bodies": estimate and list(estimate.motion.bodies),
+        "notes": estimate and list(estimate.notes),
+        "reprojection_rms": estimate and estimate.reprojection_rms,
         "bone_dice_still": _round(phantom.dice(plain.volume)),
         "bone_dice_moving": _round(phantom.dice(moving.volume)),
         "bone_dice_compensated": _round(phantom.dice(compensated.volume)),
         "seconds": round(seconds, 1),
-        "stage_seconds": estimate.seconds,
+        "stage_seconds": estimate and estimate.seconds,
         "peak_mb": round(peak_resident_mb(), 1),
     }
 

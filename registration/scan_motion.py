@@ -27,6 +27,9 @@ to fine, and the reconstruction is made again through the motion found:
 4. The caller reconstructs through the motion (recon.fdk with ``motion=``): each voxel
    projects through the blend of the bodies' moved matrices.
 
+A first volume holding an implant's metal is refused (:func:`refuse_metal`): the metal hides the
+bone the fit follows and its shadow is no motion.
+
 Per-view times are not needed by the fit (every view is fitted on its own, from its
 neighbour's pose); where a scan has them they are kept for the plots, else views stand for
 time. A still scan comes back as identity poses within noise, and its compensated volume is
@@ -47,6 +50,7 @@ from scipy import ndimage
 from recon.fdk import estimate_orbit, fdk_reconstruct
 from recon.geometry import Geometry
 from recon.iterative import subsets
+from recon.mar import METAL_SEED, MIN_METAL_MM3, metal_levels, soft_tissue_level
 from recon.motion import BodyMotion
 from recon.volume import Volume, VolumeGrid
 from registration.labels import LABELS
@@ -360,6 +364,7 @@ class _Estimation:
         small_orbit = None if orbit is None else _binned(self.proj[:1], orbit, factor)[1]
         with _timed(self.seconds, "one body"):
             first = fdk_reconstruct(small, views, coarse, orbit_geometry=small_orbit)
+            refuse_metal(Volume(first.volume.data, coarse, "1/mm"))
             coarse = tissue_box(Volume(first.volume.data, coarse, "1/mm"))
             self.tell(
                 f"one body: {coarse.size_xyz} voxels of {coarse.spacing_mm[0]:g} mm, "
@@ -474,6 +479,29 @@ class _Estimation:
             still = np.tile(np.eye(4), (len(geometry), len(motion.bodies), 1, 1))
             motion = BodyMotion(motion.bodies, still, motion.weights, motion.grid)
         return motion, misses
+
+
+def refuse_metal(first: Volume) -> None:
+    """ValueError when the first volume holds an implant's metal (recon.mar's threshold).
+
+    Measured on the knee replacement (bench/motion.py): its femoral component, tray and stem
+    fill the bone ends the fit follows, and their shadows, beam hardening and starved photons
+    pull every view's pose by millimetres in a still scan and by 15-40 mm in a swaying one,
+    also with the rays through the metal left out and filled (docs/algorithms/motion.md).
+    """
+    data = np.asarray(first.data)
+    try:
+        soft = soft_tissue_level(data)
+    except ValueError:
+        return  # no tissue: the bone check that follows says what is wrong
+    levels = metal_levels(data, soft, first.grid.voxel_volume_mm3)
+    if np.isfinite(levels).any():
+        cm3 = np.isfinite(levels).sum() * first.grid.voxel_volume_mm3 / 1000.0
+        raise ValueError(
+            f"metal in the field ({cm3:.0f} cm^3 above {METAL_SEED:g} x the soft tissue's "
+            f"attenuation in regions of {MIN_METAL_MM3:g} mm^3 or more): the patient's motion is "
+            "not estimated next to an implant, whose shadow hides the bone the fit follows"
+        )
 
 
 def _binning(geometry: Geometry, grid: VolumeGrid) -> int:

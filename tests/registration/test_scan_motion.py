@@ -11,6 +11,7 @@ from configs import CONFIGS
 from recon.config import load_protocol
 from recon.fdk import fdk_reconstruct
 from recon.volume import VolumeGrid
+from registration.labels import LABELS
 from registration.scan_motion import MIN_VIEWS, MotionSettings, estimate_motion
 from sim.phantoms.knee import KneePhantomSpec, rasterize_knee
 from sim.scan import simulate_knee_scan
@@ -99,4 +100,20 @@ def test_a_volume_without_bone_is_refused():
 
     projections = JosephProjector(water, GRID).project(scan.geometry)
     with pytest.raises(ValueError, match="no bone to register"):
+        estimate_motion(projections, scan.geometry, GRID, settings=SETTINGS)
+
+
+def test_a_knee_with_metal_is_refused():
+    """The knee phantom with a block of metal (20 x 20 x 12 mm at 20 x water's attenuation) in
+    its tibia: refused in words naming the metal (the still knee without it is estimated:
+    test_a_still_scan_comes_back_still_and_its_volume_is_plain_fdk)."""
+    scan = _scan(0.0)
+    labels, mu = rasterize_knee(SPEC, GRID)
+    metal = mu.copy()
+    z, y, x = np.argwhere(labels == LABELS["tibia"]).mean(axis=0).astype(int)
+    metal[z - 3 : z + 3, y - 5 : y + 5, x - 5 : x + 5] = 0.4
+    from recon.project import JosephProjector
+
+    projections = JosephProjector(metal, GRID).project(scan.geometry)
+    with pytest.raises(ValueError, match=r"metal in the field \(\d+ cm\^3"):
         estimate_motion(projections, scan.geometry, GRID, settings=SETTINGS)
