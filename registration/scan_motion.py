@@ -42,7 +42,7 @@ import contextlib
 import math
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import ndimage
@@ -100,18 +100,29 @@ class MotionSettings:
         blend_mm: width of the thigh-shank blend, mm.
         two_body_rounds: rounds of the two-body fit, each from a volume reconstructed
             through the motion of the round before (0: the whole leg as one body).
+        fit_pixel: the two-body fits run on the panel's pixels binned as far as their pitch at
+            the isocentre stays within this many voxels (finer pixels: slower and more
+            accurate, docs/algorithms/motion.md); the one-body fit, the start, keeps pixels no
+            coarser than its voxel.
     """
 
     voxel_mm: float = 1.0
     margin_mm: float = 20.0
     blend_mm: float = 4.0
     two_body_rounds: int = 2
+    fit_pixel: float = 1.5
 
     def __post_init__(self) -> None:
-        for name, low in (("voxel_mm", 0.05), ("margin_mm", 0.0), ("blend_mm", 0.1)):
+        for name, low in (
+            ("voxel_mm", 0.05),
+            ("margin_mm", 0.0),
+            ("blend_mm", 0.1),
+            ("fit_pixel", 0.1),
+        ):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= low):
-                raise ValueError(f"{name} must be >= {low} mm, got {value!r}")
+                unit = "voxels" if name == "fit_pixel" else "mm"
+                raise ValueError(f"{name} must be >= {low} {unit}, got {value!r}")
         if self.two_body_rounds < 0:
             raise ValueError(f"two_body_rounds must be >= 0, got {self.two_body_rounds!r}")
 
@@ -308,6 +319,7 @@ def estimate_motion(
     voxel = max(settings.voxel_mm, max(grid.spacing_mm))  # no finer than the field asked for
     motion, coarse, bone = scan.one_body(grid, voxel)
     fine = estimation_grid(coarse, voxel)
+    scan = scan.binned_to(settings.fit_pixel * voxel)
     motion, surfaces = scan.two_bodies(motion, fine, {LEG: _surface(bone, coarse)})
     motion, misses = scan.kept_if_consistent(motion, fine)
     displacement = motion.displacement_mm(surfaces)
@@ -330,6 +342,17 @@ class _Estimation:
     progress: Callable[[str, int, int], None] | None
     notes: list[str] = field(default_factory=list)
     seconds: dict[str, float] = field(default_factory=dict)
+
+    def binned_to(self, pixel_mm: float) -> _Estimation:
+        """The scan with its pixels binned as far as their pitch at the isocentre stays within
+        ``pixel_mm`` (notes and timings shared with this one)."""
+        factor = _binning(self.geometry, pixel_mm)
+        if factor == 1:
+            return self
+        proj, geometry = _binned(self.proj, self.geometry, factor)
+        orbit = self.orbit_geometry
+        orbit = None if orbit is None else _binned(self.proj[:1], orbit, factor)[1]
+        return replace(self, proj=proj, geometry=geometry, orbit_geometry=orbit)
 
     def fitted(
         self,
@@ -358,10 +381,8 @@ class _Estimation:
         """The whole leg's motion at half the resolution (the motion the two bodies share, to
         start from); the tissue's box it was fitted on, and the bone there (bool)."""
         coarse = estimation_grid(grid, max(voxel, min(2.0 * voxel, _COARSEST_MM)))
-        factor = _binning(self.geometry, coarse)
-        small, views = _binned(self.proj, self.geometry, factor)
-        orbit = self.orbit_geometry
-        small_orbit = None if orbit is None else _binned(self.proj[:1], orbit, factor)[1]
+        scan = self.binned_to(coarse.spacing_mm[0])
+        small, views, small_orbit = scan.proj, scan.geometry, scan.orbit_geometry
         with _timed(self.seconds, "one body"):
             first = fdk_reconstruct(small, views, coarse, orbit_geometry=small_orbit)
             refuse_metal(Volume(first.volume.data, coarse, "1/mm"))
@@ -504,13 +525,13 @@ def refuse_metal(first: Volume) -> None:
         )
 
 
-def _binning(geometry: Geometry, grid: VolumeGrid) -> int:
-    """The pixel binning that brings the panel's pitch at the isocentre nearest the grid's
-    voxel (>= 1)."""
+def _binning(geometry: Geometry, pixel_mm: float) -> int:
+    """The largest pixel binning that keeps the panel's pitch at the isocentre within
+    ``pixel_mm`` (>= 1)."""
     orbit = estimate_orbit(geometry)
     view = geometry[0]
     at_iso = view.pitch_u_mm * float(np.median(orbit.sod_mm)) / view.sdd_mm
-    return max(1, round(grid.spacing_mm[0] / at_iso))
+    return max(1, math.floor(pixel_mm / at_iso + 1e-9))
 
 
 @contextlib.contextmanager
