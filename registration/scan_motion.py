@@ -521,7 +521,8 @@ def refuse_metal(first: Volume) -> None:
         raise ValueError(
             f"metal in the field ({cm3:.0f} cm^3 above {METAL_SEED:g} x the soft tissue's "
             f"attenuation in regions of {MIN_METAL_MM3:g} mm^3 or more): the patient's motion is "
-            "not estimated next to an implant, whose shadow hides the bone the fit follows"
+            "not estimated next to an implant, whose shadow hides the bone the fit follows: "
+            "reconstruct without motion compensation"
         )
 
 
