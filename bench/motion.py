@@ -1,29 +1,30 @@
 """Benchmark: a standing patient's sway, estimated from the projections and compensated.
 
-The demo knee phantom (rasterised at 1 mm over 480 mm of leg, so the leg leaves the
-reconstructed field as a real one does) is scanned through the demo protocol's two-pass
+Two phantoms: the demo knee (rasterised at 1 mm over 480 mm of leg, so the leg leaves the
+reconstructed field as a real one does) and the grand-challenge knee replacement (its meshes
+projected polychromatically, sim.tka_ct; left out where its data are missing). Each is scanned
+through the demo protocol's two-pass
 reverse spiral (180 views of 256 x 256 pixels of 2.4 mm, SID 600, SDD 1000 mm, quantum and
 readout noise) over 18 s while the patient sways (sim.sway) by 0, 1, 2 and 4 mm peak at the
 knee, per seed; the same scan of the still patient is the reference. Each scan is
 reconstructed on the study pipeline's 140 x 140 x 320 mm box of 1 mm voxels plainly and
 through the motion estimated from its own projections (registration.scan_motion).
 
-Per scan (``rows``): RMSE against the phantom in the leg (still scan, moving scan, compensated),
+Per scan (``rows``): RMSE against the phantom in the leg (the knee replacement's outside its
+metal; still scan, moving scan, compensated),
 ``recovered`` = (moving - compensated) / (moving - still) (null at 0 mm), SSIM against the
 phantom (still, compensated), the motion's error per view at the bone surface (mean over a
 body's surface points of the distance between where the estimate and the truth put them;
 median and 95th percentile over views and bodies; ``..._inplane`` the same across each view's
-rays, what the view itself can see), the bones' mean Dice of the segmentation of the still
-and the compensated volume, the seconds of the estimate and the compensated FDK, and the peak
-resident memory. ``timing`` (``--timing``): one scan of 360 views of 512 x 512 pixels
-(1.2 mm) into 256^3 voxels with 2 mm of sway: seconds, peak memory, the motion's error.
-``demo_tre`` (``--demos STILL SWAYING``): the tracking TRE of two ``cbct demo --quick``
-studies, made with ``--sway-mm 0`` and with the default sway.
+rays, what the view itself can see), ``refused`` (why the estimate would not run, e.g. metal
+in the field: the compensated volume is then the moving one), the bones' mean Dice of the
+segmentation of the still and the compensated volume, the seconds of the estimate and the
+compensated FDK, and the peak resident memory. ``timing`` (``--timing``): one scan of 360
+views of 512 x 512 pixels (1.2 mm) into 256^3 voxels with 2 mm of sway: seconds, peak memory,
+the motion's error. ``demo_tre`` (``--demos STILL SWAYING``): the tracking TRE of two
+``cbct demo --quick`` studies, made with ``--sway-mm 0`` and with the default sway.
 
-The knee replacement phantom is not scanned swaying: its polychromatic mesh renderer places
-the scene at one pose (left out, docs/motion.md).
-
-Usage: ``python bench/motion.py [--sizes 0 1 2 4] [--seeds 1 2 3] [--timing]
+Usage: ``python bench/motion.py [--phantoms knee tka] [--sizes 0 1 2 4] [--seeds 1 2 3] [--timing]
 [--demos STILL SWAYING]``; ``--small`` runs 90 views of 128 x 128 on 2 mm voxels to check the
 harness in a minute.
 """
