@@ -117,3 +117,18 @@ def test_a_knee_with_metal_is_refused():
     projections = JosephProjector(metal, GRID).project(scan.geometry)
     with pytest.raises(ValueError, match=r"metal in the field \(\d+ cm\^3"):
         estimate_motion(projections, scan.geometry, GRID, settings=SETTINGS)
+
+
+@pytest.mark.parametrize(
+    ("name", "value", "words"),
+    [
+        ("voxel_mm", 0.0, r"voxel_mm must be >= 0.05 mm, got 0.0"),
+        ("margin_mm", float("nan"), r"margin_mm must be >= 0.0 mm, got nan"),
+        ("blend_mm", -1.0, r"blend_mm must be >= 0.1 mm, got -1.0"),
+        ("fit_pixel", 0.05, r"fit_pixel must be >= 0.1 voxels, got 0.05"),
+        ("two_body_rounds", -1, r"two_body_rounds must be >= 0, got -1"),
+    ],
+)
+def test_bad_settings_name_the_field_the_value_and_the_limit(name, value, words):
+    with pytest.raises(ValueError, match=words):
+        MotionSettings(**{name: value})
