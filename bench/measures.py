@@ -60,19 +60,22 @@ def ssim(volume: np.ndarray, truth: np.ndarray, region: np.ndarray) -> float:
     return float(structural_similarity(volume[box], truth[box], data_range=span))
 
 
-def bone_dice(volume, truth_labels: np.ndarray) -> float | None:
+def bone_dice(volume, truth_labels: np.ndarray, segment=None, scored=None) -> float | None:
     """Mean Dice of femur, tibia, fibula and patella between the bones segmented in
-    ``volume`` (a recon.volume.Volume) and the phantom's labels; None where segmentation
-    finds no bone."""
+    ``volume`` (a recon.volume.Volume) and the phantom's labels, over the voxels ``scored``
+    (bool [z, y, x]; default all); None where segmentation finds no bone. ``segment``: a
+    volume's labels (a Volume), default registration.segment.segment_bones."""
     from registration.labels import LABELS
     from registration.segment import segment_bones
 
     try:
-        labels = segment_bones(volume).data
+        labels = (segment or segment_bones)(volume).data
     except ValueError:
         return None
     scores = []
     for bone in ("femur", "tibia", "fibula", "patella"):
         a, b = labels == LABELS[bone], truth_labels == LABELS[bone]
+        if scored is not None:
+            a, b = a & scored, b & scored
         scores.append(2 * float((a & b).sum()) / max(float(a.sum() + b.sum()), 1.0))
     return float(np.mean(scores))

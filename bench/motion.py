@@ -136,7 +136,7 @@ def knee_phantom(size: dict) -> Phantom:
 
 def tka_phantom(size: dict) -> Phantom:
     """The grand-challenge knee replacement, polychromatic, every part with its body."""
-    from sim.tka_ct import METAL_LABEL, SwayingTka, tka_pivots, tka_scene, tka_truth
+    from sim.tka_ct import METAL_LABEL, tka_pivots, tka_scene, tka_subject, tka_truth
 
     scene = tka_scene(TkaPhantomSpec())
     prot = protocol(size["views"], size["pixels"])
@@ -150,22 +150,16 @@ def tka_phantom(size: dict) -> Phantom:
 
     def scan(sway_mm: float, seed: int):
         sway = Sway(SwaySpec(peak_mm=sway_mm, seed=seed), tka_pivots(scene), SCAN_S)
-        subject = SwayingTka(scene, kv, sway)
+        subject = tka_subject(scene, kv, sway)
         clean = np.stack([subject(v, float(t)) for v, t in zip(geometry, times, strict=True)])
         noisy = add_noise(clean.astype(np.float32), photons, np.random.default_rng(seed))[1]
         return noisy, geometry, times, sway.poses(times) if sway_mm > 0 else None
 
+    def segment(volume: Volume) -> Volume:
+        return segment_bones_with_metal(volume, truth.metal_share > 0.5, METAL_LABEL)
+
     def dice(volume: Volume) -> float | None:
-        try:
-            labels = segment_bones_with_metal(volume, truth.metal_share > 0.5, METAL_LABEL).data
-        except ValueError:
-            return None
-        scored = ~truth.metal_zone
-        scores = []
-        for bone in BONES:
-            a, b = (labels == LABELS[bone]) & scored, (truth.labels == LABELS[bone]) & scored
-            scores.append(2 * float((a & b).sum()) / max(float(a.sum() + b.sum()), 1.0))
-        return float(np.mean(scores))
+        return bone_dice(volume, truth.labels, segment, ~truth.metal_zone)
 
     cap = float(truth.mu[region].max())
     return Phantom("tka", grid, truth.mu, truth.labels, region, cap, scan, dice)
@@ -181,6 +175,7 @@ def run_case(phantom: Phantom, size: dict, sway_mm: float, seed: int, still_cach
     projections, geometry, times, true_poses = phantom.scan(sway_mm, seed)
     moving = fdk_reconstruct(projections, geometry, grid)
     started = time.perf_counter()
+    estimate, refused, compensated = None, None, moving
     try:
         estimate = estimate_motion(
             projections,
@@ -190,10 +185,8 @@ def run_case(phantom: Phantom, size: dict, sway_mm: float, seed: int, still_cach
             settings=MotionSettings(voxel_mm=size["voxel_mm"]),
         )
     except ValueError as err:  # refused (metal in the field): the volume stays plain FDK's
-        estimate, refused = None, str(err)
-    compensated = moving
-    if estimate is not None:
-        refused = None
+        refused = str(err)
+    else:
         compensated = fdk_reconstruct(projections, geometry, grid, motion=estimate.motion)
     seconds = time.perf_counter() - started
 

@@ -113,15 +113,14 @@ class MotionSettings:
     fit_pixel: float = 1.5
 
     def __post_init__(self) -> None:
-        for name, low in (
-            ("voxel_mm", 0.05),
-            ("margin_mm", 0.0),
-            ("blend_mm", 0.1),
-            ("fit_pixel", 0.1),
+        for name, low, unit in (
+            ("voxel_mm", 0.05, "mm"),
+            ("margin_mm", 0.0, "mm"),
+            ("blend_mm", 0.1, "mm"),
+            ("fit_pixel", 0.1, "voxels"),
         ):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= low):
-                unit = "voxels" if name == "fit_pixel" else "mm"
                 raise ValueError(f"{name} must be >= {low} {unit}, got {value!r}")
         if self.two_body_rounds < 0:
             raise ValueError(f"two_body_rounds must be >= 0, got {self.two_body_rounds!r}")

@@ -58,7 +58,7 @@ from sim.detector import FrameTimeout, SimDetector
 from sim.phantoms.bb import project_bb
 from sim.phantoms.knee import KneePhantomSpec, knee_grid, rasterize_knee
 from sim.phantoms.tka import TkaPhantomSpec
-from sim.sway import Sway, SwayingKnee, SwayingSubject, SwayPivots
+from sim.sway import Sway, SwayingKnee, SwayingSubject, SwayPivots, SwaySpec
 
 SIM_GIGE_WINDOW_MS = 100.0
 """The simulated panel's integration window over GigE Vision, ms: the pulse comes well within
@@ -287,8 +287,8 @@ def knee_subject(inputs: SessionInputs, say: Callable[[str], None], scan_s: floa
     )
     say(f"rasterising the knee phantom ({grid.size_xyz} voxels of {inputs.phantom_voxel_mm} mm)")
     labels, mu = rasterize_knee(phantom, grid)
-    sway = inputs.backend.sway if isinstance(inputs.backend, SimBackendSpec) else None
-    if sway is None or sway.peak_mm == 0:
+    sway = _sway(inputs)
+    if sway is None:
         return volume_subject(Volume(mu, grid, "1/mm"))
     say(f"the patient sways by up to {sway.peak_mm:g} mm at the knee during the scan")
     return SwayingKnee(
@@ -312,12 +312,17 @@ def tka_subject(inputs: SessionInputs, say: Callable[[str], None], scan_s: float
 
     say(f"loading the knee replacement from {inputs.phantom.data}")
     scene = tka_ct.tka_scene(inputs.phantom)
-    spec = inputs.backend.sway if isinstance(inputs.backend, SimBackendSpec) else None
-    sway = None
-    if spec is not None and spec.peak_mm > 0:
+    spec, sway = _sway(inputs), None
+    if spec is not None:
         say(f"the patient sways by up to {spec.peak_mm:g} mm at the knee during the scan")
         sway = Sway(spec, tka_ct.tka_pivots(scene), scan_s)
     return tka_ct.tka_subject(scene, inputs.protocol.exposure.tube_kv, sway)
+
+
+def _sway(inputs: SessionInputs) -> SwaySpec | None:
+    """The ``sim`` backend's sway of the patient, None when still or on another backend."""
+    sway = inputs.backend.sway if isinstance(inputs.backend, SimBackendSpec) else None
+    return sway if sway is not None and sway.peak_mm > 0 else None
 
 
 register_backend(
