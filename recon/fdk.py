@@ -30,6 +30,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Literal
 
 import numba
@@ -244,16 +245,27 @@ class FDKResult:
 
     Attributes:
         volume: linear attenuation (1/mm) on the requested grid; masked voxels are 0.
-        coverage_deg: float32 [z, y, x], redundancy-weighted angular coverage (360 for a voxel
-            seen over a full turn, ~180 for a complete short scan).
         mask: bool [z, y, x], True where coverage >= the requested minimum.
         orbit: the trajectory as FDK read it.
+        count_deg: float32 [z, y, x], the views' weighted count (degrees) on ``count_grid``,
+            a coarser grid over the same extent, which :attr:`coverage_deg` interpolates.
+        count_grid: the grid of ``count_deg``.
     """
 
     volume: Volume
-    coverage_deg: np.ndarray
     mask: np.ndarray
     orbit: Orbit
+    count_deg: np.ndarray
+    count_grid: VolumeGrid
+
+    @cached_property
+    def coverage_deg(self) -> np.ndarray:
+        """float32 [z, y, x], redundancy-weighted angular coverage in degrees (360 for a voxel
+        seen over a full turn, ~180 for a complete short scan), computed when first asked."""
+        coverage = np.empty(self.volume.grid.shape, dtype=np.float32)
+        taps = _trilinear_taps(self.volume.grid, self.count_grid)
+        _coverage_kernel(self.count_deg, *taps, coverage)
+        return coverage
 
 
 CORNER_FRACTION = 0.1
@@ -385,6 +397,8 @@ class FDKAccumulator:
             projections: float32 (n, rows, cols) line integrals.
             views: the n views as acquired (default: the orbit's own).
         """
+        if self._num is None:
+            raise RuntimeError("this FDK accumulator's result was taken: it takes no more views")
         proj = np.asarray(projections, dtype=np.float32)
         n = len(proj)
         if proj.ndim != 3 or proj.shape[1:] != (self.rows, self.cols):
@@ -474,15 +488,20 @@ class FDKAccumulator:
         self.added[start : start + n] = True
 
     def result(self) -> FDKResult:
-        """The volume of the views added so far (all of them for a complete scan)."""
-        coverage = np.empty(self.grid.shape, dtype=np.float32)
-        volume = np.empty(self.grid.shape, dtype=np.float32)
+        """The volume of the views added so far (all of them for a complete scan).
+
+        The volume is normalised in the accumulator's own sum, so the accumulator is spent: a
+        later :meth:`add` or :meth:`result` raises.
+        """
+        if self._num is None:
+            raise RuntimeError("this FDK accumulator's result was taken already")
+        volume, self._num = self._num, None
         mask = np.empty(self.grid.shape, dtype=bool)
-        taps = [t for axis in range(3) for t in _linear_taps(self.grid, self._coarse, axis)]
-        _normalise_kernel(
-            self._num, self._count, *taps, np.float32(self.min_coverage_deg), volume, coverage, mask
+        taps = _trilinear_taps(self.grid, self._coarse)
+        _normalise_kernel(volume, self._count, *taps, np.float32(self.min_coverage_deg), mask)
+        return FDKResult(
+            Volume(volume, self.grid, "1/mm"), mask, self.orbit, self._count, self._coarse
         )
-        return FDKResult(Volume(volume, self.grid, "1/mm"), coverage, mask, self.orbit)
 
 
 def fdk_reconstruct(
@@ -589,34 +608,54 @@ def _linear_taps(grid: VolumeGrid, coarse: VolumeGrid, axis: int) -> tuple[np.nd
     return lower, np.clip(position - lower, 0.0, 1.0).astype(np.float32)
 
 
+def _trilinear_taps(grid: VolumeGrid, coarse: VolumeGrid) -> list[np.ndarray]:
+    """:func:`_linear_taps` along z, y and x, in that order."""
+    return [t for axis in range(3) for t in _linear_taps(grid, coarse, axis)]
+
+
+@numba.njit(fastmath=True, error_model="numpy", boundscheck=False, inline="always")
+def _coverage_row(count, a, wz, b, wy, x0, fx, row, out):  # pragma: no cover
+    """out[x] = the trilinear interpolation of the coarse ``count`` at one voxel row: the
+    coarse row at (a + wz, b + wy) into ``row`` first, then along x."""
+    for c in range(count.shape[2]):
+        lo = count[a, b, c] + wy * (count[a, b + 1, c] - count[a, b, c])
+        hi = count[a + 1, b, c] + wy * (count[a + 1, b + 1, c] - count[a + 1, b, c])
+        row[c] = lo + wz * (hi - lo)
+    for x in range(len(out)):
+        c = x0[x]
+        out[x] = row[c] + fx[x] * (row[c + 1] - row[c])
+
+
 @numba.njit(parallel=True, fastmath=True, cache=True, error_model="numpy", nogil=True)
-def _normalise_kernel(
-    num, count, z0, fz, y0, fy, x0, fx, min_coverage, volume, coverage, mask
-):  # pragma: no cover
-    """coverage = trilinear interpolation of the coarse ``count`` (degrees); volume = 180 *
-    num / coverage (pi * sum / count, the count in degrees) where coverage >= min_coverage
-    (and > 0), else 0; ``mask`` where coverage >= min_coverage."""
-    nz, ny, nx = num.shape
+def _coverage_kernel(count, z0, fz, y0, fy, x0, fx, coverage):  # pragma: no cover
+    """coverage = the trilinear interpolation of the coarse ``count`` (degrees)."""
+    nz, ny, _ = coverage.shape
     for job in numba.prange(nz * ny):
         z = job // ny
         y = job - z * ny
-        a, b = z0[z], y0[y]
-        wz, wy = fz[z], fy[y]
+        row = np.empty(count.shape[2], dtype=np.float32)
+        _coverage_row(count, z0[z], fz[z], y0[y], fy[y], x0, fx, row, coverage[z, y])
+
+
+@numba.njit(parallel=True, fastmath=True, cache=True, error_model="numpy", nogil=True)
+def _normalise_kernel(
+    volume, count, z0, fz, y0, fy, x0, fx, min_coverage, mask
+):  # pragma: no cover
+    """In place: volume = 180 * volume / coverage (pi * sum / count, the count in degrees)
+    where the coverage (the coarse ``count`` interpolated) >= min_coverage (and > 0), else 0;
+    ``mask`` where coverage >= min_coverage."""
+    nz, ny, nx = volume.shape
+    for job in numba.prange(nz * ny):
+        z = job // ny
+        y = job - z * ny
+        row = np.empty(count.shape[2], dtype=np.float32)
+        cover = np.empty(nx, dtype=np.float32)
+        _coverage_row(count, z0[z], fz[z], y0[y], fy[y], x0, fx, row, cover)
         for x in range(nx):
-            c, wx = x0[x], fx[x]
-            lo = (1 - wy) * ((1 - wx) * count[a, b, c] + wx * count[a, b, c + 1]) + wy * (
-                (1 - wx) * count[a, b + 1, c] + wx * count[a, b + 1, c + 1]
-            )
-            hi = (1 - wy) * ((1 - wx) * count[a + 1, b, c] + wx * count[a + 1, b, c + 1]) + wy * (
-                (1 - wx) * count[a + 1, b + 1, c] + wx * count[a + 1, b + 1, c + 1]
-            )
-            cover = (1 - wz) * lo + wz * hi
-            coverage[z, y, x] = cover
-            inside = cover >= min_coverage
+            inside = cover[x] >= min_coverage
             mask[z, y, x] = inside
-            volume[z, y, x] = (
-                np.float32(180.0) * num[z, y, x] / cover if inside and cover > 0 else 0
-            )
+            ok = inside and cover[x] > 0
+            volume[z, y, x] = np.float32(180.0) * volume[z, y, x] / cover[x] if ok else 0
 
 
 def default_grid(

@@ -22,7 +22,9 @@ a voxel. The two agree to float precision when the outer layers are zero.
 
 from __future__ import annotations
 
+import functools
 import math
+from pathlib import Path
 
 import numba
 import numpy as np
@@ -473,20 +475,40 @@ def _backproject_kernel(
                 out[z, y, x] += acc[y - y0, x]
 
 
-UPRIGHT_Z_ROWS, UPRIGHT_Y_ROWS = 16, 4
-"""Voxel rows per job of :func:`_upright_kernel`: the z rows that share each (y, view)'s
-detector columns and weights, by the y rows taken view by view together (the shapes measured:
+UPRIGHT_ROWS_BY_L2 = ((1 << 20, (32, 4)), (0, (16, 4)))
+"""Voxel rows per job of :func:`_upright_kernel`, (z rows, y rows), by the smallest L2 cache
+per core (bytes) they suit: the z rows share each (y, view)'s detector columns and weights, the
+y rows are taken view by view together (the shapes measured on two hosts:
 docs/algorithms/fdk.md)."""
+
+
+def l2_cache_bytes() -> int:
+    """The L2 cache of the first CPU in bytes, as Linux's sysfs tells it (0 elsewhere)."""
+    units = {"K": 1 << 10, "M": 1 << 20}
+    for index in Path("/sys/devices/system/cpu/cpu0/cache").glob("index*"):
+        try:
+            if (index / "level").read_text().strip() == "2":
+                size = (index / "size").read_text().strip()
+                return int(size.rstrip("KM")) * units.get(size[-1], 1)
+        except (OSError, ValueError):
+            return 0
+    return 0
+
+
+@functools.cache
+def upright_rows() -> tuple[int, int]:
+    """(z rows, y rows) of :data:`UPRIGHT_ROWS_BY_L2` for this machine's L2 cache."""
+    return next(rows for size, rows in UPRIGHT_ROWS_BY_L2 if l2_cache_bytes() >= size)
 
 
 @numba.njit(
     parallel=True, fastmath=True, cache=True, error_model="numpy", boundscheck=False, nogil=True
 )
-def _upright_kernel(quads, scale, mats, origin, spacing, out):  # pragma: no cover
+def _upright_kernel(quads, scale, mats, origin, spacing, zb, yb, out):  # pragma: no cover
     """:func:`_backproject_kernel` in ``FDK_WEIGHT`` mode for views whose u and w do not
     change along the grid's z (an orbit about z with upright panels): each (y, view) computes
     its detector columns, weights and the rows' start and step in z once, for
-    :data:`UPRIGHT_Z_ROWS` rows of z, which then only step ``v``."""
+    ``zb`` rows of z, which then only step ``v``; a job takes ``zb`` x ``yb`` rows (z x y)."""
     n_images, rows, cols = quads.shape
     n_views = len(mats)
     nz, ny, nx = out.shape
@@ -494,7 +516,6 @@ def _upright_kernel(quads, scale, mats, origin, spacing, out):  # pragma: no cov
     vmax = np.float32(rows - 1.0)
     zero = np.float32(0.0)
     flat = quads.reshape(n_images, rows * cols)
-    zb, yb = UPRIGHT_Z_ROWS, UPRIGHT_Y_ROWS
     y_blocks = (ny + yb - 1) // yb
     for job in numba.prange(((nz + zb - 1) // zb) * y_blocks):
         z0 = (job // y_blocks) * zb
@@ -668,9 +689,8 @@ def backproject_weighted(
     scale = np.ones(len(geometry), np.float32) if scale is None else np.asarray(scale, np.float32)
     if mode == FDK_WEIGHT and upright(geometry, grid):
         matrices = np.asarray(geometry.matrices)
-        _upright_kernel(
-            quads, scale, matrices, np.array(grid.origin_mm), np.array(grid.spacing_mm), out
-        )
+        origin, spacing = np.array(grid.origin_mm), np.array(grid.spacing_mm)
+        _upright_kernel(quads, scale, matrices, origin, spacing, *upright_rows(), out)
         return
     _backproject_kernel(
         quads,

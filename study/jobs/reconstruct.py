@@ -254,7 +254,7 @@ def reconstruct_files(
     if not result.mask.any():
         raise ValueError(
             f"every voxel is seen over less than {min_coverage_deg:g} degrees of the orbit "
-            f"(the most any voxel gets: {float(result.coverage_deg.max()):.0f}): lower "
+            f"(the most any voxel gets: {float(result.count_deg.max()):.0f}): lower "
             "--min-coverage-deg"
         )
     write_volume(out, result.volume)

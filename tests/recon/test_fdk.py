@@ -184,7 +184,8 @@ def test_progress_reports_every_batch(cylinder_pair):
 
 def test_views_added_in_any_order_give_the_same_volume(cylinder_pair):
     """The accumulator behind streaming: batches in reverse order and of other sizes sum to the
-    offline volume within float32 rounding of the sums; a view is never added twice."""
+    offline volume within float32 rounding of the sums; a view is never added twice, and no view
+    after the result (normalised in the accumulator's own sum)."""
     fine, _ = cylinder_pair
     geometry = helical_orbit(
         48, 600, 1000, PANEL, arc_deg=360, z_start_mm=-10, z_end_mm=10, passes=2, isocenter_mm=ISO
@@ -195,11 +196,15 @@ def test_views_added_in_any_order_give_the_same_volume(cylinder_pair):
     for start in (40, 35, 12, 0, 13):  # 40-47, 35-39, 12, 0-11, 13-34
         stop = {40: 48, 35: 40, 12: 13, 0: 12, 13: 35}[start]
         acc.add(start, proj[start:stop], geometry[start:stop])
+    with pytest.raises(ValueError, match=r"view\(s\) \[12\] were added already"):
+        acc.add(12, proj[12:13])
     streamed = acc.result().volume.data
     assert np.abs(offline).max() > 0.5 * MU
     assert np.abs(streamed - offline).max() <= 1e-5 * np.abs(offline).max()
-    with pytest.raises(ValueError, match=r"view\(s\) \[12\] were added already"):
+    with pytest.raises(RuntimeError, match="result was taken"):
         acc.add(12, proj[12:13])
+    with pytest.raises(RuntimeError, match="result was taken"):
+        acc.result()
     same = fdk_reconstruct(proj, geometry, GRID, orbit_geometry=geometry).volume.data
     np.testing.assert_array_equal(same, offline)  # the orbit given is the geometry's own
 

@@ -29,6 +29,7 @@ PARALLEL = {
     "pixel quads": project.quads_kernel,
     "row filter's weighting": ramp._pack_kernel,
     "normalisation": fdk_module._normalise_kernel,
+    "coverage": fdk_module._coverage_kernel,
     "motion field's backprojection": motion._field_kernel,
     "rays' lengths through the grid": project._chords_kernel,
 }
@@ -43,7 +44,7 @@ def ran() -> None:
     grid = VolumeGrid.centered((16, 16, 16), 2.0, (0.0, 0.0, 0.0))
     sino = project.forward_project(np.ones(grid.shape, np.float32), grid, views)
     project.centre_chords(views, grid)
-    fdk_reconstruct(sino, views, grid)
+    assert fdk_reconstruct(sino, views, grid).coverage_deg.max() > 0
     poses = np.tile(np.eye(4), (len(views), 2, 1, 1))
     weights = np.full((2, *grid.shape), 0.5, np.float32)
     fdk_reconstruct(sino, views, grid, motion=motion.BodyMotion(("a", "b"), poses, weights, grid))
