@@ -118,7 +118,7 @@ class Settings(BaseModel):
         0.005, ge=0.0, description="prior cost in NCC units per sigma squared"
     )
     kpm_depth: Literal["extrapolate", "hold"] = Field(
-        "extrapolate",
+        "hold",
         description="what the KPM's prediction does with a bone's depth (its centroid's move "
         "along the view's ray): extrapolate it with the rest of the last motion, or hold it at "
         "the last frame's (one plane measures depth least well: an error in it, extrapolated, "
