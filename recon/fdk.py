@@ -362,10 +362,13 @@ class FDKAccumulator:
         self.grid, self.min_coverage_deg = grid, min_coverage_deg
         self.n_views, self.rows, self.cols = len(geometry), geometry.rows, geometry.cols
         # the detector edge fades in over edge_taper_px on the real panel; off it, nothing counts
-        self._taper = np.outer(
-            _taper(geometry.rows, edge_taper_px), _taper(geometry.cols, edge_taper_px)
-        ).astype(np.float32)
+        rows_taper = _taper(geometry.rows, edge_taper_px).astype(np.float32)
+        self._cols_taper = _taper(geometry.cols, edge_taper_px).astype(np.float32)
+        self._taper = np.outer(rows_taper, self._cols_taper)
         self._taper_quads = pixel_quads(self._taper[None])
+        # a short scan's count: the rows' taper shared, the columns' times Parker's per view
+        rows_image = np.repeat(rows_taper[None, :, None], geometry.cols, axis=2)
+        self._rows_taper_quads = pixel_quads(rows_image)
         self.aligned = motion_aligned(geometry)
         self.orbit = estimate_orbit(self.aligned.geometry)
         virtual = self.aligned.geometry
@@ -477,13 +480,14 @@ class FDKAccumulator:
         del quads
         # the views' weighted count: dbeta * SOD * SDD * w / L_perp^2, in degrees
         jac = np.degrees(orbit.dbeta_rad[index]) * orbit.sod_mm[index] * sdd
-        weights = (
-            self._taper_quads[:, r0:r1]
-            if pre is None and not aligned.turned
-            else pixel_quads(support[:, r0:r1], pre)
-        )
+        if aligned.turned:  # the taper turned with the panel: no longer a row times a column
+            weights, columns = pixel_quads(support[:, r0:r1], pre), None
+        elif pre is None:
+            weights, columns = self._taper_quads[:, r0:r1], None
+        else:
+            weights, columns = self._rows_taper_quads[:, r0:r1], self._cols_taper * pre[:, 0]
         backproject_weighted(
-            weights, seen, self._coarse, COUNT_WEIGHT, self._count, orbit.axis, jac
+            weights, seen, self._coarse, COUNT_WEIGHT, self._count, orbit.axis, jac, columns
         )
         self.added[start : start + n] = True
 

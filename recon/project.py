@@ -336,14 +336,14 @@ def _clip(lo, hi, a, b):  # pragma: no cover
 
 @numba.njit(fastmath=True, error_model="numpy", boundscheck=False, inline="always")
 def _row_samples(
-    n, x0, h, s, umax, vmax, cols, mode, scale, d0, dd, axis, idx, fu, fv, wt
+    n, x0, h, s, umax, vmax, cols, mode, scale, d0, dd, axis, idx, fu, fv, wt, iu_out
 ):  # pragma: no cover
     """Detector sample positions and weights of ``n`` voxels from ``x0`` along one row.
 
     The tuples ``h`` and ``s`` hold (u*w, v*w, w) at voxel x = 0 and its step per voxel
     (float32 scalars, which stay in registers); ``d0``, ``dd``
     the voxel-minus-source vector at x = 0 and its step (modes 1 and 2); ``scale`` multiplies
-    every weight.
+    every weight; in mode 2 ``iu_out`` receives each sample's column (:func:`_column_weights`).
     """
     zero = np.float32(0.0)
     xf = np.float32(x0)  # a float counter (exact) vectorises better than converting k
@@ -369,7 +369,17 @@ def _row_samples(
             else:
                 along = dx * axis[0] + dy * axis[1] + dz * axis[2]
                 wt[k] = w * scale / (dist2 - along * along)
+                iu_out[k] = np.uint32(iu)
         xf += np.float32(1.0)
+
+
+@numba.njit(fastmath=True, error_model="numpy", boundscheck=False, inline="always")
+def _column_weights(n, column, iu, fu, wt):  # pragma: no cover
+    """wt[k] *= ``column`` (cols,) interpolated linearly at sample k's column ``iu[k] + fu[k]``
+    (a scalar loop apart from :func:`_row_samples`, whose loop a gather would stop vectorising)."""
+    for k in range(n):
+        c = iu[k]
+        wt[k] *= column[c] + fu[k] * (column[c + 1] - column[c])
 
 
 @numba.njit(fastmath=True, error_model="numpy", boundscheck=False, inline="always")
@@ -403,11 +413,12 @@ this machine's 48 KiB L1)."""
     parallel=True, fastmath=True, cache=True, error_model="numpy", boundscheck=False, nogil=True
 )
 def _backproject_kernel(
-    quads, scale, mats, sources, axis, mode, origin, spacing, out
+    quads, scale, mats, sources, axis, mode, columns, by_column, origin, spacing, out
 ):  # pragma: no cover
     """out[z, y, x] += sum over views of scale * weight(mode) * bilinear(image) at P x;
     ``quads`` holds the images (one per view, or one for all) as :func:`pixel_quads` viewed as
-    complex128, (views or 1, rows, cols)."""
+    complex128, (views or 1, rows, cols); in mode 2 with ``by_column`` each image is multiplied
+    along its columns by ``columns`` (views or 1, cols), float32."""
     n_images, rows, cols = quads.shape
     n_views = len(mats)
     nz, ny, nx = out.shape
@@ -426,6 +437,7 @@ def _backproject_kernel(
         fu = np.empty(nx, dtype=np.float32)
         fv = np.empty(nx, dtype=np.float32)
         wt = np.empty(nx, dtype=np.float32)
+        cu = np.empty(nx, dtype=np.uint32)
         taps = np.empty(nx + 1, dtype=np.complex128)
         d0 = np.empty(3, dtype=np.float32)
         dd = np.zeros(3, dtype=np.float32)
@@ -437,6 +449,7 @@ def _backproject_kernel(
             s2 = np.float32(m[2, 0] * spacing[0])
             s = (s0, s1, s2)
             image = flat[min(view, n_images - 1)]
+            column = columns[min(view, len(columns) - 1)]
             sc = scale[view]
             for y in range(y0, y1):
                 wy = origin[1] + y * spacing[1]
@@ -463,12 +476,14 @@ def _backproject_kernel(
                 h = (h0, h1, h2)
                 if mode == FDK_WEIGHT:  # the hot path, compiled with the weight's branch folded
                     _row_samples(
-                        n, x0, h, s, umax, vmax, cols, 0, sc, d0, dd, ax32, idx, fu, fv, wt
+                        n, x0, h, s, umax, vmax, cols, 0, sc, d0, dd, ax32, idx, fu, fv, wt, cu
                     )
                 else:
                     _row_samples(
-                        n, x0, h, s, umax, vmax, cols, mode, sc, d0, dd, ax32, idx, fu, fv, wt
+                        n, x0, h, s, umax, vmax, cols, mode, sc, d0, dd, ax32, idx, fu, fv, wt, cu
                     )
+                if mode == COUNT_WEIGHT and by_column:
+                    _column_weights(n, column, cu, fu, wt)
                 row_gather(n, image, idx, fu, fv, wt, taps, acc[y - y0, x0:])
         for y in range(y0, y1):
             for x in range(nx):
@@ -664,6 +679,7 @@ def backproject_weighted(
     out: np.ndarray,
     axis: np.ndarray | None = None,
     scale: np.ndarray | None = None,
+    columns: np.ndarray | None = None,
 ) -> None:
     """Accumulate voxel-driven backprojections of ``images`` into ``out``.
 
@@ -672,7 +688,10 @@ def backproject_weighted(
     voxel adds ``scale[view] * weight * bilinear(image)`` where its centre projects inside the
     panel; the weight is chosen by ``mode`` (:data:`FDK_WEIGHT`, :data:`ADJOINT_WEIGHT`,
     :data:`COUNT_WEIGHT`, the latter needing the rotation ``axis``); ``scale`` (V,) defaults
-    to 1. float32 throughout.
+    to 1. In :data:`COUNT_WEIGHT` mode ``columns`` (V or 1, cols) multiplies each image along
+    its columns, interpolated apart from it (for an image that is a row profile times a
+    column profile, the same as the product's bilinear interpolation); default 1. float32
+    throughout.
     """
     if out.shape != grid.shape or out.dtype != np.float32:
         raise ValueError(f"out must be float32 of shape {grid.shape}")
@@ -692,6 +711,11 @@ def backproject_weighted(
         origin, spacing = np.array(grid.origin_mm), np.array(grid.spacing_mm)
         _upright_kernel(quads, scale, matrices, origin, spacing, *upright_rows(), out)
         return
+    by_column = columns is not None
+    columns = np.ones((1, geometry.cols)) if columns is None else columns
+    columns = np.ascontiguousarray(columns, dtype=np.float32)
+    if columns.shape[1:] != (geometry.cols,) or len(columns) not in (1, len(geometry)):
+        raise ValueError(f"column weights of shape {columns.shape} for {len(geometry)} views")
     _backproject_kernel(
         quads,
         scale,
@@ -699,6 +723,8 @@ def backproject_weighted(
         np.asarray(geometry.sources_mm),
         np.zeros(3) if axis is None else np.ascontiguousarray(axis, dtype=np.float64),
         mode,
+        columns,
+        by_column,
         np.array(grid.origin_mm),
         np.array(grid.spacing_mm),
         out,

@@ -288,6 +288,8 @@ def test_the_upright_backprojector_is_the_general_one_to_float_rounding(orbit, s
         np.asarray(geometry.sources_mm),
         np.zeros(3),
         FDK_WEIGHT,
+        np.ones((1, 80), np.float32),
+        False,
         np.array(GRID.origin_mm),
         np.array(GRID.spacing_mm),
         general,
@@ -330,3 +332,23 @@ def test_a_tilted_orbit_is_not_upright():
 
 def _corners(grid: VolumeGrid) -> np.ndarray:
     return np.hstack((grid.corners_mm(), np.ones((8, 1))))
+
+
+def test_column_weights_count_as_the_product_image_does(seed):
+    """The views' count (COUNT_WEIGHT) of a shared row profile times per-view column weights
+    is the count of the product images: the bilinear footprint of a row profile times a column
+    profile is the product of their linear interpolations, so the two differ by float32
+    rounding of each sample's weight (a few ulp) summed over the views."""
+    geometry = circular_orbit(20, 600, 1000, PANEL, isocenter_mm=ISO)
+    rng = np.random.default_rng(seed)
+    rows = rng.uniform(0.2, 1.0, 64).astype(np.float32)
+    columns = rng.uniform(0.0, 1.0, (20, 80)).astype(np.float32)
+    axis = np.array([0.0, 0.0, 1.0])
+    product = np.zeros(GRID.shape, np.float32)
+    images = rows[None, :, None] * columns[:, None, :]
+    backproject_weighted(images, geometry, GRID, project.COUNT_WEIGHT, product, axis)
+    apart = np.zeros(GRID.shape, np.float32)
+    shared = np.repeat(rows[None, :, None], 80, axis=2)
+    backproject_weighted(shared, geometry, GRID, project.COUNT_WEIGHT, apart, axis, None, columns)
+    assert product.max() > 0
+    np.testing.assert_allclose(apart, product, rtol=1e-5, atol=1e-6 * product.max())
