@@ -366,9 +366,6 @@ class FDKAccumulator:
         self._cols_taper = _taper(geometry.cols, edge_taper_px).astype(np.float32)
         self._taper = np.outer(rows_taper, self._cols_taper)
         self._taper_quads = pixel_quads(self._taper[None])
-        # a short scan's count: the rows' taper shared, the columns' times Parker's per view
-        rows_image = np.repeat(rows_taper[None, :, None], geometry.cols, axis=2)
-        self._rows_taper_quads = pixel_quads(rows_image)
         self.aligned = motion_aligned(geometry)
         self.orbit = estimate_orbit(self.aligned.geometry)
         virtual = self.aligned.geometry
@@ -383,6 +380,12 @@ class FDKAccumulator:
             and self.orbit.span_deg < 359.0
         )
         self._parker = parker_weights(virtual, self.orbit) if use_parker else None
+        # a short scan's count: the rows' taper shared, the columns' times Parker's per view
+        self._rows_taper_quads = (
+            pixel_quads(np.repeat(rows_taper[None, :, None], geometry.cols, axis=2))
+            if use_parker and not self.aligned.turned
+            else None
+        )
         self._coarse = _coarse_grid(grid, coverage_subsample)
         self._num = np.zeros(grid.shape, dtype=np.float32)
         self._count = np.zeros(self._coarse.shape, dtype=np.float32)

@@ -280,22 +280,25 @@ def test_the_upright_backprojector_is_the_general_one_to_float_rounding(orbit, s
     assert project.upright(geometry, GRID)
     images = 1 + smooth_random((20, 64, 80), (0, 2, 2), seed=5 + seed)
     images[:, :3] = images[:, -3:] = images[:, :, :3] = images[:, :, -3:] = 0.0
+    quads = project.pixel_quads(images).view(np.complex128)[..., 0]
+    ones, matrices = np.ones(20, np.float32), np.asarray(geometry.matrices)
+    origin, spacing = np.array(GRID.origin_mm), np.array(GRID.spacing_mm)
     general = np.zeros(GRID.shape, np.float32)
     project._backproject_kernel(
-        project.pixel_quads(images).view(np.complex128)[..., 0],
-        np.ones(20, np.float32),
-        np.asarray(geometry.matrices),
+        quads,
+        ones,
+        matrices,
         np.asarray(geometry.sources_mm),
         np.zeros(3),
         FDK_WEIGHT,
         np.ones((1, 80), np.float32),
         False,
-        np.array(GRID.origin_mm),
-        np.array(GRID.spacing_mm),
+        origin,
+        spacing,
         general,
     )
     step = max(np.abs(np.diff(images, axis=a)).max() for a in (1, 2))
-    depth = np.einsum("vk,ck->vc", np.asarray(geometry.matrices)[:, 2], _corners(GRID))
+    depth = np.einsum("vk,ck->vc", matrices[:, 2], _corners(GRID))
     bound = 1e-4 * step * float(np.sum(1.0 / depth.min(axis=1) ** 2))
     assert general.max() > 100 * bound  # the volumes hold something
     upright = np.zeros(GRID.shape, np.float32)
@@ -303,16 +306,7 @@ def test_the_upright_backprojector_is_the_general_one_to_float_rounding(orbit, s
     worst = np.abs(upright - general).max()
     for _, (z_rows, y_rows) in project.UPRIGHT_ROWS_BY_L2:
         upright = np.zeros(GRID.shape, np.float32)
-        project._upright_kernel(
-            project.pixel_quads(images).view(np.complex128)[..., 0],
-            np.ones(20, np.float32),
-            np.asarray(geometry.matrices),
-            np.array(GRID.origin_mm),
-            np.array(GRID.spacing_mm),
-            z_rows,
-            y_rows,
-            upright,
-        )
+        project._upright_kernel(quads, ones, matrices, origin, spacing, z_rows, y_rows, upright)
         worst = max(worst, np.abs(upright - general).max())
     measured("upright_max_diff_over_bound", worst / bound, below=1.0)
 
