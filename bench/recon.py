@@ -7,8 +7,10 @@ reverse spiral, 360 degrees per pass, +-100 mm of lift travel; RTK runs its plai
 Two inputs per orbit: RTK's analytic ray-ellipsoid Shepp-Logan projector (an independent
 forward model) and our Joseph projector on the knee phantom rasterised at 0.4 mm.
 
-Each reconstruction runs in a fresh process that loads its inputs from disk, warms up (our
-kernels load from numba's cache; RTK has nothing to warm), then times the reconstruction alone;
+Each toolkit's reconstructions run in a fresh process that loads its inputs from disk, warms up
+(our kernels load from numba's cache; RTK has nothing to warm), then times the reconstruction
+alone ``--repeats`` times (3): each case's seconds are the median of its runs (the runs are
+listed beside it), so that a shared host's passing slow spell moves neither toolkit's figure;
 the process's peak resident memory is reported as measured (it includes the interpreter and
 the libraries). Both use a plain ramp (Ram-Lak) filter and both threads of this machine.
 
@@ -18,8 +20,8 @@ into 160^3 voxels of 1 mm (``CONSOLE``), each command timed twice in a fresh pro
 
 Prints one JSON object ``{"cases": [...], "console": {...}}``; see ``KEYS`` for each case.
 
-Usage: ``python bench/recon.py [--small] [--out DIR]`` (``--small`` runs a 64^3 version in
-about a minute to check the harness).
+Usage: ``python bench/recon.py [--small] [--repeats N] [--out DIR]`` (``--small`` runs a 64^3
+version in about a minute to check the harness).
 """
 
 from __future__ import annotations
@@ -55,6 +57,8 @@ KEYS = (
     "ours_s",
     "rtk_s",
     "speed_ratio",
+    "ours_runs_s",
+    "rtk_runs_s",
     "ours_rmse",
     "rtk_rmse",
     "ours_ssim",
@@ -112,32 +116,40 @@ def orbits(cfg: dict, isocenter) -> dict[str, Geometry]:
 # -- worker: one reconstruction in its own process ---------------------------------------------
 
 
-def worker(toolkit: str, folder: Path, case: str) -> None:
-    """Reconstruct ``folder``'s projections with one toolkit; print timing and peak memory."""
+def worker(toolkit: str, folder: Path, case: str, repeats: int) -> None:
+    """Reconstruct ``folder``'s projections with one toolkit ``repeats`` times; print each
+    run's seconds and the peak memory."""
     from recon.fdk import fdk_reconstruct
     from recon.rtk_peer import rtk_fdk
 
     projections, geometry, grid = read_scan(folder)
+    tiny = VolumeGrid.centered((8, 8, 8), 4.0, grid.center_mm)
     if toolkit == "ours":
-        tiny = VolumeGrid.centered((8, 8, 8), 4.0, grid.center_mm)
         fdk_reconstruct(
             projections[:8], geometry[:8], tiny, redundancy="none", min_coverage_deg=0
         )  # loads the compiled kernels from numba's cache
-        start = time.perf_counter()
-        volume = fdk_reconstruct(projections, geometry, grid, window="ram-lak").volume.data
+
+        def reconstruct() -> np.ndarray:
+            return fdk_reconstruct(projections, geometry, grid, window="ram-lak").volume.data
     else:
-        tiny = VolumeGrid.centered((8, 8, 8), 4.0, grid.center_mm)
         rtk_fdk(projections[:8], geometry[:8], tiny)  # loads RTK's wrapped modules
+
+        def reconstruct() -> np.ndarray:
+            return rtk_fdk(projections, geometry, grid, parker=case == "short")
+
+    seconds, volume = [], None
+    for _ in range(repeats):
+        volume = None  # the last run's volume is freed before the next is made
         start = time.perf_counter()
-        volume = rtk_fdk(projections, geometry, grid, parker=case == "short")
-    seconds = time.perf_counter() - start
+        volume = reconstruct()
+        seconds.append(time.perf_counter() - start)
     np.save(folder / f"{toolkit}.npy", volume)
     print(json.dumps({"seconds": seconds, "peak_mb": peak_resident_mb()}))
 
 
-def run_worker(toolkit: str, folder: Path, case: str) -> dict:
+def run_worker(toolkit: str, folder: Path, case: str, repeats: int) -> dict:
     done = subprocess.run(
-        [sys.executable, __file__, "--worker", toolkit, str(folder), case],
+        [sys.executable, __file__, "--worker", toolkit, str(folder), case, str(repeats)],
         capture_output=True,
         text=True,
         check=False,
@@ -218,20 +230,23 @@ def axial_drop(volume: np.ndarray, truth: np.ndarray, slab: int) -> float:
     return 1.0 - ends / middle
 
 
-def measure(case: str, kind: str, folder: Path, log) -> dict:
-    log(f"reconstructing {kind} / {case}: ours")
-    ours_run = run_worker("ours", folder, case)
-    log(f"reconstructing {kind} / {case}: RTK")
-    rtk_run = run_worker("rtk", folder, case)
+def measure(case: str, kind: str, folder: Path, repeats: int, log) -> dict:
+    log(f"reconstructing {kind} / {case}: ours x {repeats}")
+    ours_run = run_worker("ours", folder, case, repeats)
+    log(f"reconstructing {kind} / {case}: RTK x {repeats}")
+    rtk_run = run_worker("rtk", folder, case, repeats)
+    ours_s, rtk_s = (float(np.median(run["seconds"])) for run in (ours_run, rtk_run))
     truth = np.load(folder / "truth.npy")
     ours, theirs = np.load(folder / "ours.npy"), np.load(folder / "rtk.npy")
     region = central_region(truth.shape)
     entry = {
         "case": case,
         "input": kind,
-        "ours_s": round(ours_run["seconds"], 2),
-        "rtk_s": round(rtk_run["seconds"], 2),
-        "speed_ratio": round(rtk_run["seconds"] / ours_run["seconds"], 3),
+        "ours_s": round(ours_s, 2),
+        "rtk_s": round(rtk_s, 2),
+        "speed_ratio": round(rtk_s / ours_s, 3),
+        "ours_runs_s": [round(t, 2) for t in ours_run["seconds"]],
+        "rtk_runs_s": [round(t, 2) for t in rtk_run["seconds"]],
         "ours_rmse": float(np.sqrt(np.mean((ours - truth)[region] ** 2))),
         "rtk_rmse": float(np.sqrt(np.mean((theirs - truth)[region] ** 2))),
         "ours_ssim": round(ssim(ours, truth, region), 4),
@@ -319,12 +334,23 @@ def main() -> None:
     parser.add_argument("--small", action="store_true", help="64^3 harness check")
     parser.add_argument("--out", type=Path, help="keep inputs and outputs here")
     parser.add_argument(
-        "--worker", nargs=3, metavar=("TOOLKIT", "FOLDER", "CASE"), help=argparse.SUPPRESS
+        "--repeats",
+        type=int,
+        default=3,
+        help="timed runs per toolkit and case, the median reported (default 3)",
+    )
+    parser.add_argument(
+        "--worker",
+        nargs=4,
+        metavar=("TOOLKIT", "FOLDER", "CASE", "REPEATS"),
+        help=argparse.SUPPRESS,
     )
     args = parser.parse_args()
     if args.worker:
-        worker(args.worker[0], Path(args.worker[1]), args.worker[2])
+        worker(args.worker[0], Path(args.worker[1]), args.worker[2], int(args.worker[3]))
         return
+    if args.repeats < 1:
+        parser.error(f"--repeats {args.repeats}: at least 1")
     cfg = SMALL if args.small else FULL
 
     def log(msg: str) -> None:
@@ -333,9 +359,15 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="bench-recon-") as tmp:
         root = args.out or Path(tmp)
         jobs = shepp_logan_inputs(cfg, root, log) + knee_inputs(cfg, root, log)
-        cases = [measure(case, kind, folder, log) for case, kind, folder in jobs]
+        cases = [measure(case, kind, folder, args.repeats, log) for case, kind, folder in jobs]
         consoles = console(CONSOLE_SMALL if args.small else CONSOLE, root, log)
-    result = {"benchmark": "recon", "config": cfg, "cases": cases, "console": consoles}
+    result = {
+        "benchmark": "recon",
+        "config": cfg,
+        "repeats": args.repeats,
+        "cases": cases,
+        "console": consoles,
+    }
     print(json.dumps(result, indent=1))
 
 
