@@ -24,9 +24,9 @@ from recon.geometry import View
 from registration.meshes import MATERIALS, Material, decimated, read_mesh, voxelize
 
 OUTLINE_FACES = 4000
-"""Faces of the mesh a component's coarse silhouettes are drawn from (quadric decimation of a
-larger one): its outline departs from the full mesh's by a small share of a millimetre, far
-below the automatic search's 3 mm pixels."""
+"""Faces of a component's coarse mesh (each part's quadric decimation, its share of these):
+its surface departs from the full mesh's by a small share of a millimetre, which the automatic
+search's 3 mm pixels and the pyramid's coarse level hardly see."""
 
 
 @dataclass(frozen=True)
@@ -66,7 +66,8 @@ class ImplantModel:
     blur_mm: float = 0.0
 
     def voxel_mm(self) -> float:
-        """A mesh has no voxels to pool: never rendered coarse."""
+        """A mesh has no voxels to pool (its coarse mesh serves the pyramid's coarse levels:
+        registration.scene)."""
         return 0.0
 
     def render(
@@ -82,7 +83,8 @@ class ImplantModel:
         Args:
             view: The view rendered.
             T_world_body: Pose of the component, 4x4, mesh mm to world mm.
-            coarse: Ignored: a voxel model's option (a mesh is never rendered coarse).
+            coarse: Rendered from :attr:`coarse_mesh` (the pyramid's coarse levels), at a
+                cost that does not grow with the mesh's faces.
             spans: Ignored: a voxel model's option (the whole view is rendered).
             blurred: Blurred by :attr:`blur_mm` (False: sharp, for a caller that filters
                 it further anyway).
@@ -90,20 +92,37 @@ class ImplantModel:
         Returns:
             The stopped share of the beam, in [0, 1], float32 (rows, cols).
         """
-        uv, coef, A = _projected(view, self.vertices_mm, self.faces, T_world_body)
+        vertices, faces, face_mu = (
+            self.coarse_mesh if coarse else (self.vertices_mm, self.faces, self.face_mu)
+        )
+        uv, coef, A = _projected(view, vertices, faces, T_world_body)
         out = np.zeros((view.rows, view.cols), dtype=np.float32)
-        _render(uv, coef, self.face_mu, A, self.supersample, True, out, numba.get_num_threads())
+        _render(uv, coef, face_mu, A, self.supersample, True, out, numba.get_num_threads())
         if blurred and self.blur_mm > 0.0:
             gaussian_filter(out, self.blur_mm / view.pitch_u_mm, output=out, mode="constant")
         return out
 
     @cached_property
-    def outline_mesh(self) -> tuple[np.ndarray, np.ndarray]:
-        """The mesh decimated to at most :data:`OUTLINE_FACES` faces (vertices mm, faces),
-        for silhouettes on coarse pixels; the mesh itself when it has no more."""
-        mesh = trimesh.Trimesh(self.vertices_mm, self.faces, process=False)
-        small = decimated(mesh, OUTLINE_FACES)
-        return np.asarray(small.vertices, dtype=np.float64), np.asarray(small.faces, np.int64)
+    def coarse_mesh(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The mesh with each part (the faces of one attenuation) decimated to its share of
+        :data:`OUTLINE_FACES` faces: vertices (V, 3) mm, faces (T, 3) and each face's
+        attenuation (T,) 1/mm; the mesh itself when it has no more faces."""
+        if len(self.faces) <= OUTLINE_FACES:
+            return self.vertices_mm, self.faces, self.face_mu
+        parts, mus = [], []
+        for mu in np.unique(self.face_mu):
+            faces = self.faces[self.face_mu == mu]
+            part = trimesh.Trimesh(self.vertices_mm, faces, process=False)
+            part.remove_unreferenced_vertices()
+            part = decimated(part, math.ceil(OUTLINE_FACES * len(faces) / len(self.faces)))
+            parts.append(part)
+            mus.append(np.full(len(part.faces), mu))
+        whole = trimesh.util.concatenate(parts)
+        return (
+            np.asarray(whole.vertices, dtype=np.float64),
+            np.asarray(whole.faces, dtype=np.int64),
+            np.concatenate(mus),
+        )
 
     def silhouette(self, view: View, T_world_body: np.ndarray, outline: bool = False) -> np.ndarray:
         """The pixels of ``view`` whose centre's ray meets the component at ``T_world_body``.
@@ -111,13 +130,13 @@ class ImplantModel:
         Args:
             view: The view.
             T_world_body: Pose of the component, 4x4, mesh mm to world mm.
-            outline: Drawn from :attr:`outline_mesh` (pixels of a millimetre or more, as the
+            outline: Drawn from :attr:`coarse_mesh` (pixels of a millimetre or more, as the
                 automatic search's), at a cost that does not grow with the mesh's faces.
 
         Returns:
             The silhouette, bool (rows, cols).
         """
-        vertices, faces = self.outline_mesh if outline else (self.vertices_mm, self.faces)
+        vertices, faces = self.coarse_mesh[:2] if outline else (self.vertices_mm, self.faces)
         return ray_lengths(view, vertices, faces, T_world_body) > 0.0
 
 

@@ -94,7 +94,8 @@ class Objective:
 
     def image(self, T: np.ndarray) -> np.ndarray:
         if self._sharp is not None:
-            return self.background + self._sharp(self.body.render(self.view, T, blurred=False))
+            sharp = self.body.render(self.view, T, self.coarse, blurred=False)
+            return self.background + self._sharp(sharp)
         moving = self.body.render(self.view, T, self.coarse, self.spans)
         if self.carried is not None:
             moving += self.carried[0].project_moved(self.view, T @ self._deformed_inv, self.spans)

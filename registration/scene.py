@@ -14,6 +14,7 @@ import numpy as np
 from recon.geometry import View
 from registration import search
 from registration.drr import SoftTissue, scene
+from registration.implants import ImplantModel
 from registration.objective import BodyModel, Objective, Searched
 from registration.priors import Prior, depth_prior, joined, patellofemoral_prior
 from registration.resolution import frame_blur, model_blur
@@ -255,8 +256,11 @@ class Scene(Searches):
         return truncation_mask(self.soft_tissue, self._views[level], band_mm, name, poses, reach)
 
     def _coarse(self, level: int, name: str) -> bool:
-        """Render with the pooled volumes when a pixel spans two voxels at the body."""
+        """Render with the pooled volumes when a pixel spans two voxels at the body; a mesh,
+        from its coarse mesh on every level but the finest."""
         view, body = self._views[level], self.bodies[name]
+        if isinstance(body, ImplantModel):
+            return level != self.levels[-1]
         pixel_at_body = view.pitch_u_mm * float(view.depth(body.centroid_mm)[0])
         return pixel_at_body >= 2.0 * body.voxel_mm()
 
