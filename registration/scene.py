@@ -48,6 +48,8 @@ class Searches(ABC):
         lone: bool = False,
         reach: tuple[np.ndarray, ...] = (),
         beside: tuple[str, ...] = (),
+        *,
+        outline: bool = False,
     ) -> Searched:
         """The objective of body ``name`` on pyramid ``level`` of ``frame``, the others at
         ``poses`` (:meth:`Scene.objective`)."""
@@ -103,7 +105,9 @@ class Searches(ABC):
     ) -> tuple[np.ndarray, int]:
         """Differential evolution in a box aligned with the body's principal axes at its
         current pose (registration.search.global_search) on the coarsest level."""
-        objective = self.objective(frame, self.levels[0], name, poses, lone, beside=beside)
+        objective = self.objective(
+            frame, self.levels[0], name, poses, lone, beside=beside, outline=True
+        )
         axes = poses[name][:3, :3] @ search.principal_axes(self.bodies[name].points_mm)
         x = search.global_search(objective, axes, self.settings, scale)
         return compose(x, poses[name], self.bodies[name].centroid_mm), objective.evaluations
@@ -191,11 +195,13 @@ class Scene(Searches):
         beside: tuple[str, ...] = (),
         *,
         with_prior: bool = True,
+        outline: bool = False,
     ) -> Objective:
         """The objective of body ``name``, the others at ``poses`` (``lone``: the body alone
         but for those ``beside`` it, no prior, no soft tissue), masked to its silhouettes at
         ``poses`` and ``reach``; ``with_prior`` False leaves the prior out (several views
-        share one: registration.views)."""
+        share one: registration.views); ``outline``: a mesh renders from its coarse mesh (the
+        differential evolution's hundreds of renders on the coarsest level)."""
         view = self._views[level]
         others = {b: m for b, m in self.bodies.items() if b != name and (not lone or b in beside)}
         stays = carried = None
@@ -218,7 +224,7 @@ class Scene(Searches):
             poses[name],
             self._targets.sigma_px(level),
             round(self.settings.mask_dilation_mm / view.pitch_u_mm),
-            self._coarse(level, name),
+            self._coarse(level, name, outline),
             None if lone or not with_prior else self.prior(name, poses),
             reach,
             _either(
@@ -255,12 +261,12 @@ class Scene(Searches):
             return None
         return truncation_mask(self.soft_tissue, self._views[level], band_mm, name, poses, reach)
 
-    def _coarse(self, level: int, name: str) -> bool:
+    def _coarse(self, level: int, name: str, outline: bool = False) -> bool:
         """Render with the pooled volumes when a pixel spans two voxels at the body; a mesh,
-        from its coarse mesh on every level but the finest."""
+        from its coarse mesh when asked for (``outline``) on a level other than the finest."""
         view, body = self._views[level], self.bodies[name]
         if isinstance(body, ImplantModel):
-            return level != self.levels[-1]
+            return outline and level != self.levels[-1]
         pixel_at_body = view.pitch_u_mm * float(view.depth(body.centroid_mm)[0])
         return pixel_at_body >= 2.0 * body.voxel_mm()
 

@@ -82,6 +82,8 @@ class Views(Searches):
         lone: bool = False,
         reach: tuple[np.ndarray, ...] = (),
         beside: tuple[str, ...] = (),
+        *,
+        outline: bool = False,
     ) -> JointObjective:
         """Body ``name``'s objective over the views that see it in ``frame`` (whose frame holds
         an image, :meth:`Scene.objective` in each); :class:`OutOfView` when none does."""
@@ -90,7 +92,15 @@ class Views(Searches):
             try:
                 objectives.append(
                     scene.objective(
-                        frame, level, name, poses, lone, reach, beside, with_prior=False
+                        frame,
+                        level,
+                        name,
+                        poses,
+                        lone,
+                        reach,
+                        beside,
+                        with_prior=False,
+                        outline=outline,
                     )
                 )
             except OutOfView as err:
