@@ -102,13 +102,12 @@ class Searches(ABC):
         scale: float = 1.0,
         lone: bool = False,
         beside: tuple[str, ...] = (),
-        outline: bool = False,
     ) -> tuple[np.ndarray, int]:
         """Differential evolution in a box aligned with the body's principal axes at its
-        current pose (registration.search.global_search) on the coarsest level; ``outline``:
-        a mesh renders from its coarse mesh (:meth:`Scene.objective`)."""
+        current pose (registration.search.global_search) on the coarsest level, a mesh
+        rendered from its coarse mesh (:meth:`Scene.objective`)."""
         objective = self.objective(
-            frame, self.levels[0], name, poses, lone, beside=beside, outline=outline
+            frame, self.levels[0], name, poses, lone, beside=beside, outline=True
         )
         axes = poses[name][:3, :3] @ search.principal_axes(self.bodies[name].points_mm)
         x = search.global_search(objective, axes, self.settings, scale)

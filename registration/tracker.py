@@ -193,9 +193,8 @@ class Tracker:
         """Body ``name``'s best start in ``frame`` among its candidate poses.
 
         Differential evolution in twice the first frame's box about each candidate, the
-        bodies already placed in the scene, a component rendered from its coarse mesh
-        (registration.implants.ImplantModel.coarse_mesh), scored by its NCC on the coarsest
-        level (registration.autostart).
+        bodies already placed in the scene, scored by its NCC on the coarsest level
+        (registration.autostart).
 
         Args:
             frame: Index of the frame.
@@ -213,9 +212,7 @@ class Tracker:
         for T in candidates:
             trial = {**{b: T for b in self.order}, **placed, name: T}
             try:
-                pose, _ = self.scene.global_search(
-                    frame, name, trial, 2.0, True, beside, outline=True
-                )
+                pose, _ = self.scene.global_search(frame, name, trial, 2.0, True, beside)
                 objective = self.scene.objective(
                     frame, self.scene.levels[0], name, trial | {name: pose}, True, beside=beside
                 )

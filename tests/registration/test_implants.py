@@ -14,7 +14,12 @@ from scipy.spatial.transform import Rotation
 
 from recon.config import load_config
 from registration.autostart import binning
-from registration.implants import OUTLINE_FACES, implant_model, ray_lengths
+from registration.implants import (
+    COARSE_SHAPE_SHARE,
+    OUTLINE_FACES,
+    implant_model,
+    ray_lengths,
+)
 from registration.jointtrack import camera_view, read_calibration, read_poses
 from registration.meshes import MATERIALS, read_mesh, voxelize
 from registration.scene import Scene
@@ -143,10 +148,10 @@ def test_a_sphere_renders_its_chords_and_a_shadow_flat_inside():
 
 
 def test_a_large_mesh_s_coarse_outline_is_its_silhouette_at_a_few_faces(seed, measured):
-    """A 20,480-face torus's outline mesh has OUTLINE_FACES faces, and its silhouettes on the
-    automatic search's 3 mm pixels are the full mesh's but for a few rim pixels (the decimation
-    moves the surface by a small share of a pixel: measured at most 1.2 % of the silhouette's
-    pixels over 60 poses, seeds 0-2)."""
+    """A 20,480-face torus's coarse mesh has OUTLINE_FACES faces (its volume is then within
+    0.06 % of the torus's), and its silhouettes on the automatic search's 3 mm pixels are the
+    full mesh's but for a few rim pixels (the decimation moves the surface by a small share of
+    a pixel: measured at most 1.2 % of the silhouette's pixels over 60 poses, seeds 0-2)."""
     torus = trimesh.creation.torus(25.0, 8.0, major_sections=160, minor_sections=64)
     model = implant_model("femoral_component", torus, MATERIALS["CoCr"])
     assert len(model.coarse_mesh[1]) == OUTLINE_FACES < len(torus.faces)
@@ -165,11 +170,13 @@ def test_a_large_mesh_s_coarse_outline_is_its_silhouette_at_a_few_faces(seed, me
 
 def test_a_coarse_level_renders_each_part_from_its_coarse_mesh(seed, measured):
     """A 20,480-face cobalt-chrome torus with a 20,480-face polyethylene sphere attached: the
-    coarse mesh keeps each part's attenuation on its share of OUTLINE_FACES faces, renders on
-    the pyramid's coarse level (1.5 mm at the panel) as the full mesh does but for a share of
-    its rim (measured 0.28-0.31 % of the shadow's sum at most over 10 poses, seeds 0-2), and the
-    differential evolution renders it there only, never on the finest level (0.75 mm), and the
-    least squares never."""
+    coarse mesh keeps each part's attenuation, and its volume and area within
+    COARSE_SHAPE_SHARE on as few faces as that allows from its share of OUTLINE_FACES (the
+    sphere at 2,000 and 4,000 faces keeps 99.78 and 99.90 % of its volume: 8,000; the torus at
+    2,000 keeps 99.71 %: 4,000), renders on the pyramid's coarse level (1.5 mm at the panel) as
+    the full mesh does but for a share of its rim (measured 0.17-0.19 % of the shadow's sum at
+    most over 10 poses, seeds 0-2), and the differential evolution renders it there only, never
+    on the finest level (0.75 mm), and the least squares never."""
     torus = trimesh.creation.torus(25.0, 8.0, major_sections=160, minor_sections=64)
     ball = trimesh.creation.icosphere(subdivisions=5, radius=12.0)
     ball.apply_translation((0.0, 0.0, 30.0))
@@ -177,7 +184,12 @@ def test_a_coarse_level_renders_each_part_from_its_coarse_mesh(seed, measured):
     model = implant_model("femoral_component", torus, cocr, attached=[(ball, pe)])
     face_mu = model.coarse_mesh[2]
     shares = {m.name: np.sum(face_mu == m.mu_per_mm(70.0)) for m in (cocr, pe)}
-    assert shares == {"CoCr": OUTLINE_FACES // 2, "UHMWPE": OUTLINE_FACES // 2}
+    assert shares == {"CoCr": OUTLINE_FACES, "UHMWPE": 2 * OUTLINE_FACES}
+    vertices, faces = model.coarse_mesh[:2]
+    for part, material in ((torus, cocr), (ball, pe)):
+        coarse = trimesh.Trimesh(vertices, faces[face_mu == material.mu_per_mm(70.0)])
+        assert abs(coarse.volume / part.volume - 1.0) <= COARSE_SHAPE_SHARE
+        assert abs(coarse.area / part.area - 1.0) <= COARSE_SHAPE_SHARE
     view = camera_view(1198.0, 0.0, 0.0, 0.375, 512, 512)
     scene = Scene(
         view,
