@@ -172,9 +172,29 @@ def _joseph_kernel(
 class JosephProjector:
     """A volume prepared once for many Joseph projections (DRRs in registration loops)."""
 
+    PAD = _PAD
+    """Zero voxels on every side of the array a projector holds."""
+
     def __init__(self, volume: np.ndarray, grid: VolumeGrid) -> None:
-        vol = _check_volume(volume, grid)
-        padded = np.pad(vol, _PAD)
+        self._hold(np.pad(_check_volume(volume, grid), _PAD), grid)
+
+    @classmethod
+    def of_padded(cls, padded: np.ndarray, grid: VolumeGrid) -> JosephProjector:
+        """A projector of a volume already laid out with :attr:`PAD` zero voxels on every
+        side: float32, C-contiguous, ``grid.shape`` plus ``2 * PAD`` along each axis; held as
+        it is (no copy, no check of its values)."""
+        expected = tuple(n + 2 * _PAD for n in grid.shape)
+        if padded.shape != expected or padded.dtype != np.float32:
+            raise ValueError(
+                f"a padded volume must be float32 of shape {expected} for grid shape "
+                f"{grid.shape}, got {padded.dtype} {padded.shape}"
+            )
+        projector = cls.__new__(cls)
+        projector._hold(np.ascontiguousarray(padded), grid)
+        return projector
+
+    def _hold(self, padded: np.ndarray, grid: VolumeGrid) -> None:
+        """Keep the padded volume and the grid's figures the kernel takes."""
         self.grid = grid
         self._flat = padded.ravel()
         self._strides = np.array(padded.strides[::-1], dtype=np.int64) // padded.itemsize

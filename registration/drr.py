@@ -52,10 +52,16 @@ def _pooled(
             n = out.shape[axis] // f
             parts = [out[(slice(None),) * axis + (slice(k, n * f, f),)] for k in range(f)]
             out = sum(parts[1:], parts[0]) / np.float32(f)
+    return out, _pooled_grid(grid, factor_xyz)
+
+
+def _pooled_grid(grid: VolumeGrid, factor_xyz: tuple[int, int, int]) -> VolumeGrid:
+    """The lattice of :func:`_pooled`'s blocks of ``factor_xyz`` voxels (x, y, z) of ``grid``."""
+    factor = np.asarray(factor_xyz, dtype=int)
+    shape = tuple(int(n) for n in np.asarray(grid.shape) // factor[::-1])
     spacing = np.asarray(grid.spacing_mm)
     origin = np.asarray(grid.origin_mm) + 0.5 * (factor - 1) * spacing
-    pooled = VolumeGrid(out.shape, tuple(factor * spacing), tuple(origin))
-    return out, pooled
+    return VolumeGrid(shape, tuple(factor * spacing), tuple(origin))
 
 
 def along_axis(data: np.ndarray, grid: VolumeGrid, axis: int) -> JosephProjector:
@@ -309,6 +315,35 @@ def _pull_back(data, x, y, z, center, slope, tibia, femur, values, w):  # pragma
                 values[k, j, i] = total
 
 
+@numba.njit(parallel=True, cache=True, error_model="numpy")
+def _split_kernel(data, w, femur, axis, pad, stays, carried):  # pragma: no cover
+    """:meth:`SoftTissue.split`'s loops: ``data * (1 - s)`` into ``stays`` and the mean of
+    each pair of ``data * s`` along array ``axis`` (0, 1, 2: z, y, x; an odd last slice
+    dropped) into ``carried``, both ``pad`` voxels in from every side; ``s`` is the femur's
+    share ``w`` (``femur``) or the tibia's, ``1 - w``. Float32 throughout, in numpy's order
+    of operations (no fastmath): the values numpy's expressions give."""
+    one, two = np.float32(1.0), np.float32(2.0)
+    nz, ny, nx = data.shape
+    for k in numba.prange(nz):
+        for j in range(ny):
+            for i in range(nx):
+                s = w[k, j, i] if femur else one - w[k, j, i]
+                stays[k + pad, j + pad, i + pad] = data[k, j, i] * (one - s)
+    dz, dy, dx = int(axis == 0), int(axis == 1), int(axis == 2)
+    cz, cy, cx = carried.shape[0] - 2 * pad, carried.shape[1] - 2 * pad, carried.shape[2] - 2 * pad
+    for k in numba.prange(cz):
+        for j in range(cy):
+            for i in range(cx):
+                k0, j0, i0 = k * (1 + dz), j * (1 + dy), i * (1 + dx)
+                s0 = w[k0, j0, i0] if femur else one - w[k0, j0, i0]
+                s1 = w[k0 + dz, j0 + dy, i0 + dx]
+                if not femur:
+                    s1 = one - s1
+                first = data[k0, j0, i0] * s0
+                second = data[k0 + dz, j0 + dy, i0 + dx] * s1
+                carried[k + pad, j + pad, i + pad] = (first + second) / two
+
+
 @dataclass(frozen=True, eq=False)
 class SoftTissue:
     """The soft tissue (every bone voxel filled with the soft tissue's attenuation, every rim
@@ -417,18 +452,24 @@ class SoftTissue:
         _pull_back(self.data, *grid.axes_mm(), center, normal / self.blend_mm, *pull, values, w)
         return values, w, grid
 
-    def carried(
-        self, deformed: tuple[np.ndarray, np.ndarray, VolumeGrid], name: str
-    ) -> tuple[np.ndarray, np.ndarray | None]:
+    def split(
+        self, deformed: tuple[np.ndarray, np.ndarray, VolumeGrid], name: str, along: int
+    ) -> tuple[JosephProjector, JosephProjector | None]:
         """The :meth:`deformed` soft tissue split into what stays when bone ``name`` moves a
         little and what it carries along (its share of each voxel's motion: the deformation
-        to first order); all stays (and None is carried) for a bone other than the femur and
-        the tibia."""
-        data, w, _ = deformed
-        share = {"femur": w, "tibia_fibula": 1.0 - w}.get(name)
-        if share is None:
-            return data, None
-        return data * (1.0 - share), data * share
+        to first order), ready to render: what stays on the deformation's lattice, what is
+        carried averaged over pairs of slices along axis ``along`` (0, 1, 2: x, y, z; see
+        :func:`along_axis`). All stays (and None is carried) for a bone other than the femur
+        and the tibia. Each is written once, straight into its projector's padded array."""
+        data, w, grid = deformed
+        if name not in ("femur", "tibia_fibula"):
+            return JosephProjector(data, grid), None
+        pooled = _pooled_grid(grid, tuple(np.eye(3, dtype=int)[along] + 1))
+        pad = JosephProjector.PAD
+        stays = np.zeros(tuple(n + 2 * pad for n in grid.shape), dtype=np.float32)
+        carried = np.zeros(tuple(n + 2 * pad for n in pooled.shape), dtype=np.float32)
+        _split_kernel(data, w, name == "femur", 2 - along, pad, stays, carried)
+        return JosephProjector.of_padded(stays, grid), JosephProjector.of_padded(carried, pooled)
 
     def render(self, view: View, poses: dict[str, np.ndarray]) -> np.ndarray:
         """Line integrals of the soft tissue deformed by ``poses`` (femur, tibia_fibula)."""

@@ -11,7 +11,7 @@ from scipy.ndimage import distance_transform_edt
 
 from recon.geometry import View
 from recon.project import JosephProjector
-from registration.drr import SoftTissue, along_axis
+from registration.drr import SoftTissue
 
 EDGE_ON_DEG = 45.0
 """A face of the static scan's box cuts the leg with a step in the DRR where the rays graze it
@@ -61,7 +61,7 @@ class DeformedTissue:
 
     def split(self, name: str, poses: dict[str, np.ndarray]) -> Split:
         """The soft tissue deformed by ``poses``: what stays when body ``name`` moves, and
-        what it carries (registration.drr.SoftTissue.carried, averaged over pairs of slices
+        what it carries (registration.drr.SoftTissue.split, averaged over pairs of slices
         along the rays: rendered every evaluation) with the body's pose in the deformation;
         reused for poses nearby (:meth:`_near`)."""
         knee = next((k for k, pair in self._knees.items() if self._near(name, pair, poses)), None)
@@ -70,14 +70,10 @@ class DeformedTissue:
             self._knees[knee] = (poses["femur"], poses["tibia_fibula"])
             self._deformed[knee] = self.soft_tissue.deformed(*self._knees[knee], self.view)
         if (knee, name) not in self._split:
-            deformed = self._deformed[knee]
-            stays, carried = self.soft_tissue.carried(deformed, name)
             axis = int(np.argmax(np.abs(self.view.normal)))  # the rays' main axis
-            moving = None
-            if carried is not None:
-                pose = self._knees[knee][name != "femur"]
-                moving = (along_axis(carried, deformed[2], axis), pose)
-            self._split[knee, name] = (JosephProjector(stays, deformed[2]), moving)
+            stays, carried = self.soft_tissue.split(self._deformed[knee], name, axis)
+            pose = self._knees[knee][name != "femur"]
+            self._split[knee, name] = (stays, None if carried is None else (carried, pose))
         return self._split[knee, name]
 
     def _near(self, name: str, knee: tuple[np.ndarray, np.ndarray], poses) -> bool:

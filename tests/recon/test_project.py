@@ -208,6 +208,22 @@ def test_bad_input_is_refused_before_projecting():
         backproject(np.zeros((3, 64, 80)), geometry, GRID)
 
 
+def test_a_projector_of_a_padded_volume_projects_as_one_that_pads_it():
+    """``JosephProjector.of_padded`` holds an array laid out with ``PAD`` zero voxels per side
+    as it is and projects as a projector given the bare volume; a layout that does not fit
+    the grid is refused with both shapes."""
+    volume = np.abs(smooth_random(GRID.shape, 3.0, 5)).astype(np.float32)
+    padded = np.pad(volume, JosephProjector.PAD)
+    views = circular_orbit(3, 600, 1000, PANEL, isocenter_mm=ISO)
+    expected = JosephProjector(volume, GRID).project(views)
+    assert expected.max() > 0.0
+    assert np.array_equal(JosephProjector.of_padded(padded, GRID).project(views), expected)
+    with pytest.raises(ValueError, match=r"float32 of shape .* for grid shape"):
+        JosephProjector.of_padded(volume, GRID)
+    with pytest.raises(ValueError, match="float64"):
+        JosephProjector.of_padded(padded.astype(np.float64), GRID)
+
+
 def test_projecting_a_moved_volume_equals_projecting_through_the_inversely_moved_view():
     """``project_moved(view, T)`` is the shortcut of ``project`` through
     ``view.transformed(inv(T))``: the same kernel on the same rays, so equal to float32

@@ -12,9 +12,9 @@ from scipy.spatial.transform import Rotation
 
 import registration
 from recon.geometry import DetectorSpec, Geometry
-from recon.project import forward_project
+from recon.project import JosephProjector, forward_project
 from recon.volume import Volume, VolumeGrid
-from registration.drr import SoftTissue, bone_models, scene, soft_tissue_level
+from registration.drr import SoftTissue, along_axis, bone_models, scene, soft_tissue_level
 from registration.metrics import pose_error
 from registration.objective import OutOfView
 from registration.priors import patellofemoral_deviation, predict
@@ -116,11 +116,20 @@ def test_soft_tissue_bends_with_the_knee_and_moves_rigidly_with_the_leg(
     )
     trilinear_error = np.abs(deformed[0] - expected).max() / soft.data.max()
     measured("deformed_vs_scipy_max_error_rel", trilinear_error, below=1e-4)
-    for name in ("femur", "tibia_fibula"):
-        stays, carried = soft.carried(deformed, name)
-        np.testing.assert_allclose(stays + carried, deformed[0], atol=1e-6)
-    stays, carried = soft.carried(deformed, "patella")
-    assert carried is None and np.array_equal(stays, deformed[0])
+    # what each bone carries (its share, averaged over pairs of slices along the rays) and
+    # what stays render as the projectors of numpy's products do, to the bit
+    data, w, lattice = deformed
+    rays = Geometry([view])
+    for name, share in (("femur", w), ("tibia_fibula", 1.0 - w)):
+        for axis in range(3):  # the rays' main axis is x here; pairs along any axis
+            stays, carried = soft.split(deformed, name, axis)
+            expected = along_axis(data * share, lattice, axis).project(rays)
+            assert np.array_equal(carried.project(rays), expected), (name, axis)
+        expected = JosephProjector(data * (1.0 - share), lattice).project(rays)
+        assert np.array_equal(stays.project(rays), expected), name
+    stays, carried = soft.split(deformed, "patella", 0)
+    assert carried is None
+    assert np.array_equal(stays.project(rays), JosephProjector(data, lattice).project(rays))
     # the field cut keeps every ray's integral
     whole = soft.deformed(bent["femur"], bent["tibia_fibula"])
     full = forward_project(whole[0], whole[2], Geometry([view]))[0]
