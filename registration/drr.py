@@ -315,19 +315,26 @@ def _pull_back(data, x, y, z, center, slope, tibia, femur, values, w):  # pragma
                 values[k, j, i] = total
 
 
+@numba.njit(cache=True, inline="always")
+def _bone_share(w, femur):  # pragma: no cover
+    """A voxel's share of the bone's motion, float32: the femur's ``w`` or the tibia's
+    ``1 - w``."""
+    return w if femur else np.float32(1.0) - w
+
+
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _split_kernel(data, w, femur, axis, pad, stays, carried):  # pragma: no cover
     """:meth:`SoftTissue.split`'s loops: ``data * (1 - s)`` into ``stays`` and the mean of
     each pair of ``data * s`` along array ``axis`` (0, 1, 2: z, y, x; an odd last slice
-    dropped) into ``carried``, both ``pad`` voxels in from every side; ``s`` is the femur's
-    share ``w`` (``femur``) or the tibia's, ``1 - w``. Float32 throughout, in numpy's order
-    of operations (no fastmath): the values numpy's expressions give."""
+    dropped) into ``carried``, both ``pad`` voxels in from every side; ``s`` is the bone's
+    share (:func:`_bone_share`). Float32 throughout, in numpy's order of operations (no
+    fastmath): the values numpy's expressions give."""
     one, two = np.float32(1.0), np.float32(2.0)
     nz, ny, nx = data.shape
     for k in numba.prange(nz):
         for j in range(ny):
             for i in range(nx):
-                s = w[k, j, i] if femur else one - w[k, j, i]
+                s = _bone_share(w[k, j, i], femur)
                 stays[k + pad, j + pad, i + pad] = data[k, j, i] * (one - s)
     dz, dy, dx = int(axis == 0), int(axis == 1), int(axis == 2)
     cz, cy, cx = carried.shape[0] - 2 * pad, carried.shape[1] - 2 * pad, carried.shape[2] - 2 * pad
@@ -335,12 +342,9 @@ def _split_kernel(data, w, femur, axis, pad, stays, carried):  # pragma: no cove
         for j in range(cy):
             for i in range(cx):
                 k0, j0, i0 = k * (1 + dz), j * (1 + dy), i * (1 + dx)
-                s0 = w[k0, j0, i0] if femur else one - w[k0, j0, i0]
-                s1 = w[k0 + dz, j0 + dy, i0 + dx]
-                if not femur:
-                    s1 = one - s1
-                first = data[k0, j0, i0] * s0
-                second = data[k0 + dz, j0 + dy, i0 + dx] * s1
+                k1, j1, i1 = k0 + dz, j0 + dy, i0 + dx
+                first = data[k0, j0, i0] * _bone_share(w[k0, j0, i0], femur)
+                second = data[k1, j1, i1] * _bone_share(w[k1, j1, i1], femur)
                 carried[k + pad, j + pad, i + pad] = (first + second) / two
 
 

@@ -72,8 +72,9 @@ class DeformedTissue:
         if (knee, name) not in self._split:
             axis = int(np.argmax(np.abs(self.view.normal)))  # the rays' main axis
             stays, carried = self.soft_tissue.split(self._deformed[knee], name, axis)
-            pose = self._knees[knee][name != "femur"]
-            self._split[knee, name] = (stays, None if carried is None else (carried, pose))
+            if carried is not None:  # with the bone's pose in the deformation
+                carried = (carried, self._knees[knee][name != "femur"])
+            self._split[knee, name] = (stays, carried)
         return self._split[knee, name]
 
     def _near(self, name: str, knee: tuple[np.ndarray, np.ndarray], poses) -> bool:
