@@ -197,16 +197,22 @@ def gvcp_discover(address: str, timeout_s: float = 0.2) -> str | None:
     ``address``, or None when none answers within ``timeout_s``."""
     # GVCP command header: key 0x42, flags (ack required), DISCOVERY_CMD, length 0, request id
     command = struct.pack(">BBHHH", 0x42, 0x01, 0x0002, 0, 1)
+    deadline = time.monotonic() + timeout_s
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.settimeout(timeout_s)
-        sock.sendto(command, (address, GVCP_PORT))
-        try:
-            ack = sock.recv(1024)
-        except (TimeoutError, ConnectionRefusedError):
-            return None
-    # ack header (8 bytes), then the bootstrap registers 0x0000..0x00f7: serial at 0x00d8
-    serial = ack[8 + 0xD8 : 8 + 0xD8 + 16]
-    return serial.split(b"\0", 1)[0].decode("ascii", "replace") if len(ack) >= 8 + 0xE8 else None
+        sock.connect((address, GVCP_PORT))  # the kernel drops datagrams from anyone else
+        sock.send(command)
+        while (left := deadline - time.monotonic()) > 0:
+            sock.settimeout(left)
+            try:
+                ack = sock.recv(1024)
+            except (TimeoutError, ConnectionRefusedError):
+                return None
+            # ack header: status, DISCOVERY_ACK, length, request id; then the bootstrap
+            # registers 0x0000..0x00f7, the serial at 0x00d8
+            if len(ack) >= 8 + 0xE8 and ack[2:4] == b"\x00\x03" and ack[6:8] == b"\x00\x01":
+                serial = ack[8 + 0xD8 : 8 + 0xD8 + 16]
+                return serial.split(b"\0", 1)[0].decode("ascii", "replace")
+    return None
 
 
 class FakePanel:

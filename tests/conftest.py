@@ -224,6 +224,7 @@ REALTIME = (
     "scanner/test_ur.py",
     "scanner/test_ur_move.py",
     "scanner/test_ur_scan.py",
+    "scanner/test_gige.py",
     "scanner/test_gige_realtime.py",
     "scanner/test_gige_scan.py",
     "scanner/test_spellman.py",
@@ -233,7 +234,9 @@ REALTIME = (
 times (time to SAFE, timeouts, pacing): marked ``realtime``. ``make test`` hands them to one
 worker as one unit, first (:func:`pytest_xdist_make_scheduler`), so that beside them runs at
 most one other test, single-threaded, on a machine of two cores or more: never enough work to
-stretch their clocks."""
+stretch their clocks. Every module that starts a fake GigE Vision panel is here: two fakes
+streaming at once on one loopback cross-talk (a datagram of one reaches the other's stream or
+discovery socket, and the driver rightly refuses it as a late or foreign frame)."""
 
 
 RTK_PEER = (
