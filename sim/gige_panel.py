@@ -516,6 +516,8 @@ def _run_panel(args: argparse.Namespace) -> int:
     signal.sigwait({signal.SIGTERM, signal.SIGINT})
     # back to Aravis's own pattern (this waits for a fill in progress), then go
     lib.arv_fake_camera_set_fill_pattern(_gpointer(camera), _FILL(), None, None)
+    if genicam is not None:
+        genicam.close()  # os._exit skips the finalisers that would delete it
     os._exit(0)
 
 
