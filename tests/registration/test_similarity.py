@@ -63,6 +63,19 @@ def test_highpass_removes_smooth_backgrounds_and_keeps_edges() -> None:
     assert np.abs(out[64, :40]).max() < 1e-3  # far from it, nothing
 
 
+@pytest.mark.parametrize("sigma_px", [0.7, 3.3, 8.0])
+def test_highpass_is_scipys_gaussian_filter_to_the_bit(image, sigma_px) -> None:
+    """The filter of every registration evaluation is scipy's, edges included (a kernel of
+    another rounding, radius or edge mode would show)."""
+    for img in (image, image[:23, 5:], image.astype(np.float64)):
+        expected = img.astype(np.float32) - gaussian_filter(
+            img.astype(np.float32), sigma_px, mode="nearest"
+        )
+        out = highpass(img, sigma_px)
+        assert out.dtype == np.float32
+        np.testing.assert_array_equal(out, expected)
+
+
 def test_turned_gaussian_is_the_axis_aligned_blur_at_0_and_90_degrees(image) -> None:
     s_u, s_v = 2.5, 1.0
     axis_aligned = gaussian_filter(image, (s_v, s_u), mode="nearest")  # (rows = v, cols = u)
