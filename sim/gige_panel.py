@@ -195,8 +195,9 @@ def serve_sensor(integrate: Callable[[float], np.ndarray], path: str | Path) -> 
 def gvcp_discover(address: str, timeout_s: float = 0.2) -> str | None:
     """The serial number of the GigE Vision device answering a unicast GVCP discovery at
     ``address``, or None when none answers within ``timeout_s``."""
+    request_id = 1
     # GVCP command header: key 0x42, flags (ack required), DISCOVERY_CMD, length 0, request id
-    command = struct.pack(">BBHHH", 0x42, 0x01, 0x0002, 0, 1)
+    command = struct.pack(">BBHHH", 0x42, 0x01, 0x0002, 0, request_id)
     deadline = time.monotonic() + timeout_s
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
         sock.connect((address, GVCP_PORT))  # the kernel drops datagrams from anyone else
@@ -207,9 +208,9 @@ def gvcp_discover(address: str, timeout_s: float = 0.2) -> str | None:
                 ack = sock.recv(1024)
             except (TimeoutError, ConnectionRefusedError):
                 return None
-            # ack header: status, DISCOVERY_ACK, length, request id; then the bootstrap
-            # registers 0x0000..0x00f7, the serial at 0x00d8
-            if len(ack) >= 8 + 0xE8 and ack[2:4] == b"\x00\x03" and ack[6:8] == b"\x00\x01":
+            # ack header: status, answer (DISCOVERY_ACK), length, request id; then the
+            # bootstrap registers 0x0000..0x00f7, the serial at 0x00d8
+            if len(ack) >= 8 + 0xE8 and struct.unpack(">2xH2xH", ack[:8]) == (0x0003, request_id):
                 serial = ack[8 + 0xD8 : 8 + 0xD8 + 16]
                 return serial.split(b"\0", 1)[0].decode("ascii", "replace")
     return None
