@@ -93,9 +93,13 @@ class FakeURController:
         return self
 
     def log_text(self) -> str:
-        """What the process wrote to stdout and stderr so far."""
-        self._log.seek(0)
-        return self._log.read().decode(errors="replace")
+        """What the process wrote to stdout and stderr so far.
+
+        Read with ``pread``: the child writes through a descriptor that shares this file's
+        offset, so seeking here would make its next line overwrite the start of the log.
+        """
+        fd = self._log.fileno()
+        return os.pread(fd, os.fstat(fd).st_size, 0).decode(errors="replace")
 
     def events(self) -> list[tuple[str, float]]:
         """The ``EVENT`` lines printed so far (:mod:`sim.ur_controller.events`): name and
