@@ -249,28 +249,41 @@ class JosephProjector:
         Returns:
             Line integrals (the volume's unit times mm), float32 (rows, cols).
         """
-        R, t = T[:3, :3], T[:3, 3]
-        w = self._corners @ (view.matrix[2, :3] @ R) + (view.matrix[2, :3] @ t + view.matrix[2, 3])
+        return self.project_moved_many(view, T[None], spans)[0]
+
+    def project_moved_many(
+        self, view: View, Ts: np.ndarray, spans: np.ndarray | None = None
+    ) -> np.ndarray:
+        """:meth:`project_moved` at each of the rigid motions ``Ts`` (n, 4, 4): the same
+        values as n calls, in one parallel loop over every pose's rows (n small renders, such
+        as a Jacobian's, would each wake the kernel's threads and wait for them).
+
+        Returns:
+            Line integrals (the volume's unit times mm), float32 (n, rows, cols).
+        """
+        R, t = Ts[:, :3, :3], Ts[:, :3, 3]
+        depth = view.matrix[2, :3]
+        w = self._corners @ (depth @ R).T + (t @ depth + view.matrix[2, 3])
         if w.min() <= 1e-3:
             raise ValueError(
                 "the volume grid reaches behind the source of the view: move or shrink the grid"
             )
-        # the view carried by inv(T): x -> R^T (x - t)
-        out = np.empty((1, view.rows, view.cols), dtype=np.float32)
+        # each view carried by inv(T): x -> R^T (x - t)
+        out = np.empty((len(Ts), view.rows, view.cols), dtype=np.float32)
         _joseph_kernel(
             self._flat,
             self._strides,
             self._dims,
             self._origin,
             self._spacing,
-            ((view.source_mm - t) @ R)[None],
-            ((view.detector_origin_mm - t) @ R)[None],
-            (view.pitch_u_mm * view.e_u @ R)[None],
-            (view.pitch_v_mm * view.e_v @ R)[None],
+            np.array([(view.source_mm - b) @ A for A, b in zip(R, t, strict=True)]),
+            np.array([(view.detector_origin_mm - b) @ A for A, b in zip(R, t, strict=True)]),
+            np.array([view.pitch_u_mm * view.e_u @ A for A in R]),
+            np.array([view.pitch_v_mm * view.e_v @ A for A in R]),
             full_spans(view.rows, view.cols) if spans is None else spans,
             out,
         )
-        return out[0]
+        return out
 
 
 def forward_project(volume: np.ndarray, grid: VolumeGrid, geometry: Geometry) -> np.ndarray:

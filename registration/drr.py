@@ -103,10 +103,27 @@ class RigidVolume:
     ) -> np.ndarray:
         """Line integrals of the volume moved by ``T_world``, float32 (rows, cols); only over
         each row's column span (recon.project.JosephProjector.project_moved) if given."""
+        return self.render_many(view, T_world[None], coarse, spans)[0]
+
+    def render_many(
+        self,
+        view: View,
+        Ts_world: np.ndarray,
+        coarse: bool = False,
+        spans: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """:meth:`render` at each of the poses ``Ts_world`` (n, 4, 4), float32 (n, rows,
+        cols): the poses whose rays run along the same axis of the volume in one call of the
+        projector (recon.project.JosephProjector.project_moved_many)."""
         if coarse:
-            return self.coarse.project_moved(view, T_world, spans)
-        ray = (view.detector_center_mm - view.source_mm) @ T_world[:3, :3]  # in the volume
-        return self.along[int(np.argmax(np.abs(ray)))].project_moved(view, T_world, spans)
+            return self.coarse.project_moved_many(view, Ts_world, spans)
+        ray = (view.detector_center_mm - view.source_mm) @ Ts_world[:, :3, :3]  # in the volume
+        axes = np.argmax(np.abs(ray), axis=1)
+        out = np.empty((len(Ts_world), view.rows, view.cols), dtype=np.float32)
+        for axis in np.unique(axes):
+            along = axes == axis
+            out[along] = self.along[axis].project_moved_many(view, Ts_world[along], spans)
+        return out
 
 
 @dataclass(frozen=True)
@@ -148,6 +165,17 @@ class BoneModel:
             Line integrals (unitless: 1/mm times mm), float32 (rows, cols).
         """
         return self.volume.render(view, T_world_body, coarse, spans)
+
+    def render_many(
+        self,
+        view: View,
+        Ts_world_body: np.ndarray,
+        coarse: bool = False,
+        spans: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """:meth:`render` at each of the poses ``Ts_world_body`` (n, 4, 4), float32 (n, rows,
+        cols), in as few calls of the projector as the rays' axes allow."""
+        return self.volume.render_many(view, Ts_world_body, coarse, spans)
 
 
 def _crop(

@@ -93,13 +93,25 @@ class Objective:
         self._unit_target: np.ndarray | None = None
 
     def image(self, T: np.ndarray) -> np.ndarray:
+        """The scene rendered with the body at pose ``T``, high-passed (rows, cols)."""
+        return self.images(T[None])[0]
+
+    def images(self, Ts: np.ndarray) -> np.ndarray:
+        """:meth:`image` at each of the poses ``Ts`` (n, 4, 4), (n, rows, cols): a bone's
+        renders (and its carried soft tissue's) each in one call of the projector."""
         if self._sharp is not None:
-            sharp = self.body.render(self.view, T, self.coarse, blurred=False)
-            return self.background + self._sharp(sharp)
-        moving = self.body.render(self.view, T, self.coarse, self.spans)
+            return np.array(
+                [
+                    self.background
+                    + self._sharp(self.body.render(self.view, T, self.coarse, blurred=False))
+                    for T in Ts
+                ]
+            )
+        moving = self.body.render_many(self.view, Ts, self.coarse, self.spans)
         if self.carried is not None:
-            moving += self.carried[0].project_moved(self.view, T @ self._deformed_inv, self.spans)
-        return self.background + highpass(moving, self.sigma)
+            deformed = np.array([T @ self._deformed_inv for T in Ts])
+            moving += self.carried[0].project_moved_many(self.view, deformed, self.spans)
+        return np.array([self.background + highpass(m, self.sigma) for m in moving])
 
     def __call__(self, x: np.ndarray) -> float:
         self.evaluations += 1
@@ -108,16 +120,33 @@ class Objective:
     def residuals(self, x: np.ndarray) -> np.ndarray:
         """Target minus render over the mask, each zero-mean and of unit norm (half the
         squared norm is 1 - NCC), and the prior's terms times sqrt(2), at pose ``x``."""
-        self.evaluations += 1
-        T = compose(np.asarray(x, dtype=np.float64), self.T0, self.body.centroid_mm)
+        return self.residuals_many(np.asarray(x, dtype=np.float64)[None])[0]
+
+    def residuals_many(self, xs: np.ndarray) -> np.ndarray:
+        """:meth:`residuals` at each of the poses ``xs`` (n, 6), (n, m): rendered together
+        (:meth:`images`), or one by one when one of them is behind a view's source."""
+        self.evaluations += len(xs)
+        Ts = np.array([compose(x, self.T0, self.body.centroid_mm) for x in xs])
         if self._unit_target is None:
             self._unit_target = _unit(self.target[self.mask])
-        prior = () if self.prior is None else math.sqrt(2.0) * self.prior(T)
         try:
-            image = _unit(self.image(T)[self.mask])
-        except ValueError:  # no view renders the pose: the worst residual
-            image = -self._unit_target
-        return np.append(self._unit_target - image, prior)
+            units = [_unit(image[self.mask]) for image in self.images(Ts)]
+        except ValueError:
+            units = []
+            for T in Ts:
+                try:
+                    units.append(_unit(self.image(T)[self.mask]))
+                except ValueError:  # no view renders the pose: the worst residual
+                    units.append(-self._unit_target)
+        return np.array(
+            [
+                np.append(
+                    self._unit_target - unit,
+                    () if self.prior is None else math.sqrt(2.0) * self.prior(T),
+                )
+                for unit, T in zip(units, Ts, strict=True)
+            ]
+        )
 
     def scores(self, T: np.ndarray) -> tuple[float, float]:
         """NCC and gradient NCC at pose ``T`` (no prior)."""
@@ -163,13 +192,18 @@ class JointObjective:
     def residuals(self, x: np.ndarray) -> np.ndarray:
         """The views' residuals (:meth:`Objective.residuals`) stacked over ``sqrt(N)``, then
         the prior's terms times sqrt(2), at pose ``x``."""
-        self.evaluations += 1
+        return self.residuals_many(np.asarray(x, dtype=np.float64)[None])[0]
+
+    def residuals_many(self, xs: np.ndarray) -> np.ndarray:
+        """:meth:`residuals` at each of the poses ``xs`` (n, 6), (n, m), each view's rendered
+        together (:meth:`Objective.residuals_many`)."""
+        self.evaluations += len(xs)
         scale = 1.0 / math.sqrt(len(self.views))
-        stacked = np.concatenate([o.residuals(x) for o in self.views]) * scale
+        stacked = np.hstack([o.residuals_many(xs) for o in self.views]) * scale
         if self.prior is None:
             return stacked
-        T = compose(np.asarray(x, dtype=np.float64), self.T0, self.body.centroid_mm)
-        return np.append(stacked, math.sqrt(2.0) * self.prior(T))
+        Ts = [compose(x, self.T0, self.body.centroid_mm) for x in xs]
+        return np.hstack((stacked, [math.sqrt(2.0) * self.prior(T) for T in Ts]))
 
     def scores(self, T: np.ndarray) -> tuple[float, float]:
         """The views' mean NCC and mean gradient NCC at pose ``T`` (no prior)."""

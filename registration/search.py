@@ -87,13 +87,12 @@ def nelder_mead(objective: Searched, x0: np.ndarray, step: float, settings: Sett
 
 
 def _central_jacobian(objective: Searched, scale: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """d residuals / d x at ``x`` by central differences of ``scale`` (mm, deg): 12 renders."""
-    return np.column_stack(
-        [
-            (objective.residuals(x + d) - objective.residuals(x - d)) / (2 * h)
-            for d, h in zip(np.diag(scale), scale, strict=True)
-        ]
-    )
+    """d residuals / d x at ``x`` by central differences of ``scale`` (mm, deg): 12 renders,
+    made together (:meth:`Objective.residuals_many`)."""
+    steps = np.diag(scale)
+    r = objective.residuals_many(np.vstack((x + steps, x - steps)))
+    # C order, as a Jacobian built column by column: BLAS then rounds J'J and J dz alike
+    return np.ascontiguousarray(((r[:6] - r[6:]) / (2 * scale[:, None])).T)
 
 
 def _damped_step(

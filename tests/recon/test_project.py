@@ -227,7 +227,8 @@ def test_a_projector_of_a_padded_volume_projects_as_one_that_pads_it():
 def test_projecting_a_moved_volume_equals_projecting_through_the_inversely_moved_view():
     """``project_moved(view, T)`` is the shortcut of ``project`` through
     ``view.transformed(inv(T))``: the same kernel on the same rays, so equal to float32
-    rounding; a motion that puts the grid behind the source is refused."""
+    rounding; a motion that puts the grid behind the source is refused. Several motions in
+    one call (``project_moved_many``) give each one's render to the bit."""
     from scipy.spatial.transform import Rotation
 
     volume = np.abs(smooth_random(GRID.shape, 3.0, 7))
@@ -247,6 +248,15 @@ def test_projecting_a_moved_volume_equals_projecting_through_the_inversely_moved
     behind[:3, 3] = 3.0 * (view.source_mm - np.asarray(ISO))  # the grid far beyond the source
     with pytest.raises(ValueError, match="behind the source"):
         projector.project_moved(view, behind)
+    # several motions at once: each exactly its own render, the batch refused with one behind
+    Ts = np.stack([T, np.eye(4), np.linalg.inv(T)])
+    many = projector.project_moved_many(view, Ts)
+    assert many.shape == (3, view.rows, view.cols)
+    for k, moved in enumerate(Ts):
+        assert np.array_equal(many[k], projector.project_moved(view, moved))
+    assert np.array_equal(many[1], unmoved)
+    with pytest.raises(ValueError, match="behind the source"):
+        projector.project_moved_many(view, np.stack([T, behind]))
 
 
 def test_rotated_ellipsoid_projections_match_its_analytic_line_integrals(measured):

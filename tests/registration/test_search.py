@@ -29,6 +29,9 @@ class Curved:
         d = np.asarray(x) - TRUTH
         return self.A @ d + self.B @ d**2 + self.floor
 
+    def residuals_many(self, xs: np.ndarray) -> np.ndarray:
+        return np.array([self.residuals(x) for x in xs])
+
     def optimum(self) -> np.ndarray:
         """The least-squares optimum, by Gauss-Newton with the exact Jacobian."""
         x = TRUTH.copy()

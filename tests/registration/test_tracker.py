@@ -319,6 +319,35 @@ def test_least_squares_residual_is_one_minus_ncc_plus_the_prior(knee_case, seed)
     assert 0.5 * r @ r == pytest.approx(1.0 + objective.cost(T), abs=1e-9)
 
 
+def test_residuals_of_several_poses_are_each_poses_own(knee_case) -> None:
+    """An objective's residuals at several poses at once (as a Jacobian asks for them: the
+    bone's and its carried soft tissue's renders each in one call) are each pose's own to the
+    bit: poses whose rays run along different axes of the volume, and a pose beyond the
+    source (the worst residual) among them."""
+    c = knee_case
+    tracker = Tracker(c.view, c.frames[:1], c.models, SETTINGS, c.soft)
+    objective = tracker.scene.objective(0, tracker.levels[-1], "femur", dict(c.truth[0]))
+    assert objective.carried is not None  # the femur carries its share of the soft tissue
+    xs = np.zeros((4, 6))
+    xs[1] = (0.5, -0.3, 0.2, 1.0, -2.0, 0.3)
+    xs[2, 5] = 60.0  # deg: the rays run along another axis of the bone's volume
+    axes = {
+        int(np.argmax(np.abs((c.view.detector_center_mm - c.view.source_mm) @ T[:3, :3])))
+        for T in (compose(x, objective.T0, objective.body.centroid_mm) for x in xs[:3])
+    }
+    assert len(axes) == 2
+    many = objective.residuals_many(xs[:3])
+    assert objective.evaluations == 3
+    for x, r in zip(xs[:3], many, strict=True):
+        assert np.array_equal(r, objective.residuals(x))
+    xs[3, :3] = 3.0 * (c.view.source_mm - objective.body.centroid_mm)  # beyond the source
+    many = objective.residuals_many(xs)
+    assert np.array_equal(many[3], objective.residuals(xs[3]))
+    assert 0.5 * many[3] @ many[3] == pytest.approx(2.0)  # NCC -1: the worst
+    for x, r in zip(xs[:3], many[:3], strict=True):
+        assert np.array_equal(r, objective.residuals(x))
+
+
 def test_least_squares_refinement_reaches_the_derivative_free_optimum_with_fewer_renders(
     knee_case, seed, measured
 ) -> None:
