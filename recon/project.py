@@ -254,9 +254,14 @@ class JosephProjector:
     def project_moved_many(
         self, view: View, Ts: np.ndarray, spans: np.ndarray | None = None
     ) -> np.ndarray:
-        """:meth:`project_moved` at each of the rigid motions ``Ts`` (n, 4, 4): the same
-        values as n calls, in one parallel loop over every pose's rows (n small renders, such
-        as a Jacobian's, would each wake the kernel's threads and wait for them).
+        """:meth:`project_moved` at each of several rigid motions: the same values as n
+        calls, in one parallel loop over every pose's rows (n small renders, such as a
+        Jacobian's, would each wake the kernel's threads and wait for them).
+
+        Args:
+            view: The view rendered.
+            Ts: Rigid motions of the volume, (n, 4, 4), translations in mm.
+            spans: Columns traced per row, as :meth:`project_moved` takes them.
 
         Returns:
             Line integrals (the volume's unit times mm), float32 (n, rows, cols).

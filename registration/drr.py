@@ -173,8 +173,18 @@ class BoneModel:
         coarse: bool = False,
         spans: np.ndarray | None = None,
     ) -> np.ndarray:
-        """:meth:`render` at each of the poses ``Ts_world_body`` (n, 4, 4), float32 (n, rows,
-        cols), in as few calls of the projector as the rays' axes allow."""
+        """:meth:`render` at each of several poses, in as few calls of the projector as the
+        rays' axes allow.
+
+        Args:
+            view: The view rendered.
+            Ts_world_body: Poses of the bone, (n, 4, 4), translations in mm.
+            coarse: Render the pooled (coarser) volume.
+            spans: Columns traced per row, int (rows, 2); ``None`` traces all.
+
+        Returns:
+            Line integrals, float32 (n, rows, cols).
+        """
         return self.volume.render_many(view, Ts_world_body, coarse, spans)
 
 

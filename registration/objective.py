@@ -117,6 +117,12 @@ class Objective:
         self.evaluations += 1
         return self.cost(compose(np.asarray(x, dtype=np.float64), self.T0, self.body.centroid_mm))
 
+    def at_steps(self, xs: np.ndarray) -> np.ndarray:
+        """The cost at each of the steps ``xs`` (n, 6) from the start pose, rendered together
+        (:meth:`costs`)."""
+        self.evaluations += len(xs)
+        return self.costs(np.array([compose(x, self.T0, self.body.centroid_mm) for x in xs]))
+
     def residuals(self, x: np.ndarray) -> np.ndarray:
         """Target minus render over the mask, each zero-mean and of unit norm (half the
         squared norm is 1 - NCC), and the prior's terms times sqrt(2), at pose ``x``."""
@@ -156,11 +162,28 @@ class Objective:
     def cost(self, T: np.ndarray) -> float:
         """-NCC at pose T plus the prior (if any); +1 (worst) for poses no view can render
         (e.g. behind the source)."""
-        penalty = 0.0 if self.prior is None else float(np.sum(self.prior(T) ** 2))
         try:
-            return penalty - ncc(self.target, self.image(T), self.mask)
+            return self._penalty(T) - ncc(self.target, self.image(T), self.mask)
         except ValueError:
-            return 1.0 + penalty
+            return 1.0 + self._penalty(T)
+
+    def costs(self, Ts: np.ndarray) -> np.ndarray:
+        """:meth:`cost` at each of the poses ``Ts`` (n, 4, 4): rendered together
+        (:meth:`images`), or one by one when one of them is behind a view's source."""
+        try:
+            images = self.images(Ts)
+        except ValueError:
+            return np.array([self.cost(T) for T in Ts])
+        return np.array(
+            [
+                self._penalty(T) - ncc(self.target, image, self.mask)
+                for T, image in zip(Ts, images, strict=True)
+            ]
+        )
+
+    def _penalty(self, T: np.ndarray) -> float:
+        """The prior's squared terms at pose ``T`` (0 without a prior)."""
+        return 0.0 if self.prior is None else float(np.sum(self.prior(T) ** 2))
 
 
 class JointObjective:
@@ -189,6 +212,12 @@ class JointObjective:
         self.evaluations += 1
         return self.cost(compose(np.asarray(x, dtype=np.float64), self.T0, self.body.centroid_mm))
 
+    def at_steps(self, xs: np.ndarray) -> np.ndarray:
+        """The cost at each of the steps ``xs`` (n, 6) from the start pose, each view's
+        rendered together (:meth:`costs`)."""
+        self.evaluations += len(xs)
+        return self.costs(np.array([compose(x, self.T0, self.body.centroid_mm) for x in xs]))
+
     def residuals(self, x: np.ndarray) -> np.ndarray:
         """The views' residuals (:meth:`Objective.residuals`) stacked over ``sqrt(N)``, then
         the prior's terms times sqrt(2), at pose ``x``."""
@@ -212,8 +241,19 @@ class JointObjective:
 
     def cost(self, T: np.ndarray) -> float:
         """The views' mean cost (:meth:`Objective.cost`) plus the prior at pose ``T``."""
-        penalty = 0.0 if self.prior is None else float(np.sum(self.prior(T) ** 2))
-        return float(np.mean([o.cost(T) for o in self.views])) + penalty
+        return self.costs(T[None])[0]
+
+    def costs(self, Ts: np.ndarray) -> np.ndarray:
+        """:meth:`cost` at each of the poses ``Ts`` (n, 4, 4), each view's rendered together
+        (:meth:`Objective.costs`)."""
+        views = np.array([o.costs(Ts) for o in self.views])
+        return np.array(
+            [
+                float(np.mean(views[:, k]))
+                + (0.0 if self.prior is None else float(np.sum(self.prior(T) ** 2)))
+                for k, T in enumerate(Ts)
+            ]
+        )
 
 
 Searched = Objective | JointObjective

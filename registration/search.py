@@ -31,7 +31,9 @@ def global_search(
 ) -> np.ndarray:
     """Differential evolution (seeded, Sobol start, no polish) in a box of ``scale`` times the
     settings' ``de_*`` half-widths, its rotations about ``axes`` (columns: the body's
-    principal axes at its current pose, the longest first); returns the step x."""
+    principal axes at its current pose, the longest first); returns the step x. Each
+    generation's trials are rendered together (scipy's ``vectorized``: the population is
+    replaced once per generation, not trial by trial)."""
     s = settings
 
     def in_axes(y: np.ndarray) -> np.ndarray:
@@ -47,7 +49,7 @@ def global_search(
     )
     bounds = [(-t, t)] * 3 + [(-rl, rl), (-ro, ro), (-ro, ro)]
     result = differential_evolution(
-        lambda y: objective(in_axes(y)),
+        lambda ys: objective.at_steps(np.array([in_axes(y) for y in ys.T])),
         bounds,
         seed=s.seed,
         popsize=s.de_popsize,
@@ -55,6 +57,8 @@ def global_search(
         tol=1e-6,
         polish=False,
         init="sobol",
+        updating="deferred",
+        vectorized=True,
     )
     return in_axes(result.x)
 
@@ -163,19 +167,19 @@ def levenberg_marquardt(
 
 
 def kinematic_line_search(
-    cost: Callable[[np.ndarray], float],
+    objective: Searched,
     at: Callable[[float], np.ndarray],
     line: np.ndarray,
 ) -> tuple[np.ndarray, int]:
     """The KPM's search along the kinematic direction: the poses ``line`` (at each of
-    :data:`registration.priors.KPM_LAMBDA`'s steps, (L, 4, 4) mm) scored by ``cost``, then
-    Brent between the best one's neighbours on ``at`` (step -> pose). Returns the best pose
-    and the evaluations it took."""
-    costs = [cost(T) for T in line]
+    :data:`registration.priors.KPM_LAMBDA`'s steps, (L, 4, 4) mm) scored together by the
+    ``objective``'s cost, then Brent between the best one's neighbours on ``at`` (step ->
+    pose). Returns the best pose and the evaluations it took."""
+    costs = objective.costs(line)
     k = int(np.argmin(costs))
     lo, hi = KPM_LAMBDA[max(k - 1, 0)], KPM_LAMBDA[min(k + 1, len(KPM_LAMBDA) - 1)]
     best = minimize_scalar(
-        lambda lam: cost(at(lam)),
+        lambda lam: objective.cost(at(lam)),
         bounds=(lo, hi),
         method="bounded",
         options={"xatol": 0.02, "maxiter": 15},

@@ -401,7 +401,7 @@ class Tracker:
         objective = self.scene.objective(
             frame, self.scene.levels[0], name, poses, reach=tuple(line[::5])
         )
-        costs = [objective.cost(T) for T in line]
+        costs = objective.costs(line)
         return line[int(np.argmin(costs))], len(costs)
 
     def _another_pass(
@@ -469,7 +469,7 @@ class Tracker:
         objective = self.scene.objective(
             frame, self.scene.levels[0], name, poses, reach=(line[0], line[-1])
         )
-        return kinematic_line_search(objective.cost, at, line)
+        return kinematic_line_search(objective, at, line)
 
     def _held(self, name: str, T: np.ndarray, T_last: np.ndarray) -> np.ndarray:
         """Predictions ``T`` (..., 4, 4) of body ``name``, their depth held at ``T_last``'s

@@ -322,8 +322,8 @@ def test_least_squares_residual_is_one_minus_ncc_plus_the_prior(knee_case, seed)
 def test_residuals_of_several_poses_are_each_poses_own(knee_case) -> None:
     """An objective's residuals at several poses at once (as a Jacobian asks for them: the
     bone's and its carried soft tissue's renders each in one call) are each pose's own to the
-    bit: poses whose rays run along different axes of the volume, and a pose beyond the
-    source (the worst residual) among them."""
+    bit, and so are its costs (as the KPM's line asks for them): poses whose rays run along
+    different axes of the volume, and a pose beyond the source (the worst) among them."""
     c = knee_case
     tracker = Tracker(c.view, c.frames[:1], c.models, SETTINGS, c.soft)
     objective = tracker.scene.objective(0, tracker.levels[-1], "femur", dict(c.truth[0]))
@@ -346,6 +346,10 @@ def test_residuals_of_several_poses_are_each_poses_own(knee_case) -> None:
     assert 0.5 * many[3] @ many[3] == pytest.approx(2.0)  # NCC -1: the worst
     for x, r in zip(xs[:3], many[:3], strict=True):
         assert np.array_equal(r, objective.residuals(x))
+    Ts = np.array([compose(x, objective.T0, objective.body.centroid_mm) for x in xs])
+    for n in (3, 4):  # the costs likewise, without and with the pose beyond the source
+        assert np.array_equal(objective.costs(Ts[:n]), [objective.cost(T) for T in Ts[:n]])
+    assert objective.cost(Ts[3]) == 1.0
 
 
 def test_least_squares_refinement_reaches_the_derivative_free_optimum_with_fewer_renders(
