@@ -117,12 +117,6 @@ class Objective:
         self.evaluations += 1
         return self.cost(compose(np.asarray(x, dtype=np.float64), self.T0, self.body.centroid_mm))
 
-    def at_steps(self, xs: np.ndarray) -> np.ndarray:
-        """The cost at each of the steps ``xs`` (n, 6) from the start pose, rendered together
-        (:meth:`costs`)."""
-        self.evaluations += len(xs)
-        return self.costs(np.array([compose(x, self.T0, self.body.centroid_mm) for x in xs]))
-
     def residuals(self, x: np.ndarray) -> np.ndarray:
         """Target minus render over the mask, each zero-mean and of unit norm (half the
         squared norm is 1 - NCC), and the prior's terms times sqrt(2), at pose ``x``."""
@@ -211,12 +205,6 @@ class JointObjective:
     def __call__(self, x: np.ndarray) -> float:
         self.evaluations += 1
         return self.cost(compose(np.asarray(x, dtype=np.float64), self.T0, self.body.centroid_mm))
-
-    def at_steps(self, xs: np.ndarray) -> np.ndarray:
-        """The cost at each of the steps ``xs`` (n, 6) from the start pose, each view's
-        rendered together (:meth:`costs`)."""
-        self.evaluations += len(xs)
-        return self.costs(np.array([compose(x, self.T0, self.body.centroid_mm) for x in xs]))
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
         """The views' residuals (:meth:`Objective.residuals`) stacked over ``sqrt(N)``, then

@@ -31,9 +31,7 @@ def global_search(
 ) -> np.ndarray:
     """Differential evolution (seeded, Sobol start, no polish) in a box of ``scale`` times the
     settings' ``de_*`` half-widths, its rotations about ``axes`` (columns: the body's
-    principal axes at its current pose, the longest first); returns the step x. Each
-    generation's trials are rendered together (scipy's ``vectorized``: the population is
-    replaced once per generation, not trial by trial)."""
+    principal axes at its current pose, the longest first); returns the step x."""
     s = settings
 
     def in_axes(y: np.ndarray) -> np.ndarray:
@@ -49,7 +47,7 @@ def global_search(
     )
     bounds = [(-t, t)] * 3 + [(-rl, rl), (-ro, ro), (-ro, ro)]
     result = differential_evolution(
-        lambda ys: objective.at_steps(np.array([in_axes(y) for y in ys.T])),
+        lambda y: objective(in_axes(y)),
         bounds,
         seed=s.seed,
         popsize=s.de_popsize,
@@ -57,8 +55,6 @@ def global_search(
         tol=1e-6,
         polish=False,
         init="sobol",
-        updating="deferred",
-        vectorized=True,
     )
     return in_axes(result.x)
 
