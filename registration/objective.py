@@ -129,22 +129,15 @@ class Objective:
         Ts = np.array([compose(x, self.T0, self.body.centroid_mm) for x in xs])
         if self._unit_target is None:
             self._unit_target = _unit(self.target[self.mask])
-        try:
-            units = [_unit(image[self.mask]) for image in self.images(Ts)]
-        except ValueError:
-            units = []
-            for T in Ts:
-                try:
-                    units.append(_unit(self.image(T)[self.mask]))
-                except ValueError:  # no view renders the pose: the worst residual
-                    units.append(-self._unit_target)
         return np.array(
             [
                 np.append(
-                    self._unit_target - unit,
-                    () if self.prior is None else math.sqrt(2.0) * self.prior(T),
+                    # no view renders the pose: the worst residual
+                    self._unit_target
+                    - (-self._unit_target if image is None else _unit(image[self.mask])),
+                    _prior_terms(self.prior, T),
                 )
-                for unit, T in zip(units, Ts, strict=True)
+                for image, T in zip(self._each_image(Ts), Ts, strict=True)
             ]
         )
 
@@ -156,28 +149,33 @@ class Objective:
     def cost(self, T: np.ndarray) -> float:
         """-NCC at pose T plus the prior (if any); +1 (worst) for poses no view can render
         (e.g. behind the source)."""
-        try:
-            return self._penalty(T) - ncc(self.target, self.image(T), self.mask)
-        except ValueError:
-            return 1.0 + self._penalty(T)
+        return self.costs(T[None])[0]
 
     def costs(self, Ts: np.ndarray) -> np.ndarray:
-        """:meth:`cost` at each of the poses ``Ts`` (n, 4, 4): rendered together
-        (:meth:`images`), or one by one when one of them is behind a view's source."""
-        try:
-            images = self.images(Ts)
-        except ValueError:
-            return np.array([self.cost(T) for T in Ts])
+        """:meth:`cost` at each of the poses ``Ts`` (n, 4, 4), rendered together
+        (:meth:`images`)."""
         return np.array(
             [
-                self._penalty(T) - ncc(self.target, image, self.mask)
-                for T, image in zip(Ts, images, strict=True)
+                _penalty(self.prior, T)
+                + (1.0 if image is None else -ncc(self.target, image, self.mask))
+                for image, T in zip(self._each_image(Ts), Ts, strict=True)
             ]
         )
 
-    def _penalty(self, T: np.ndarray) -> float:
-        """The prior's squared terms at pose ``T`` (0 without a prior)."""
-        return 0.0 if self.prior is None else float(np.sum(self.prior(T) ** 2))
+    def _each_image(self, Ts: np.ndarray) -> list[np.ndarray | None]:
+        """:meth:`image` at each of the poses ``Ts``, None where no view renders the pose
+        (behind the source): rendered together, or one by one when one of them is not."""
+        try:
+            return list(self.images(Ts))
+        except ValueError:
+            pass
+        each: list[np.ndarray | None] = []
+        for T in Ts:
+            try:
+                each.append(self.image(T))
+            except ValueError:
+                each.append(None)
+        return each
 
 
 class JointObjective:
@@ -220,7 +218,7 @@ class JointObjective:
         if self.prior is None:
             return stacked
         Ts = [compose(x, self.T0, self.body.centroid_mm) for x in xs]
-        return np.hstack((stacked, [math.sqrt(2.0) * self.prior(T) for T in Ts]))
+        return np.hstack((stacked, [_prior_terms(self.prior, T) for T in Ts]))
 
     def scores(self, T: np.ndarray) -> tuple[float, float]:
         """The views' mean NCC and mean gradient NCC at pose ``T`` (no prior)."""
@@ -236,16 +234,23 @@ class JointObjective:
         (:meth:`Objective.costs`)."""
         views = np.array([o.costs(Ts) for o in self.views])
         return np.array(
-            [
-                float(np.mean(views[:, k]))
-                + (0.0 if self.prior is None else float(np.sum(self.prior(T) ** 2)))
-                for k, T in enumerate(Ts)
-            ]
+            [float(np.mean(views[:, k])) + _penalty(self.prior, T) for k, T in enumerate(Ts)]
         )
 
 
 Searched = Objective | JointObjective
 """What the searches run on: one view's objective or several views' (registration.search)."""
+
+
+def _penalty(prior: Callable[[np.ndarray], np.ndarray] | None, T: np.ndarray) -> float:
+    """The prior's squared terms at pose ``T`` (0 without a prior)."""
+    return 0.0 if prior is None else float(np.sum(prior(T) ** 2))
+
+
+def _prior_terms(prior: Callable[[np.ndarray], np.ndarray] | None, T: np.ndarray) -> np.ndarray:
+    """The prior's residual terms at pose ``T``, its terms times sqrt(2) (none without one):
+    half their squared norm is :func:`_penalty`."""
+    return np.empty(0) if prior is None else math.sqrt(2.0) * prior(T)
 
 
 def _unit(values: np.ndarray) -> np.ndarray:
