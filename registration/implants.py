@@ -33,6 +33,10 @@ each). In one plane depth is read from the magnification, so a part that shrinks
 farther from the source: the simulated tray's metal, decimated to 2,196 faces, lost 3.1 % of
 its volume and the tracker lost its depth in 6 frames of 90 (docs/implants.md)."""
 
+FACE_CHUNKS = numba.config.NUMBA_NUM_THREADS
+"""The shares a render's faces are summed in (one a thread of the process's): fixed, so a
+render is the same to the bit whatever threads its caller runs on (registration.search.at_once)."""
+
 
 @dataclass(frozen=True)
 class ImplantModel:
@@ -102,7 +106,7 @@ class ImplantModel:
         )
         uv, coef, A = _projected(view, vertices, faces, T_world_body)
         out = np.zeros((view.rows, view.cols), dtype=np.float32)
-        _render(uv, coef, face_mu, A, self.supersample, True, out, numba.get_num_threads())
+        _render(uv, coef, face_mu, A, self.supersample, True, out, FACE_CHUNKS)
         if blurred and self.blur_mm > 0.0:
             gaussian_filter(out, self.blur_mm / view.pitch_u_mm, output=out, mode="constant")
         return out
@@ -153,7 +157,7 @@ def ray_lengths(
     float32 (rows, cols): its silhouette is where it is > 0."""
     uv, coef, A = _projected(view, vertices_mm, faces, T_world_body)
     out = np.zeros((view.rows, view.cols), dtype=np.float32)
-    _render(uv, coef, np.ones(len(faces)), A, 1, False, out, numba.get_num_threads())
+    _render(uv, coef, np.ones(len(faces)), A, 1, False, out, FACE_CHUNKS)
     return out
 
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 
 import numpy as np
@@ -105,13 +106,36 @@ class Searches(ABC):
     ) -> tuple[np.ndarray, int]:
         """Differential evolution in a box aligned with the body's principal axes at its
         current pose (registration.search.global_search) on the coarsest level, a mesh
-        rendered from its coarse mesh (:meth:`Scene.objective`)."""
-        objective = self.objective(
-            frame, self.levels[0], name, poses, lone, beside=beside, outline=True
-        )
-        axes = poses[name][:3, :3] @ search.principal_axes(self.bodies[name].points_mm)
-        x = search.global_search(objective, axes, self.settings, scale)
-        return compose(x, poses[name], self.bodies[name].centroid_mm), objective.evaluations
+        rendered from its coarse mesh (:meth:`Scene.objective`). Returns the pose and the
+        evaluations it took."""
+        return self.global_searches(frame, [name], poses, scale, lone, beside)[name]
+
+    def global_searches(
+        self,
+        frame: int,
+        names: Sequence[str],
+        poses: Poses,
+        scale: float = 1.0,
+        lone: bool = False,
+        beside: tuple[str, ...] = (),
+    ) -> dict[str, tuple[np.ndarray, int]]:
+        """:meth:`global_search` of each body in ``names`` from ``poses``, the searches run at
+        once (registration.search.at_once): each objective sees the others at ``poses``, not
+        at their new estimates. By name: the pose and the evaluations."""
+        objectives = [
+            self.objective(frame, self.levels[0], name, poses, lone, beside=beside, outline=True)
+            for name in names
+        ]
+
+        def searched(name: str, objective: Searched) -> Callable[[], np.ndarray]:
+            axes = poses[name][:3, :3] @ search.principal_axes(self.bodies[name].points_mm)
+            return lambda: search.global_search(objective, axes, self.settings, scale)
+
+        steps = search.at_once([searched(n, o) for n, o in zip(names, objectives, strict=True)])
+        return {
+            name: (compose(x, poses[name], self.bodies[name].centroid_mm), objective.evaluations)
+            for name, x, objective in zip(names, steps, objectives, strict=True)
+        }
 
     def score(self, frame: int, name: str, poses: Poses) -> tuple[float, float]:
         """Body ``name``'s NCC and gradient NCC at ``poses`` on the finest level."""

@@ -6,7 +6,10 @@ search along the kinematic direction."""
 from __future__ import annotations
 
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from typing import TypeVar
 
+import numba
 import numpy as np
 from scipy.optimize import differential_evolution, least_squares, minimize, minimize_scalar
 
@@ -14,9 +17,30 @@ from registration.objective import Searched
 from registration.priors import KPM_LAMBDA
 from registration.settings import Settings
 
+Result = TypeVar("Result")
+
 STEP_TOLERANCE = 1e-3
 """Least squares with Broyden's update stops once a step is this small in every coordinate,
 in units of ``ls_step`` (2.5e-4 mm and deg at 0.25)."""
+
+
+def at_once(searches: list[Callable[[], Result]]) -> list[Result]:
+    """Each of ``searches`` run in a thread of its own, numba's threads shared out among them
+    (at least one each); their results in order, or the first one's error. A search on small
+    renders keeps two threads only partly busy: the Python between its renders (scipy's
+    optimizer, the similarity) runs while another search renders. Results equal those of the
+    searches run one by one, the renders being the same to the bit on any number of threads."""
+    workers = min(len(searches), numba.config.NUMBA_NUM_THREADS)
+    if workers <= 1:
+        return [run() for run in searches]
+    threads = max(1, numba.get_num_threads() // workers)
+
+    def run(search: Callable[[], Result]) -> Result:
+        numba.set_num_threads(threads)  # this thread's share: numba's setting is per thread
+        return search()
+
+    with ThreadPoolExecutor(workers, thread_name_prefix="search") as pool:
+        return list(pool.map(run, searches))
 
 
 def principal_axes(points_mm: np.ndarray) -> np.ndarray:

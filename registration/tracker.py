@@ -5,9 +5,9 @@ Each body is scored against the scene (registration.objective): the soft tissue 
 bodies at their current estimates stay fixed while one moves. Frame by frame:
 
 a) first frame: differential evolution in a box along the body's principal axes (the long
-   bones alone, then the patella against them), Powell then Nelder-Mead coarse to fine, the
-   frames' blur matched to the renders (registration.resolution), and further passes that
-   refine each body against the others' new estimates;
+   bones alone and at once, then the patella against them), Powell then Nelder-Mead coarse to
+   fine, the frames' blur matched to the renders (registration.resolution), and further
+   passes that refine each body against the others' new estimates;
 b) later frames with the kinematic priority module (KPM, registration.priors): every body
    starts at its constant-velocity prediction, is placed by a line search along its last
    motion and refined by Levenberg-Marquardt on the coarse levels, then on the finest against
@@ -167,11 +167,11 @@ class Tracker:
         Warm frames with the KPM start every body at its constant-velocity prediction, so each
         is scored against the others' predictions rather than their previous poses. Cold
         frames (no history) with global initialisation run differential evolution on every
-        body first: the long bones alone (the rest of the scene is still at its wrong starting
-        estimate), the patella, small and overlapped by the femoral condyles, against the long
-        bones' new estimates; then every body is refined against the others' global estimates
-        (body by body alternation). BLAS runs single-threaded meanwhile (its threads would
-        fight the renderer's for the cores).
+        body first: the long bones alone and at once (the rest of the scene is still at its
+        wrong starting estimate), the patella, small and overlapped by the femoral condyles,
+        against the long bones' new estimates; then every body is refined against the others'
+        global estimates (body by body alternation). BLAS runs single-threaded meanwhile (its
+        threads would fight the renderer's for the cores).
 
         Args:
             frame: Index of the frame.
@@ -232,12 +232,15 @@ class Tracker:
         body tracked (:meth:`_track_body`), the frames' blur matched, and further passes."""
         s = self.settings
         spent = {name: (0.0, 0) for name in self.order}
-        if not history and s.global_init:
-            for name in self.order:
+        if not history and s.global_init:  # the long bones at once, then the rest in turn
+            lone = [name for name in self.order if self.roles[name] in LONE_ROLES]
+            start = time.perf_counter()
+            searched = self.scene.global_searches(frame, lone, poses, lone=True)
+            for name, (poses[name], n) in searched.items():
+                spent[name] = ((time.perf_counter() - start) / len(lone), n)
+            for name in (name for name in self.order if name not in searched):
                 start = time.perf_counter()
-                poses[name], n = self.scene.global_search(
-                    frame, name, poses, lone=self.roles[name] in LONE_ROLES
-                )
+                poses[name], n = self.scene.global_search(frame, name, poses)
                 spent[name] = (time.perf_counter() - start, n)
         bodies: dict[str, BodyResult] = {}
         for name in self.order:

@@ -1,13 +1,16 @@
 """Levenberg-Marquardt with Broyden's update (registration.search) on residuals whose optimum
 is known: the update must reach it in the renders it is allotted, and MINPACK's path must
-stay what the implant settings take."""
+stay what the implant settings take; searches run at once share numba's threads."""
 
 from __future__ import annotations
 
+import threading
+
+import numba
 import numpy as np
 import pytest
 
-from registration.search import levenberg_marquardt
+from registration.search import at_once, levenberg_marquardt
 from registration.settings import Settings
 
 TRUTH = np.array([0.4, -0.3, 0.2, 0.5, -0.6, 0.25])  # mm, deg: a KPM prediction's error
@@ -61,3 +64,27 @@ def test_minpack_stays_for_the_implant_settings() -> None:
     x = levenberg_marquardt(objective, Settings(), 5, broyden=False)
     assert objective.evaluations >= 5 + 12 * 4
     np.testing.assert_allclose(x, objective.optimum(), atol=2.5e-3)
+
+
+def test_searches_at_once_share_the_threads_and_return_in_order() -> None:
+    """Searches run at once each get their share of numba's threads (at least one) in a
+    thread of their own, return in the order given, leave the caller's threads as they were,
+    and a search's error reaches the caller."""
+    caller = numba.get_num_threads()
+
+    def search(k: int):
+        return lambda: (k, numba.get_num_threads(), threading.get_ident())
+
+    results = at_once([search(k) for k in range(3)])
+    assert [k for k, _, _ in results] == [0, 1, 2]
+    workers = min(3, numba.config.NUMBA_NUM_THREADS)
+    assert {n for _, n, _ in results} == {max(1, caller // workers)}
+    assert len({ident for _, _, ident in results}) == workers
+    assert (workers > 1) == (threading.get_ident() not in {i for _, _, i in results})
+    assert numba.get_num_threads() == caller
+
+    def failing() -> None:
+        raise ValueError("femur leaves the field of view")
+
+    with pytest.raises(ValueError, match="femur leaves"):
+        at_once([search(0), failing])

@@ -352,6 +352,24 @@ def test_residuals_of_several_poses_are_each_poses_own(knee_case) -> None:
     assert objective.cost(Ts[3]) == 1.0
 
 
+def test_the_long_bones_searched_at_once_land_where_each_alone_does(knee_case) -> None:
+    """The first frame's global searches of the long bones run at once (a thread each, one
+    numba thread each) and land each where its search alone lands, to the bit, in as many
+    evaluations: renders do not depend on the threads they run on."""
+    c = knee_case
+    settings = SETTINGS.model_copy(update={"de_popsize": 4, "de_maxiter": 3})
+    tracker = Tracker(c.view, c.frames[:1], c.models, settings, c.soft)
+    poses = _start(c.truth[0], c.models, 3.0, seed=1)
+    long_bones = ["tibia_fibula", "femur"]
+    together = tracker.scene.global_searches(0, long_bones, poses, lone=True)
+    assert list(together) == long_bones
+    for name in long_bones:
+        alone = tracker.scene.global_search(0, name, poses, lone=True)
+        assert np.array_equal(together[name][0], alone[0])
+        # a Sobol start of the power of two from popsize x 6 (32), scored at each generation
+        assert together[name][1] == alone[1] == 32 * (3 + 1)
+
+
 def test_least_squares_refinement_reaches_the_derivative_free_optimum_with_fewer_renders(
     knee_case, seed, measured
 ) -> None:
