@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
@@ -108,34 +108,31 @@ class Searches(ABC):
         current pose (registration.search.global_search) on the coarsest level, a mesh
         rendered from its coarse mesh (:meth:`Scene.objective`). Returns the pose and the
         evaluations it took."""
-        return self.global_searches(frame, [name], poses, scale, lone, beside)[name]
+        return self.prepared_global_search(frame, name, poses, scale, lone, beside)()
 
-    def global_searches(
+    def prepared_global_search(
         self,
         frame: int,
-        names: Sequence[str],
+        name: str,
         poses: Poses,
         scale: float = 1.0,
         lone: bool = False,
         beside: tuple[str, ...] = (),
-    ) -> dict[str, tuple[np.ndarray, int]]:
-        """:meth:`global_search` of each body in ``names`` from ``poses``, the searches run at
-        once (registration.search.at_once): each objective sees the others at ``poses``, not
-        at their new estimates. By name: the pose and the evaluations."""
-        objectives = [
-            self.objective(frame, self.levels[0], name, poses, lone, beside=beside, outline=True)
-            for name in names
-        ]
+    ) -> Callable[[], tuple[np.ndarray, int]]:
+        """:meth:`global_search` ready to run, its objective built now (:class:`OutOfView`
+        now, not when it runs): for several run at once (registration.search.at_once), each
+        from its own poses."""
+        objective = self.objective(
+            frame, self.levels[0], name, poses, lone, beside=beside, outline=True
+        )
+        T0 = poses[name]
+        axes = T0[:3, :3] @ search.principal_axes(self.bodies[name].points_mm)
 
-        def searched(name: str, objective: Searched) -> Callable[[], np.ndarray]:
-            axes = poses[name][:3, :3] @ search.principal_axes(self.bodies[name].points_mm)
-            return lambda: search.global_search(objective, axes, self.settings, scale)
+        def run() -> tuple[np.ndarray, int]:
+            x = search.global_search(objective, axes, self.settings, scale)
+            return compose(x, T0, self.bodies[name].centroid_mm), objective.evaluations
 
-        steps = search.at_once([searched(n, o) for n, o in zip(names, objectives, strict=True)])
-        return {
-            name: (compose(x, poses[name], self.bodies[name].centroid_mm), objective.evaluations)
-            for name, x, objective in zip(names, steps, objectives, strict=True)
-        }
+        return run
 
     def score(self, frame: int, name: str, poses: Poses) -> tuple[float, float]:
         """Body ``name``'s NCC and gradient NCC at ``poses`` on the finest level."""

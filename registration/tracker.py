@@ -46,7 +46,7 @@ from registration.results import BodyResult, FrameResult
 from registration.roles import LONE_ROLES, Role, partners, tracking_order
 from registration.scene import Poses, Scene
 from registration.se3 import twist_exp
-from registration.search import kinematic_line_search
+from registration.search import at_once, kinematic_line_search
 from registration.settings import Settings
 from registration.views import Views
 
@@ -194,7 +194,8 @@ class Tracker:
 
         Differential evolution in twice the first frame's box about each candidate, the
         bodies already placed in the scene, scored by its NCC on the coarsest level
-        (registration.autostart).
+        (registration.autostart); the candidates' searches run at once
+        (registration.search.at_once).
 
         Args:
             frame: Index of the frame.
@@ -208,11 +209,19 @@ class Tracker:
         if not candidates:
             raise ValueError(f"no candidate start for {name}: is it in the frame?")
         beside = tuple(placed)
-        best, best_score = None, -math.inf
+        trials, searches = [], []
         for T in candidates:
             trial = {**{b: T for b in self.order}, **placed, name: T}
             try:
-                pose, _ = self.scene.global_search(frame, name, trial, 2.0, True, beside)
+                searches.append(
+                    self.scene.prepared_global_search(frame, name, trial, 2.0, True, beside)
+                )
+            except OutOfView:
+                continue
+            trials.append(trial)
+        best, best_score = None, -math.inf
+        for trial, (pose, _) in zip(trials, at_once(searches), strict=True):
+            try:
                 objective = self.scene.objective(
                     frame, self.scene.levels[0], name, trial | {name: pose}, True, beside=beside
                 )
@@ -235,10 +244,10 @@ class Tracker:
         if not history and s.global_init:  # the long bones at once, then the rest in turn
             lone = [name for name in self.order if self.roles[name] in LONE_ROLES]
             start = time.perf_counter()
-            searched = self.scene.global_searches(frame, lone, poses, lone=True)
-            for name, (poses[name], n) in searched.items():
+            searches = [self.scene.prepared_global_search(frame, n, poses, lone=True) for n in lone]
+            for name, (poses[name], n) in zip(lone, at_once(searches), strict=True):
                 spent[name] = ((time.perf_counter() - start) / len(lone), n)
-            for name in (name for name in self.order if name not in searched):
+            for name in (name for name in self.order if name not in lone):
                 start = time.perf_counter()
                 poses[name], n = self.scene.global_search(frame, name, poses)
                 spent[name] = (time.perf_counter() - start, n)

@@ -19,6 +19,7 @@ from registration.metrics import pose_error
 from registration.objective import OutOfView
 from registration.priors import patellofemoral_deviation, predict
 from registration.se3 import compose
+from registration.search import at_once
 from registration.segment import BONE_UNITS
 from registration.settings import Settings
 from registration.tracker import Tracker
@@ -361,13 +362,14 @@ def test_the_long_bones_searched_at_once_land_where_each_alone_does(knee_case) -
     tracker = Tracker(c.view, c.frames[:1], c.models, settings, c.soft)
     poses = _start(c.truth[0], c.models, 3.0, seed=1)
     long_bones = ["tibia_fibula", "femur"]
-    together = tracker.scene.global_searches(0, long_bones, poses, lone=True)
-    assert list(together) == long_bones
-    for name in long_bones:
+    together = at_once(
+        [tracker.scene.prepared_global_search(0, name, poses, lone=True) for name in long_bones]
+    )
+    for name, (pose, evaluations) in zip(long_bones, together, strict=True):
         alone = tracker.scene.global_search(0, name, poses, lone=True)
-        assert np.array_equal(together[name][0], alone[0])
+        assert np.array_equal(pose, alone[0])
         # a Sobol start of the power of two from popsize x 6 (32), scored at each generation
-        assert together[name][1] == alone[1] == 32 * (3 + 1)
+        assert evaluations == alone[1] == 32 * (3 + 1)
 
 
 def test_least_squares_refinement_reaches_the_derivative_free_optimum_with_fewer_renders(
