@@ -20,13 +20,14 @@ rays, what the view itself can see), ``refused`` (why the estimate would not run
 in the field: the compensated volume is then the moving one), the bones' mean Dice of the
 segmentation of the still and the compensated volume, the seconds of the estimate and the
 compensated FDK, and the peak resident memory. ``timing`` (``--timing``): one scan of 360
-views of 512 x 512 pixels (1.2 mm) into 256^3 voxels with 2 mm of sway: seconds, peak memory,
-the motion's error. ``demo_tre`` (``--demos STILL SWAYING``): the tracking TRE of two
-``cbct demo --quick`` studies, made with ``--sway-mm 0`` and with the default sway.
+views of 512 x 512 pixels (1.2 mm; ``--timing-pixels 1024``: the clinical panel's 0.6 mm)
+into 256^3 voxels with 2 mm of sway: seconds, peak memory, the motion's error. ``demo_tre``
+(``--demos STILL SWAYING``): the tracking TRE of two ``cbct demo --quick`` studies, made with
+``--sway-mm 0`` and with the default sway.
 
-Usage: ``python bench/motion.py [--phantoms knee tka] [--sizes 0 1 2 4] [--seeds 1 2 3] [--timing]
-[--demos STILL SWAYING]``; ``--small`` runs 90 views of 128 x 128 on 2 mm voxels to check the
-harness in a minute.
+Usage: ``python bench/motion.py [--phantoms knee tka] [--sizes 0 1 2 4] [--seeds 1 2 3]
+[--timing] [--timing-pixels 1024] [--demos STILL SWAYING]``; ``--small`` runs 90 views of
+128 x 128 on 2 mm voxels to check the harness in a minute.
 """
 
 from __future__ import annotations
@@ -243,10 +244,11 @@ def _round(value: float | None) -> float | None:
     return None if value is None else round(value, 4)
 
 
-def timing() -> dict:
-    """360 views of 512 x 512 into 256^3 (0.55 mm) with 2 mm of sway: estimate + compensated FDK."""
+def timing(pixels: int = 512) -> dict:
+    """360 views of ``pixels`` x ``pixels`` (the panel's width kept) into 256^3 (0.55 mm) with
+    2 mm of sway: estimate + compensated FDK."""
     spec = KneePhantomSpec()
-    prot = protocol(360, 512)
+    prot = protocol(360, pixels)
     sim_grid = knee_grid(spec, spacing_mm=0.75, height_mm=LEG_MM, below_mm=LEG_MM / 2)
     scan = simulate_knee_scan(prot, spec, seed=0, grid=sim_grid, sway=SwaySpec(peak_mm=2.0))
     grid = VolumeGrid.centered(
@@ -262,7 +264,7 @@ def timing() -> dict:
     full, across = surface_errors_mm(estimate.motion, points, scan.true_poses, sources)
     return {
         "views": 360,
-        "pixels": 512,
+        "pixels": pixels,
         "voxels": 256,
         "seconds": round(seconds, 1),
         "motion_error_mm_median": round(float(np.median(full)), 3),
@@ -296,6 +298,9 @@ def main() -> None:
     parser.add_argument("--phantoms", nargs="*", choices=list(PHANTOMS), default=list(PHANTOMS))
     parser.add_argument("--small", action="store_true")
     parser.add_argument("--timing", action="store_true")
+    parser.add_argument(
+        "--timing-pixels", type=int, default=512, help="--timing's panel: 512, or 1024 (clinical)"
+    )
     parser.add_argument("--demos", type=Path, nargs=2, metavar=("STILL", "SWAYING"))
     args = parser.parse_args()
     size = (
@@ -316,7 +321,7 @@ def main() -> None:
     report = {
         "meta": {"size": size, "cpu_count": __import__("os").cpu_count()},
         "rows": rows,
-        "timing": timing() if args.timing else None,
+        "timing": timing(args.timing_pixels) if args.timing else None,
         "demo_tre": demo_tre(*args.demos) if args.demos else None,
     }
     print(json.dumps(report))
