@@ -89,7 +89,8 @@ def _args(paths, out, **override) -> list[str]:
 def test_register_writes_poses_and_metrics(inputs, measured) -> None:
     folder, paths = inputs
     out = folder / "run"
-    result = runner.invoke(app, _args(paths, out, truth=paths["truth"], initial=paths["initial"]))
+    args = _args(paths, out, truth=paths["truth"], initial=paths["initial"])
+    result = runner.invoke(app, [*args, "--settings", str(paths["near_start"])])
     assert result.exit_code == 0, result.output
     poses = read_poses(out / "poses.csv")
     assert {(p.frame, p.body) for p in poses} == {(k, b) for k in range(FRAMES) for b in BONES}
