@@ -227,8 +227,14 @@ def scan_complete(study: Path) -> bool:
 
 
 def count_views(study: Path) -> int:
+    """The view records in place in the study's scan: a view's files reserved before its
+    pulse, or left half-written by a kill (``.view_0004.tmp.json``), are not a stored view."""
     try:
-        return sum(1 for e in os.scandir(study / "scan" / "views") if e.name.endswith(".json"))
+        return sum(
+            1
+            for e in os.scandir(study / "scan" / "views")
+            if e.name.endswith(".json") and not e.name.startswith(".")
+        )
     except FileNotFoundError:
         return 0
 

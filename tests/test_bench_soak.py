@@ -57,3 +57,19 @@ def test_small_soak_meets_its_targets(tmp_path):
         backends=("sim",),  # the UR backend's stops: tests/scanner/test_stop_signals_scan.py
     )
     check(result, 2)
+
+
+def test_a_view_reserved_before_its_pulse_is_not_counted_as_stored(tmp_path):
+    """The soak (and the stop-signal tests) wait for stored views by counting their records: a
+    view's files reserved before its pulse (``Study.reserve``: ``.view_0001.tmp.json``) are
+    not one, or a stop meant for after a view lands before the view's exposure."""
+    from scanner.study_folder import Study
+
+    soak = load_soak()
+    study = Study.create(tmp_path / "study", {})
+    (tmp_path / "study" / "scan" / "views").mkdir(parents=True)
+    study.write_with_record({}, "scan/views/view_0000.json", lambda _digests: b"{}")
+    reservation = study.reserve({"scan/views/view_0001.json": 1024})
+    assert any(p.name.endswith(".json") for p in reservation.paths)
+    assert soak.count_views(tmp_path / "study") == 1
+    reservation.release()

@@ -64,12 +64,6 @@ def cbct_scan(
     return subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=log.open("wb"), stderr=subprocess.STDOUT)
 
 
-def views_stored(study: Path) -> int:
-    with contextlib.suppress(FileNotFoundError):
-        return sum(1 for e in os.scandir(study / "scan" / "views") if e.name.endswith(".json"))
-    return 0
-
-
 def wait_until(ready: Callable[[], bool], process: subprocess.Popen, what: str) -> None:
     deadline = time.monotonic() + 120
     while not ready():
@@ -114,6 +108,7 @@ def check_stopped(
     assert code == 1 and f"stopped by {sig.name}" in output, output[-2000:]
     before, pending = sent
     late = [t - pending for t, body in generator_commands(study, session) if body == "EXP"]
+    assert late, f"no EXP in session {session}: the signal came before the moment it was meant for"
     assert max(late) < 0, f"EXP sent {max(late) * 1e3:.3f} ms after {sig.name}\n{output[-800:]}"
     aborts = [t for t, who, what in events if who == "generator" and what == "abort"]
     done = [min(t for t in aborts if t >= before)]
@@ -146,14 +141,14 @@ def test_stop_signals_at_random_moments_of_a_scan_stop_it_at_once(tmp_path):
         log = tmp_path / f"session-{session}.log"
         first = session == 1
         process = cbct_scan(study, "sim", config, proto if first else None, log)
-        stored = views_stored(study)
+        stored = soak.count_views(study)
         k = int(rng.integers(1, 4))  # the session's k-th view
         if moment == "pulse":
             pulses = functools.partial(exposures_logged, events_path)
             wait_until(lambda: pulses() >= k, process, f"pulse {k}")  # noqa: B023
         else:
             goal = stored + k
-            wait_until(lambda: views_stored(study) >= goal, process, f"view {k}")  # noqa: B023
+            wait_until(lambda: soak.count_views(study) >= goal, process, f"view {k}")  # noqa: B023
             time.sleep(rng.uniform(0.0, 0.02))
         sent = send(process, sig)
         code = process.wait(timeout=60)
@@ -215,7 +210,7 @@ def test_a_stop_signal_while_a_ur_call_waits_on_its_worker(tmp_path, panel_maps)
         )
         log = tmp_path / "session-1.log"
         process = cbct_scan(study, "ur", config, proto, log)
-        wait_until(lambda: views_stored(study) >= 2, process, "view 2")
+        wait_until(lambda: soak.count_views(study) >= 2, process, "view 2")
         source.process.send_signal(signal.SIGSTOP)
         try:
             time.sleep(0.010)
