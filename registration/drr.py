@@ -246,14 +246,17 @@ def bone_regions(labels: Volume, edge_mm: float = BONE_EDGE_MM) -> np.ndarray:
     units = np.zeros(labels.data.shape, dtype=np.int8)
     for k, values in enumerate(BONE_UNITS.values(), start=1):
         units[np.isin(labels.data, values)] = k
-    if edge_mm <= 0:
+    if edge_mm <= 0 or not units.any():
         return units
-    outside = units == 0
+    # the rim lies within edge_mm of a bone: the distances over the bones' box widened by it
+    box, _ = _crop(units > 0, labels.grid, edge_mm)
+    inside = units[box]  # a view: the rim is written into units
+    outside = inside == 0
     distance, nearest = distance_transform_edt(
         outside, sampling=labels.grid.spacing_mm[::-1], return_indices=True
     )
-    rim = outside & (distance <= edge_mm) & (labels.data == SOFT_TISSUE_LABEL)
-    units[rim] = units[tuple(index[rim] for index in nearest)]
+    rim = outside & (distance <= edge_mm) & (labels.data[box] == SOFT_TISSUE_LABEL)
+    inside[rim] = inside[tuple(index[rim] for index in nearest)]
     return units
 
 
