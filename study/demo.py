@@ -124,13 +124,20 @@ SMOKE = {
     "frames": 3,
     "max_flexion_deg": 20.0,
     "motion_rounds": 1,
-    "registration": {"de_popsize": 5, "de_maxiter": 10},
+    "registration": {
+        "de_popsize": 5,
+        "de_maxiter": 10,
+        "powell_maxfev": 100,
+        "nelder_mead_maxfev": 40,
+    },
 }
-"""The smallest demo that runs every stage (about 35 s on one core): it checks an installation,
-not the accuracy. Its 40 views are too few to follow the patient's sway (the recon stage says
-so and reconstructs as scanned), and at its coarse fluoroscopy the registrations fail (the
-report says so) whatever the first frame's search costs, so it searches with a sixth of the
-settings' differential evolution (``registration``: fields of the settings it overrides).
+"""The smallest demo that runs every stage (about a minute on one core): it checks an
+installation, not the accuracy. Its 40 views are too few to follow the patient's sway (the
+recon stage says so and reconstructs as scanned), and at its coarse fluoroscopy the
+registrations fail (the report says so) whatever the first frame's search costs, so it
+searches with a sixth of the settings' differential evolution and a quarter or a third of
+their Powell and Nelder-Mead evaluations (``registration``: fields of the settings it
+overrides).
 Smaller breaks a stage: the calibration needs the panel read out at 512 to find the steel
 balls."""
 SIZES = {"full": FULL, "quick": QUICK, "smoke": SMOKE}
