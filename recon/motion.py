@@ -24,7 +24,7 @@ import numba
 import numpy as np
 
 from recon.geometry import Geometry
-from recon.project import ROWS_PER_JOB, pixel_quads, row_gather
+from recon.project import ROWS_PER_JOB, pixel_quads, quad_pairs, row_gather
 from recon.volume import VolumeGrid
 
 MOTION_COLUMNS = ("view", "body", *(f"t{r}{c}" for r in range(4) for c in range(4)))
@@ -179,15 +179,15 @@ def _blended_samples(n, pu, pv, pw, umax, vmax, cols, scale, idx, fu, fv, wt):  
 def _field_kernel(quads, scale, mats, weights, origin, spacing, out):  # pragma: no cover
     """out[z, y, x] += sum over views of scale * bilinear(image) / w^2 at the blended
     projection ``sum_b weights[b, z, y, x] * mats[view, b] @ (x, y, z, 1)``, 0 off the panel;
-    the images as recon.project.pixel_quads viewed as complex128, (views, rows, cols). Rows
+    the images as recon.project.quad_pairs, (views, rows, cols, 2). Rows
     are taken :data:`recon.project.ROWS_PER_JOB` at a time, view by view, as the plain
     backprojector takes them."""
-    n_views, rows, cols = quads.shape
+    n_views, rows, cols = quads.shape[:3]
     n_bodies = mats.shape[1]
     nz, ny, nx = out.shape
     umax = np.float32(cols - 1.0)
     vmax = np.float32(rows - 1.0)
-    flat = quads.reshape(n_views, rows * cols)
+    flat = quads.reshape(n_views, rows * cols * 2)
     blocks = (ny + ROWS_PER_JOB - 1) // ROWS_PER_JOB
     for job in numba.prange(nz * blocks):
         z = job // blocks
@@ -202,7 +202,8 @@ def _field_kernel(quads, scale, mats, weights, origin, spacing, out):  # pragma:
         fu = np.empty(nx, dtype=np.float32)
         fv = np.empty(nx, dtype=np.float32)
         wt = np.empty(nx, dtype=np.float32)
-        taps = np.empty(nx + 1, dtype=np.complex128)
+        upper = np.empty(nx + 1, dtype=np.complex64)
+        lower = np.empty(nx + 1, dtype=np.complex64)
         for view in range(n_views):
             image = flat[view]
             for y in range(y0, y1):
@@ -227,7 +228,7 @@ def _field_kernel(quads, scale, mats, weights, origin, spacing, out):  # pragma:
                         pw[x] += a * (h2 + xf * s2)
                         xf += np.float32(1.0)
                 _blended_samples(nx, pu, pv, pw, umax, vmax, cols, scale[view], idx, fu, fv, wt)
-                row_gather(nx, image, idx, fu, fv, wt, taps, acc[y - y0])
+                row_gather(nx, image, idx, fu, fv, wt, upper, lower, acc[y - y0])
         for y in range(y0, y1):
             for x in range(nx):
                 out[z, y, x] += acc[y - y0, x]
@@ -264,7 +265,7 @@ def backproject_field(
     if quads.ndim == 3:
         quads = pixel_quads(quads)
     _field_kernel(
-        np.ascontiguousarray(quads, dtype=np.float32).view(np.complex128)[..., 0],
+        quad_pairs(quads),
         np.ones(len(geometry), np.float32) if scale is None else np.asarray(scale, np.float32),
         moved_matrices(geometry, np.asarray(poses, dtype=np.float64)),
         np.ascontiguousarray(weights, dtype=np.float32),

@@ -306,7 +306,7 @@ def test_the_upright_backprojector_is_the_general_one_to_float_rounding(orbit, s
     assert project.upright(geometry, GRID)
     images = 1 + smooth_random((20, 64, 80), (0, 2, 2), seed=5 + seed)
     images[:, :3] = images[:, -3:] = images[:, :, :3] = images[:, :, -3:] = 0.0
-    quads = project.pixel_quads(images).view(np.complex128)[..., 0]
+    quads = project.quad_pairs(project.pixel_quads(images))
     ones, matrices = np.ones(20, np.float32), np.asarray(geometry.matrices)
     origin, spacing = np.array(GRID.origin_mm), np.array(GRID.spacing_mm)
     general = np.zeros(GRID.shape, np.float32)
