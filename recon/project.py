@@ -429,11 +429,12 @@ def row_gather(n, pairs, idx, fu, fv, wt, upper, lower, acc):  # pragma: no cove
     loads fetch its whole bilinear footprint; ``upper`` and ``lower`` (complex64, n + 1) are
     scratch. The scalar gather only moves those pairs, two samples a step (``idx`` holds a
     valid index past the n-th), and the interpolation runs vectorised after it, on pairs (a
-    stride the vector units deinterleave within their lanes: 15 % faster than whole quads).
+    stride the vector units deinterleave within their lanes, where a quad's four values
+    would cross them: docs/algorithms/fdk.md).
     """
     one = np.uint64(1)
     for k in range(0, n, 2):
-        k0 = np.uint64(k)
+        k0 = np.uint64(k)  # unsigned indices: no wrap-around checks in the unrolled step
         i = np.uint64(idx[k0]) << one
         j = np.uint64(idx[k0 + one]) << one
         upper[k0] = pairs[i]
@@ -751,7 +752,6 @@ def backproject_weighted(
     quads = np.asarray(images)
     if quads.ndim == 3:
         quads = pixel_quads(quads)
-    quads = np.ascontiguousarray(quads, dtype=np.float32)
     if quads.shape[1:] != (geometry.rows, geometry.cols, 4) or len(quads) not in (1, len(geometry)):
         raise ValueError(
             f"images of shape {quads.shape} for {len(geometry)} views of {geometry.rows} x "
